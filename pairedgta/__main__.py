@@ -1,0 +1,33 @@
+"""`python -m pairedgta +experiment=<name>`: compose the config, run the stage graph, log to MLflow."""
+from __future__ import annotations
+
+import logging
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from pairedgta.errors import PairedGTAError
+
+log = logging.getLogger("pairedgta")
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> None:
+    from pairedgta.app import run
+
+    try:
+        summary = run(cfg)
+    except PairedGTAError as exc:
+        # one line, no traceback: the message names the file/key and the fix
+        print(f"error: {exc}", file=sys.stderr)
+        log.error("%s", exc)
+        sys.exit(2)
+    where = summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
+    print(f"results: {where}")
+    for name, path in summary.get("evaluate", {}).items():
+        print(f"  evaluate [{name}]: {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""Paired datasets: groups of images of one scene keyed by condition name, plus image I/O."""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from pairedgta.errors import DataError
+
+log = logging.getLogger(__name__)
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class Group:
+    """X_k: one scene under several conditions; `labels` holds ground truth where the source has it."""
+
+    group_id: str
+    images: dict[str, Path]
+    labels: dict[str, Path] = field(default_factory=dict)
+    descriptor: Path | None = None
+
+
+@dataclass
+class PairedDataset:
+    name: str
+    root: Path
+    reference: str
+    conditions: list[str]
+    groups: list[Group]
+    skipped_without_reference: int = 0
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def fingerprint(self) -> str:
+        """Identity of an external dataset for the cache: relative paths and sizes of every used file."""
+        h = hashlib.sha256()
+        for g in self.groups:
+            for cond in sorted(g.images):
+                p = g.images[cond]
+                h.update(f"{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
+            for cond in sorted(g.labels):
+                p = g.labels[cond]
+                h.update(f"L|{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
+        return h.hexdigest()[:16]
+
+
+def load_image(path: Path) -> np.ndarray:
+    """RGB uint8 H x W x 3; a corrupt or missing file is a one-line DataError naming it."""
+    try:
+        with Image.open(path) as im:
+            im.load()
+            return np.asarray(im.convert("RGB"))
+    except FileNotFoundError:
+        raise DataError(f"{path}: image not found; regenerate the dataset or fix dataset.root") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise DataError(f"{path}: not a readable image ({type(exc).__name__}); re-export or delete the file") from None
+
+
+def load_label(path: Path) -> np.ndarray:
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode not in ("L", "P", "I;16", "I"):
+                raise DataError(f"{path}: label map has mode {im.mode}; expected a single-channel PNG of train ids")
+            return np.asarray(im).astype(np.uint8)
+    except FileNotFoundError:
+        raise DataError(f"{path}: label map not found") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise DataError(f"{path}: not a readable label map ({type(exc).__name__}); regenerate it") from None
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DataError(f"{path}: image not found") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise DataError(f"{path}: not a readable image ({type(exc).__name__}); re-export or delete the file") from None
+
+
+def load_group_images(group: Group, conditions: Sequence[str]) -> dict[str, np.ndarray]:
+    """All images of a group for `conditions` (those present); sizes must agree within the group."""
+    images = {c: load_image(group.images[c]) for c in conditions if c in group.images}
+    shapes = {c: im.shape for c, im in images.items()}
+    if len(set(shapes.values())) > 1:
+        detail = ", ".join(f"{group.images[c].name}={s[1]}x{s[0]}" for c, s in shapes.items())
+        raise DataError(f"group {group.group_id}: images differ in size ({detail}); re-render or remove the group")
+    return images
+
+
+def save_png_atomic(array: np.ndarray, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    Image.fromarray(array).save(tmp, format="PNG")
+    os.replace(tmp, path)
+
+
+def select_conditions(available: Iterable[str], wanted: Sequence[str] | None, known: Sequence[str]) -> list[str]:
+    from pairedgta.errors import ConfigError
+
+    if wanted is None:
+        return [c for c in known if c in set(available)]
+    unknown = [c for c in wanted if c not in known]
+    if unknown:
+        raise ConfigError(f"unknown condition(s) {unknown}; known conditions: {', '.join(known)}")
+    return list(wanted)

@@ -1,0 +1,58 @@
+"""The project's own layout, written by the generate stage:
+
+    <root>/index.json                       conditions, reference, renderer, scenes
+    <root>/scenes/<scene_id>/<condition>.png           image
+    <root>/scenes/<scene_id>/<condition>_labels.png    train ids (backends with labels)
+    <root>/scenes/<scene_id>/<condition>_instances.png instance ids
+    <root>/scenes/<scene_id>/descriptor.json           the replay file
+    <root>/scenes/<scene_id>/timings.json
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from pairedgta.conditions import ConditionGrid
+from pairedgta.datasets.base import Group, PairedDataset
+from pairedgta.errors import DataError
+
+log = logging.getLogger(__name__)
+INDEX = "index.json"
+
+
+def scene_files(scene_dir: Path, condition: str) -> tuple[Path, Path, Path]:
+    return scene_dir / f"{condition}.png", scene_dir / f"{condition}_labels.png", scene_dir / f"{condition}_instances.png"
+
+
+def open_generated(root: str | Path, grid: ConditionGrid, name: str = "generated") -> PairedDataset:
+    root = Path(root)
+    index_path = root / INDEX
+    if not root.is_dir():
+        raise DataError(f"dataset.root={root} does not exist; run the generate stage or fix dataset.root")
+    if not index_path.is_file():
+        raise DataError(f"{index_path} is missing; {root} is not a generated PairedGTA dataset (run stage generate)")
+    try:
+        index = json.loads(index_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{index_path}: corrupt index ({exc.msg}); rerun the generate stage") from None
+    groups, skipped = [], 0
+    for scene in index.get("scenes", []):
+        scene_dir = root / scene["dir"]
+        images, labels = {}, {}
+        for cond in grid.names:
+            img, lab, _ = scene_files(scene_dir, cond)
+            if img.is_file():
+                images[cond] = img
+                if lab.is_file():
+                    labels[cond] = lab
+        if grid.reference not in images:
+            skipped += 1
+            continue
+        desc = scene_dir / "descriptor.json"
+        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None))
+    if skipped:
+        log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
+    if not groups:
+        raise DataError(f"{index_path}: the dataset has no group with the reference {grid.reference}; regenerate it")
+    return PairedDataset(name, root, grid.reference, grid.names, groups, skipped)

@@ -1,0 +1,67 @@
+"""Percentile bootstrap over images, seeded, vectorised with multinomial resampling weights."""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Callable
+
+import numpy as np
+
+
+def resample_weights(n: int, resamples: int, seed: int) -> np.ndarray:
+    """resamples x n counts: how often each image is drawn in each bootstrap sample."""
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(n, np.full(n, 1.0 / n), size=resamples) if n else np.zeros((resamples, 0))
+
+
+def ratio_ci(numer: np.ndarray, denom: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """CI of sum(numer)/sum(denom) per column (N images x C classes); NaN where undefined."""
+    numer, denom = np.asarray(numer, float), np.asarray(denom, float)
+    nan = np.full(numer.shape[1:], np.nan)
+    if numer.shape[0] == 0 or resamples <= 0:
+        return nan, nan.copy()
+    w = resample_weights(numer.shape[0], resamples, seed)
+    alpha = (1 - confidence) / 2
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: classes never in the reference
+        boot = (w @ numer) / (w @ denom)  # a resample without the class gives NaN and is ignored
+        lo = np.nanquantile(boot, alpha, axis=0)
+        hi = np.nanquantile(boot, 1 - alpha, axis=0)
+    undefined = denom.sum(axis=0) == 0
+    return np.where(undefined, np.nan, lo), np.where(undefined, np.nan, hi)
+
+
+def statistic_ci(n: int, statistic: Callable[[np.ndarray], float], resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """CI of statistic(indices) over resampled index sets; NaN draws (e.g. constant ranks) are dropped."""
+    if n < 2 or resamples <= 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    values = np.array([statistic(rng.integers(0, n, size=n)) for _ in range(resamples)], dtype=float)
+    values = values[np.isfinite(values)]
+    if len(values) == 0:
+        return math.nan, math.nan
+    alpha = (1 - confidence) / 2
+    return float(np.quantile(values, alpha)), float(np.quantile(values, 1 - alpha))
+
+
+def spearman_ci(x: np.ndarray, y: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """Percentile CI of Spearman's rho over frames resampled with replacement, vectorised:
+    average ranks per resample (ties as scipy), then Pearson of the ranks. Constant draws are dropped."""
+    from scipy.stats import rankdata
+
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    n = len(x)
+    if n < 2 or resamples <= 0:
+        return math.nan, math.nan
+    idx = np.random.default_rng(seed).integers(0, n, size=(resamples, n))
+    rx = rankdata(x[idx], axis=1)
+    ry = rankdata(y[idx], axis=1)
+    rx -= rx.mean(axis=1, keepdims=True)
+    ry -= ry.mean(axis=1, keepdims=True)
+    den = np.sqrt((rx * rx).sum(axis=1) * (ry * ry).sum(axis=1))
+    ok = den > 0
+    if not ok.any():
+        return math.nan, math.nan
+    rho = (rx * ry).sum(axis=1)[ok] / den[ok]
+    alpha = (1 - confidence) / 2
+    return float(np.quantile(rho, alpha)), float(np.quantile(rho, 1 - alpha))

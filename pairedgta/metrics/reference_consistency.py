@@ -1,0 +1,54 @@
+"""xi_c(i), eq. (class_reference_consistency): of the pixels the clean reference assigns to class c,
+the share still predicted as c under condition i, pooled over all images (not averaged per image)."""
+from __future__ import annotations
+
+import torch
+from torchmetrics import Metric
+
+
+def reference_consistency_counts(
+    reference_labels: torch.Tensor, predicted_labels: torch.Tensor, num_classes: int, ignore_index: int = 255
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-class (retained, reference) pixel counts of one batch; void reference pixels are excluded."""
+    ref = torch.as_tensor(reference_labels).long().reshape(-1)
+    pred = torch.as_tensor(predicted_labels).long().reshape(-1)
+    if ref.shape != pred.shape:
+        raise ValueError(f"reference and prediction differ in size: {tuple(ref.shape)} vs {tuple(pred.shape)}")
+    valid = (ref != ignore_index) & (ref >= 0) & (ref < num_classes)
+    ref_v = ref[valid]
+    reference = torch.bincount(ref_v, minlength=num_classes)[:num_classes]
+    retained = torch.bincount(ref_v[pred[valid] == ref_v], minlength=num_classes)[:num_classes]
+    return retained, reference
+
+
+class ReferenceConsistency(Metric):
+    """Streaming xi: `update(reference_labels, predicted_labels)` adds counts, `compute()` divides.
+
+    Classes without reference pixels are NaN (undefined, not zero)."""
+
+    full_state_update = False
+    higher_is_better = True
+
+    def __init__(self, num_classes: int = 19, ignore_index: int = 255, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.num_classes = int(num_classes)
+        self.ignore_index = int(ignore_index)
+        self.add_state("retained", default=torch.zeros(self.num_classes, dtype=torch.long), dist_reduce_fx="sum")
+        self.add_state("reference", default=torch.zeros(self.num_classes, dtype=torch.long), dist_reduce_fx="sum")
+
+    def update(self, reference_labels: torch.Tensor, predicted_labels: torch.Tensor) -> None:
+        retained, reference = reference_consistency_counts(
+            reference_labels, predicted_labels, self.num_classes, self.ignore_index
+        )
+        self.retained += retained.to(self.retained.device)
+        self.reference += reference.to(self.reference.device)
+
+    def compute(self) -> torch.Tensor:
+        ref = self.reference.double()
+        return torch.where(ref > 0, self.retained.double() / ref.clamp_min(1), torch.full_like(ref, float("nan")))
+
+    def mean(self) -> float:
+        """Class-wise mean over the classes that are defined (have reference pixels)."""
+        xi = self.compute()
+        defined = ~torch.isnan(xi)
+        return float(xi[defined].mean()) if defined.any() else float("nan")

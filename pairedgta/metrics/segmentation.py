@@ -1,0 +1,35 @@
+"""Ground-truth metrics where the backend gives labels: per-class IoU from a streaming confusion matrix."""
+from __future__ import annotations
+
+import torch
+
+
+class ConfusionMatrix:
+    def __init__(self, num_classes: int = 19, ignore_index: int = 255) -> None:
+        self.num_classes = num_classes
+        self.ignore_index = ignore_index
+        self.mat = torch.zeros(num_classes, num_classes, dtype=torch.long)
+
+    def update(self, target: torch.Tensor, pred: torch.Tensor) -> None:
+        t = torch.as_tensor(target).long().reshape(-1)
+        p = torch.as_tensor(pred).long().reshape(-1)
+        valid = (t != self.ignore_index) & (t >= 0) & (t < self.num_classes) & (p >= 0) & (p < self.num_classes)
+        idx = t[valid] * self.num_classes + p[valid]
+        self.mat += torch.bincount(idx, minlength=self.num_classes**2).view(self.num_classes, self.num_classes)
+
+    def iou(self) -> torch.Tensor:
+        """Per-class IoU; NaN for classes absent from both target and prediction."""
+        m = self.mat.double()
+        tp = m.diag()
+        union = m.sum(0) + m.sum(1) - tp
+        return torch.where(union > 0, tp / union.clamp_min(1), torch.full_like(tp, float("nan")))
+
+    def miou(self) -> float:
+        """Mean over classes present in the ground truth (the Cityscapes convention)."""
+        iou = self.iou()
+        present = self.mat.sum(1) > 0
+        return float(iou[present].mean()) if present.any() else float("nan")
+
+    def accuracy(self) -> float:
+        total = self.mat.sum()
+        return float(self.mat.diag().sum() / total) if total > 0 else float("nan")

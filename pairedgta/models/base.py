@@ -1,0 +1,106 @@
+"""The one interface every model family implements.
+
+Callers always pass RGB in [0, 1]; normalisation, resizing and padding belong to the model and are
+applied inside `predict_proba`, so a wrong preprocessing cannot leak in from a caller.
+"""
+from __future__ import annotations
+
+import abc
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
+from pairedgta.errors import DataError
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+class Segmenter(abc.ABC):
+    """A Cityscapes segmenter: B x 3 x H x W RGB in [0,1] -> B x 19 x H x W probabilities at input size."""
+
+    num_classes: int = NUM_CLASSES
+    class_names: Sequence[str] = CLASS_NAMES
+
+    def __init__(
+        self,
+        name: str,
+        module: torch.nn.Module,
+        device: str | torch.device | None = "cpu",
+        batch_size: int = 4,
+        amp: str | None = None,
+        channels_last: bool = False,
+        compile: bool = False,
+    ) -> None:
+        self.name = name
+        self.device = resolve_device(device)
+        self.batch_size = max(1, int(batch_size))
+        self.amp = amp if self.device.type == "cuda" else None
+        module = module.eval().to(self.device)
+        if channels_last and self.device.type == "cuda":
+            module = module.to(memory_format=torch.channels_last)
+        self.channels_last = channels_last and self.device.type == "cuda"
+        self.module = torch.compile(module) if compile else module
+
+    # -- to implement -------------------------------------------------------------------------
+    @abc.abstractmethod
+    def _logits(self, images: torch.Tensor) -> torch.Tensor:
+        """Normalised probabilities or logits source: return B x C x h x w *logits* for [0,1] input.
+        Families whose output is already a distribution override `_probabilities` instead."""
+
+    def _probabilities(self, images: torch.Tensor) -> torch.Tensor:
+        logits = self._logits(images)
+        logits = F.interpolate(logits.float(), size=images.shape[-2:], mode="bilinear", align_corners=False)
+        return logits.softmax(dim=1)
+
+    # -- public API ----------------------------------------------------------------------------
+    def _as_tensor(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+        if isinstance(images, np.ndarray):
+            if images.dtype == np.uint8:
+                images = torch.from_numpy(images).float().div_(255.0)
+            else:
+                images = torch.from_numpy(images).float()
+            if images.ndim == 3:
+                images = images.unsqueeze(0)
+            if images.shape[-1] == 3 and images.shape[1] != 3:
+                images = images.permute(0, 3, 1, 2)
+        if images.ndim == 3:
+            images = images.unsqueeze(0)
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise DataError(
+                f"{self.name}: expected images of shape B x 3 x H x W (RGB in [0,1]), got {tuple(images.shape)}"
+            )
+        return images.float()
+
+    @torch.inference_mode()
+    def predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """B x 3 x H x W RGB in [0,1] -> B x num_classes x H x W probabilities (on the CPU)."""
+        images = self._as_tensor(images)
+        outputs = []
+        for start in range(0, images.shape[0], self.batch_size):
+            chunk = images[start : start + self.batch_size].to(self.device, non_blocking=True)
+            if self.channels_last:
+                chunk = chunk.contiguous(memory_format=torch.channels_last)
+            if self.amp:
+                dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
+                with torch.autocast(device_type="cuda", dtype=dtype):
+                    probs = self._probabilities(chunk)
+            else:
+                probs = self._probabilities(chunk)
+            outputs.append(probs.float().cpu())
+        return torch.cat(outputs, dim=0)
+
+    def predict(self, images: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (labels B x H x W int64, confidence B x H x W float: the max probability)."""
+        probs = self.predict_proba(images)
+        confidence, labels = probs.max(dim=1)
+        return labels, confidence
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, device={self.device})"

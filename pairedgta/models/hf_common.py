@@ -1,0 +1,127 @@
+"""Shared loading and preprocessing for the transformers families (SegFormer, Mask2Former)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.errors import ModelError
+
+log = logging.getLogger(__name__)
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def pretrained_source(cfg: dict[str, Any]) -> str:
+    path = cfg.get("path")
+    if path:
+        if not Path(path).is_dir():
+            raise ModelError(
+                f"model.path={path} is not a directory; point it at a folder with config.json and the weights"
+            )
+        return str(path)
+    hub_id = cfg.get("hub_id")
+    if not hub_id:
+        raise ModelError(f"model '{cfg.get('name')}' has neither model.hub_id nor model.path; set one of them")
+    return str(hub_id)
+
+
+def load_pretrained(model_cls: Any, cfg: dict[str, Any]) -> Any:
+    source = pretrained_source(cfg)
+    try:
+        model = model_cls.from_pretrained(source)
+    except (OSError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ModelError(
+            f"model '{cfg.get('name')}': cannot load '{source}' ({first[:160]}); offline, download the hub id "
+            f"'{cfg.get('hub_id')}' elsewhere (huggingface-cli download {cfg.get('hub_id')} --local-dir DIR) "
+            "and pass model.path=DIR"
+        ) from None
+    check_label_space(model.config, cfg)
+    return model
+
+
+def check_label_space(config: Any, cfg: dict[str, Any]) -> None:
+    """A checkpoint with another label space would silently produce meaningless class ids."""
+    num = int(getattr(config, "num_labels", len(getattr(config, "id2label", {}) or {})))
+    if num != len(CLASS_NAMES):
+        raise ModelError(
+            f"model '{cfg.get('name')}' predicts {num} classes, not the 19 Cityscapes train ids; "
+            "use a Cityscapes-finetuned checkpoint"
+        )
+
+
+def preprocess_params(cfg: dict[str, Any]) -> dict[str, Any]:
+    """mean/std/resize/size_divisor from the model's image processor, overridable in the config."""
+    params: dict[str, Any] = {
+        "mean": IMAGENET_MEAN, "std": IMAGENET_STD, "size": None, "size_divisor": cfg.get("size_divisor"),
+    }
+    if not cfg.get("random_init") and cfg.get("preprocess", "processor") == "processor":
+        try:
+            from transformers import AutoImageProcessor
+
+            proc = AutoImageProcessor.from_pretrained(pretrained_source(cfg))
+            params["mean"] = tuple(getattr(proc, "image_mean", IMAGENET_MEAN))
+            params["std"] = tuple(getattr(proc, "image_std", IMAGENET_STD))
+            if getattr(proc, "do_resize", False):
+                params["size"] = dict(getattr(proc, "size", {}) or {}) or None
+            if getattr(proc, "size_divisor", None):
+                params["size_divisor"] = int(proc.size_divisor)
+        except (OSError, ValueError) as exc:
+            log.warning("model %s: no image processor found (%s); using ImageNet mean/std", cfg.get("name"), exc)
+    if cfg.get("mean") is not None:
+        params["mean"] = tuple(cfg["mean"])
+    if cfg.get("std") is not None:
+        params["std"] = tuple(cfg["std"])
+    resize = cfg.get("resize")
+    if resize is False or resize == "none":
+        params["size"] = None
+    elif isinstance(resize, (list, tuple)):
+        params["size"] = {"height": int(resize[0]), "width": int(resize[1])}
+    elif isinstance(resize, dict):
+        params["size"] = dict(resize)
+    return params
+
+
+def target_size(size: dict[str, Any] | None, h: int, w: int) -> tuple[int, int]:
+    if not size:
+        return h, w
+    if "height" in size and "width" in size:
+        return int(size["height"]), int(size["width"])
+    if "shortest_edge" in size:
+        scale = size["shortest_edge"] / min(h, w)
+        if size.get("longest_edge"):
+            scale = min(scale, size["longest_edge"] / max(h, w))
+        return max(1, round(h * scale)), max(1, round(w * scale))
+    raise ModelError(f"unsupported image-processor size {size}; set model.resize=[H, W] or model.resize=none")
+
+
+class Preprocessor:
+    """RGB [0,1] -> resized, normalised tensor, as the image processor would (done in torch, batched)."""
+
+    def __init__(self, params: dict[str, Any]) -> None:
+        self.mean = torch.tensor(params["mean"]).view(1, 3, 1, 1)
+        self.std = torch.tensor(params["std"]).view(1, 3, 1, 1)
+        self.size = params["size"]
+        self.size_divisor = params.get("size_divisor")
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        h, w = images.shape[-2:]
+        th, tw = target_size(self.size, h, w)
+        if (th, tw) != (h, w):
+            images = F.interpolate(images, size=(th, tw), mode="bilinear", align_corners=False, antialias=True)
+        mean, std = self.mean.to(images), self.std.to(images)
+        return (images - mean) / std
+
+    def pad(self, x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+        h, w = x.shape[-2:]
+        d = self.size_divisor
+        if not d:
+            return x, (h, w)
+        ph, pw = (-h) % d, (-w) % d
+        return F.pad(x, (0, pw, 0, ph)), (h, w)

@@ -1,0 +1,65 @@
+"""Mask2Former (transformers) with the paper's semantic probabilities.
+
+Per-class score = sum_q softmax(class_q)[:-1] * sigmoid(mask_q), as in Mask2Former's semantic
+inference; we renormalise over the 19 classes so the result is a distribution and the paper's
+confidence thresholds (tau) mean the same thing for every family.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.models.base import Segmenter
+from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params
+
+
+class Mask2FormerSegmenter(Segmenter):
+    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], **runtime: Any) -> None:
+        super().__init__(name, model, **runtime)
+        self.pre = Preprocessor(params)
+
+    def _logits(self, images: torch.Tensor) -> torch.Tensor:  # pragma: no cover - not used
+        raise NotImplementedError("Mask2Former produces probabilities, see _probabilities")
+
+    def _probabilities(self, images: torch.Tensor) -> torch.Tensor:
+        x = self.pre(images)
+        x, (h, w) = self.pre.pad(x)
+        out = self.module(pixel_values=x)
+        cls = out.class_queries_logits.float().softmax(dim=-1)[..., :-1]
+        masks = out.masks_queries_logits.float().sigmoid()
+        sem = torch.einsum("bqk,bqhw->bkhw", cls, masks)
+        sem = F.interpolate(sem, size=x.shape[-2:], mode="bilinear", align_corners=False)[..., :h, :w]
+        sem = F.interpolate(sem, size=images.shape[-2:], mode="bilinear", align_corners=False)
+        return sem / sem.sum(dim=1, keepdim=True).clamp_min(1e-6)
+
+
+def build(cfg: dict[str, Any]) -> Segmenter:
+    from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
+
+    if cfg.get("random_init"):
+        torch.manual_seed(int(cfg.get("init_seed", 0)))
+        arch = dict(cfg.get("arch") or {})
+        backbone = SwinConfig(
+            out_features=["stage1", "stage2", "stage3", "stage4"], **dict(arch.pop("backbone", {}) or {})
+        )
+        config = Mask2FormerConfig(
+            backbone_config=backbone,
+            num_labels=len(CLASS_NAMES),
+            id2label=dict(enumerate(CLASS_NAMES)),
+            label2id={n: i for i, n in enumerate(CLASS_NAMES)},
+            **arch,
+        )
+        model = Mask2FormerForUniversalSegmentation(config)
+    else:
+        model = load_pretrained(Mask2FormerForUniversalSegmentation, cfg)
+    params = preprocess_params(cfg)
+    if not params.get("size_divisor"):
+        params["size_divisor"] = 32
+    return Mask2FormerSegmenter(
+        cfg["name"], model, params,
+        device=cfg.get("device") or "cpu", batch_size=cfg.get("batch_size", 1), amp=cfg.get("amp"),
+        channels_last=bool(cfg.get("channels_last")), compile=bool(cfg.get("compile")),
+    )

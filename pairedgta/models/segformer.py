@@ -1,0 +1,40 @@
+"""SegFormer (transformers): hub ids of the paper, a local directory, or a tiny random-init config."""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.models.base import Segmenter
+from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params
+
+
+class SegFormerSegmenter(Segmenter):
+    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], **runtime: Any) -> None:
+        super().__init__(name, model, **runtime)
+        self.pre = Preprocessor(params)
+
+    def _logits(self, images: torch.Tensor) -> torch.Tensor:
+        return self.module(pixel_values=self.pre(images)).logits
+
+
+def build(cfg: dict[str, Any]) -> Segmenter:
+    from transformers import SegformerConfig, SegformerForSemanticSegmentation
+
+    if cfg.get("random_init"):
+        torch.manual_seed(int(cfg.get("init_seed", 0)))
+        config = SegformerConfig(
+            num_labels=len(CLASS_NAMES),
+            id2label=dict(enumerate(CLASS_NAMES)),
+            label2id={n: i for i, n in enumerate(CLASS_NAMES)},
+            **dict(cfg.get("arch") or {}),
+        )
+        model = SegformerForSemanticSegmentation(config)
+    else:
+        model = load_pretrained(SegformerForSemanticSegmentation, cfg)
+    return SegFormerSegmenter(
+        cfg["name"], model, preprocess_params(cfg),
+        device=cfg.get("device") or "cpu", batch_size=cfg.get("batch_size", 4), amp=cfg.get("amp"),
+        channels_last=bool(cfg.get("channels_last")), compile=bool(cfg.get("compile")),
+    )

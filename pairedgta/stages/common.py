@@ -1,0 +1,76 @@
+"""What every stage shares: the run context, stage results and cache lookups."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from pairedgta.cache import StageCache, stage_hash
+from pairedgta.conditions import ConditionGrid
+from pairedgta.errors import PairedGTAError
+
+log = logging.getLogger("pairedgta")
+STAGES = ("generate", "pseudolabel", "evaluate", "plot")
+# model keys that change speed, not numbers: left out of cache hashes
+RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
+
+
+@dataclass
+class StageResult:
+    stage: str
+    key: str
+    path: Path
+    hit: bool
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Context:
+    cfg: dict[str, Any]
+    grid: ConditionGrid
+    cache: StageCache
+    stages: list[str]
+    force: set[str]
+    results: dict[str, Any] = field(default_factory=dict)
+
+
+def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
+
+
+def run_cached(
+    ctx: Context,
+    stage: str,
+    version: str,
+    config: Any,
+    inputs: dict[str, str],
+    build: Callable[[Path], dict[str, Any] | None],
+    label: str = "",
+    resumable: bool = False,
+) -> StageResult:
+    """Hit -> skip and say so; miss (or force) -> build into a temp dir and rename into place.
+    A stage not listed in `stages` must already be cached: then the error names the stage to run."""
+    key = stage_hash(stage, version, config, inputs)
+    what = f"{stage}{' ' + label if label else ''}"
+    forced = stage in ctx.force
+    if ctx.cache.is_hit(stage, key) and not forced:
+        log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
+        return StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+    if stage not in ctx.stages:
+        raise PairedGTAError(
+            f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
+            f"run it first, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
+        )
+    if forced:
+        ctx.cache.invalidate(stage, key)
+        if resumable:
+            import shutil
+
+            shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)
+    log.info("%s: computing -> %s", what, ctx.cache.path(stage, key))
+    manifest = {"version": version, "config": config, "inputs": inputs}
+    work_dir = ctx.cache.partial_path(stage, key) if resumable else None
+    with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
+        extra = build(tmp) or {}
+    return StageResult(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)

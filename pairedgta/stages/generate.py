@@ -1,0 +1,257 @@
+"""Generate stage, Algorithm 1 of the paper: per scene, sample a location, build the descriptor with
+dynamic objects, then render it under every condition. Resumable: each finished scene is renamed into
+the stage's partial directory, so a rerun after a crash keeps it and continues."""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import csv
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pairedgta.conditions import ConditionGrid, build_condition_grid
+from pairedgta.datasets.base import save_png_atomic
+from pairedgta.datasets.generated import INDEX, scene_files
+from pairedgta.errors import ConfigError, PairedGTAError, RendererError
+from pairedgta.render import Renderer, build_renderer
+from pairedgta.scene.descriptor import CameraPose, SceneDescriptor
+from pairedgta.scene.placement import PlacementConfig, place_objects
+from pairedgta.scene.sampling import build_region
+from pairedgta.stages.common import Context, StageResult, run_cached
+
+log = logging.getLogger("pairedgta.generate")
+VERSION = "1"
+TIMING_COLUMNS = [
+    "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
+    "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
+]
+EXECUTION_KEYS = ("workers", "endpoints")  # where scenes run, not what they are
+
+
+def hash_config(cfg: dict[str, Any], grid: ConditionGrid) -> dict[str, Any]:
+    gen = {k: v for k, v in cfg["generate"].items() if k not in EXECUTION_KEYS}
+    renderer = {k: v for k, v in cfg["renderer"].items() if k not in ("host", "port", "timeout_s", "retries")}
+    return {
+        "generate": gen, "renderer": renderer, "region": cfg["region"],
+        "conditions": [c.to_dict() for c in grid], "reference": grid.reference,
+    }
+
+
+def scene_seed(base_seed: int, k: int) -> int:
+    """Per-scene seed from (base seed, scene index) only, so scenes are the same whatever the sharding."""
+    return int(np.random.SeedSequence([int(base_seed), int(k)]).generate_state(1)[0])
+
+
+def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDescriptor, dict[str, float]]:
+    gen = cfg["generate"]
+    seed = scene_seed(gen["seed"], k)
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    location = region.sample_location(rng)
+    t1 = time.perf_counter()
+    objects, requested = place_objects(rng, location, region, PlacementConfig.from_cfg(gen["objects"]))
+    camera = CameraPose(**dict(gen.get("camera") or {}))
+    descriptor = SceneDescriptor(
+        scene_id=f"{k:05d}", seed=seed, location=location, camera=camera, objects=objects,
+        region=getattr(region, "name", ""), requested_objects=requested,
+    )
+    if len(objects) < requested:
+        log.info("scene %s: placed %d of %d objects (region R_k too small for d_min)", descriptor.scene_id, len(objects), requested)
+    return descriptor, {"scene_sampling_time": t1 - t0, "descriptor_time": time.perf_counter() - t1}
+
+
+def render_scene(
+    k: int, cfg: dict[str, Any], grid: ConditionGrid, renderer: Renderer, region: Any, scenes_dir: Path
+) -> dict[str, Any]:
+    """Render scene k into scenes_dir/<id> atomically; returns its timing row."""
+    descriptor, t = build_descriptor(k, cfg, region)
+    final = scenes_dir / descriptor.scene_id
+    tmp = scenes_dir / f".tmp-{descriptor.scene_id}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        t0 = time.perf_counter()
+        renderer.prepare(descriptor)
+        construction = t["descriptor_time"] + time.perf_counter() - t0
+        t1 = time.perf_counter()
+        states: dict[str, dict] = {}
+        images: dict[str, np.ndarray] = {}
+        for condition in grid:
+            result = renderer.render(descriptor, condition)
+            if result.image.shape[:2] != (renderer.height, renderer.width):
+                raise RendererError(
+                    f"renderer returned {result.image.shape[1]}x{result.image.shape[0]} for "
+                    f"renderer.width x height = {renderer.width}x{renderer.height}"
+                )
+            img_path, lab_path, inst_path = scene_files(tmp, condition.name)
+            save_png_atomic(result.image, img_path)
+            if result.labels is not None:
+                save_png_atomic(result.labels.astype(np.uint8), lab_path)
+            if result.instances is not None:
+                save_png_atomic(result.instances.astype(np.uint16), inst_path)
+            states[condition.name] = result.state
+            images[condition.name] = result.image
+        rendering = time.perf_counter() - t1
+        validation = validate(images, grid, descriptor, states, cfg)
+        descriptor.save(tmp / "descriptor.json")
+        row = {
+            "location_id": k, "scene_id": descriptor.scene_id, "x": descriptor.location.x, "y": descriptor.location.y,
+            "scene_sampling_time": t["scene_sampling_time"], "semantic_scene_construction_time": construction,
+            "condition_wise_rendering_time": rendering,
+            "pipeline_time": t["scene_sampling_time"] + construction + rendering,
+            "overhead_time": float(getattr(renderer, "overhead_s", 0.0)),
+            "retries": int(getattr(renderer, "retries_used", 0)),
+        }
+        row["total_time"] = row["pipeline_time"] + row["overhead_time"]
+        (tmp / "timings.json").write_text(json.dumps(row, indent=2))
+        (tmp / "validation.json").write_text(json.dumps(validation, indent=2))
+        if final.exists():
+            shutil.rmtree(final)
+        os.rename(tmp, final)
+        return row
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def validate(images, grid, descriptor, states, cfg) -> dict[str, Any]:
+    vcfg = cfg["generate"].get("validation") or {}
+    if not vcfg.get("enabled", True):
+        return {"ok": True, "reasons": [], "structure": {}}
+    try:
+        from pairedgta.scene.validation import validate_group
+    except ImportError:  # pragma: no cover - validation module ships with the package
+        return {"ok": True, "reasons": ["validation unavailable"], "structure": {}}
+    res = validate_group(
+        images, grid.reference, descriptor=descriptor, states=states,
+        threshold=float(vcfg.get("structure_threshold", 0.5)),
+    )
+    return {"ok": bool(res.ok), "reasons": list(res.reasons), "structure": dict(res.structure)}
+
+
+# -- worker processes for generate.workers > 1 -------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(cfg: dict[str, Any], endpoints: Any) -> None:
+    renderer_cfg = dict(cfg["renderer"])
+    if endpoints is not None:
+        endpoint = endpoints.get()
+        renderer_cfg.update(endpoint)
+    grid = build_condition_grid(cfg["conditions"])
+    renderer = build_renderer(renderer_cfg)
+    renderer.open()
+    _WORKER.update(cfg=cfg, grid=grid, renderer=renderer, region=build_region(cfg["region"]))
+
+
+def _work(k: int, scenes_dir: str) -> dict[str, Any]:
+    w = _WORKER
+    return render_scene(k, w["cfg"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
+
+
+def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
+    gen = cfg["generate"]
+    n = int(gen["num_scenes"])
+    workers = int(gen.get("workers", 1))
+    if n < 1:
+        raise ConfigError(f"generate.num_scenes={n}; set it to at least 1")
+    if workers < 1:
+        raise ConfigError(f"generate.workers={workers}; set it to at least 1")
+    scenes_dir = out / "scenes"
+    scenes_dir.mkdir(parents=True, exist_ok=True)
+    for stale in scenes_dir.glob(".tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    done = {p.name for p in scenes_dir.iterdir() if p.is_dir() and (p / "timings.json").is_file()}
+    todo = [k for k in range(n) if f"{k:05d}" not in done]
+    if done:
+        log.info("generate: resuming, %d of %d scenes already rendered", n - len(todo), n)
+    region = build_region(cfg["region"])
+    t_open = time.perf_counter()
+    if workers == 1:
+        renderer = build_renderer(dict(cfg["renderer"]))
+        renderer.open()
+        connect = time.perf_counter() - t_open
+        try:
+            for k in tqdm(todo, desc="generate", unit="scene"):
+                render_scene(k, cfg, grid, renderer, region, scenes_dir)
+        finally:
+            renderer.close()
+    else:
+        endpoints = list(gen.get("endpoints") or [])
+        ctx = mp.get_context("spawn")
+        queue = None
+        if endpoints:
+            if len(endpoints) < workers:
+                raise ConfigError(
+                    f"generate.workers={workers} but generate.endpoints lists {len(endpoints)}; give one per worker"
+                )
+            queue = ctx.Manager().Queue()
+            for e in endpoints[:workers]:
+                queue.put(dict(e))
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(cfg, queue)) as pool:
+            futures = [pool.submit(_work, k, str(scenes_dir)) for k in todo]
+            for fut in tqdm(cf.as_completed(futures), total=len(futures), desc="generate", unit="scene"):
+                fut.result()
+        connect = 0.0
+    return write_index(out, cfg, grid, n, connect)
+
+
+def write_index(out: Path, cfg: dict[str, Any], grid: ConditionGrid, n: int, connect: float) -> dict[str, Any]:
+    scenes_dir = out / "scenes"
+    rows, valid_rows, scenes = [], [], []
+    drop_invalid = bool(cfg["generate"].get("drop_invalid", True))
+    for k in range(n):
+        sdir = scenes_dir / f"{k:05d}"
+        row = json.loads((sdir / "timings.json").read_text())
+        rows.append(row)
+        v = json.loads((sdir / "validation.json").read_text())
+        valid_rows.append({"scene_id": sdir.name, "ok": v["ok"], "reasons": "; ".join(v["reasons"]),
+                           **{f"structure/{c}": s for c, s in v["structure"].items()}})
+        if v["ok"] or not drop_invalid:
+            scenes.append({"scene_id": sdir.name, "dir": f"scenes/{sdir.name}"})
+    if rows:
+        rows[0]["overhead_time"] += connect
+        rows[0]["total_time"] += connect
+    _write_csv(out / "timings.csv", rows, TIMING_COLUMNS)
+    _write_csv(out / "validation.csv", valid_rows, sorted({k for r in valid_rows for k in r}, key=lambda c: (c != "scene_id", c != "ok", c)))
+    dropped = n - len(scenes)
+    if dropped:
+        log.warning("generate: %d group(s) failed pair validation and are excluded (see validation.csv)", dropped)
+    if not scenes:
+        raise PairedGTAError(
+            f"generate: every scene failed pair validation ({out / 'validation.csv'}); "
+            "inspect it or set generate.drop_invalid=false"
+        )
+    index = {
+        "conditions": grid.names, "reference": grid.reference, "renderer": cfg["renderer"].get("backend"),
+        "width": cfg["renderer"].get("width"), "height": cfg["renderer"].get("height"),
+        "scenes": scenes, "dropped_invalid": dropped,
+    }
+    (out / INDEX).write_text(json.dumps(index, indent=2))
+    return {"num_scenes": len(scenes), "dropped_invalid": dropped}
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def run(ctx: Context) -> StageResult:
+    cfg = ctx.cfg
+    config = hash_config(cfg, ctx.grid)
+    return run_cached(
+        ctx, "generate", VERSION, config, {},
+        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True,
+    )

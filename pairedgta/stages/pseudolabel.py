@@ -1,0 +1,110 @@
+"""Pseudo-label stage: the reference model on each group's clean image; pixels with max softmax >= tau
+keep their class, the rest become void (255). The paper's weak ground truth."""
+from __future__ import annotations
+
+import csv
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
+from pairedgta.datasets import PairedDataset, load_image, load_label
+from pairedgta.datasets.base import save_png_atomic
+from pairedgta.errors import ConfigError
+from pairedgta.metrics import ConfusionMatrix
+from pairedgta.models import build_segmenter, model_config
+from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+
+log = logging.getLogger("pairedgta.pseudolabel")
+VERSION = "1"
+
+
+def label_path(stage_dir: Path, group_id: str) -> Path:
+    return stage_dir / "labels" / f"{group_id}.png"
+
+
+def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
+    conf, labels = probs.max(dim=1)
+    return torch.where(conf >= tau, labels, torch.full_like(labels, IGNORE_INDEX))
+
+
+def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
+    segmenter = build_segmenter(model_cfg)
+    (out / "labels").mkdir()
+    hist = np.zeros(NUM_CLASSES, dtype=np.int64)
+    total = 0
+    gt_cm = ConfusionMatrix(NUM_CLASSES)
+    gt_kept = gt_pixels = 0
+    batch_size = int(ctx.cfg["pseudolabel"].get("batch_size", 4))
+    rows = []
+    pending: list[tuple[str, np.ndarray]] = []
+
+    def flush() -> None:
+        nonlocal hist, total, gt_kept, gt_pixels
+        if not pending:
+            return
+        stack = np.stack([im for _, im in pending])
+        probs = segmenter.predict_proba(stack)
+        labels = pseudo_label(probs, tau).to(torch.uint8).numpy()
+        for (gid, _), lab in zip(pending, labels):
+            save_png_atomic(lab, label_path(out, gid))
+            valid = lab != IGNORE_INDEX
+            hist += np.bincount(lab[valid].astype(np.int64), minlength=NUM_CLASSES)
+            total += lab.size
+            rows.append({"group_id": gid, "valid_pixels": int(valid.sum()), "total_pixels": int(lab.size)})
+            group = by_id[gid]
+            if dataset.reference in group.labels:
+                gt = load_label(group.labels[dataset.reference])
+                gt_valid = gt != IGNORE_INDEX
+                gt_pixels += int(gt_valid.sum())
+                gt_kept += int((gt_valid & valid).sum())
+                gt_cm.update(torch.from_numpy(np.where(valid, gt, IGNORE_INDEX)), torch.from_numpy(lab.astype(np.int64)))
+        pending.clear()
+
+    by_id = {g.group_id: g for g in dataset.groups}
+    for group in tqdm(dataset.groups, desc=f"pseudolabel [{segmenter.name}]", unit="image"):
+        image = load_image(group.images[dataset.reference])
+        if pending and pending[0][1].shape != image.shape:
+            flush()
+        pending.append((group.group_id, image))
+        if len(pending) >= batch_size:
+            flush()
+    flush()
+    with open(out / "index.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["group_id", "valid_pixels", "total_pixels"])
+        w.writeheader()
+        w.writerows(rows)
+    with open(out / "histogram.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["class_id", "class_name", "pixels", "share_of_valid", "share_of_all"])
+        valid_total = max(int(hist.sum()), 1)
+        for c in range(NUM_CLASSES):
+            w.writerow([c, CLASS_NAMES[c], int(hist[c]), hist[c] / valid_total, hist[c] / max(total, 1)])
+    extra: dict[str, Any] = {"groups": len(rows), "void_share": 1 - hist.sum() / max(total, 1)}
+    if gt_pixels:
+        # how good is the paper's weak ground truth where the backend knows the truth
+        iou = gt_cm.iou().numpy()
+        with open(out / "quality.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["class_id", "class_name", "iou_on_kept_pixels"])
+            for c in range(NUM_CLASSES):
+                w.writerow([c, CLASS_NAMES[c], iou[c]])
+        extra.update(accuracy_on_kept=gt_cm.accuracy(), coverage=gt_kept / gt_pixels, miou_on_kept=gt_cm.miou())
+    return extra
+
+
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str) -> StageResult:
+    tau = float(ctx.cfg["pseudolabel"]["tau"])
+    if not 0.0 <= tau <= 1.0:
+        raise ConfigError(f"pseudolabel.tau={tau} must be in [0, 1]")
+    name = ctx.cfg["reference_model"]
+    model_cfg = model_config(name, device=ctx.cfg.get("device", "cpu"))
+    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference}
+    return run_cached(
+        ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key},
+        lambda out: compute(ctx, dataset, out, model_cfg, tau), label=f"[{name}]",
+    )

@@ -1,0 +1,103 @@
+"""MLflow: one parent run per invocation, a nested run per evaluated model."""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any, Iterator
+
+log = logging.getLogger("pairedgta.tracking")
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    elif isinstance(d, (list, tuple)):
+        out[prefix.rstrip(".")] = json.dumps(d, default=str)
+    else:
+        out[prefix.rstrip(".")] = d
+    return out
+
+
+def _clean_metric_name(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "_-./ " else "_" for ch in name)
+
+
+class Tracker:
+    def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self.uri = uri
+        self.experiment = experiment
+        if enabled:
+            import mlflow
+
+            if uri.startswith("sqlite:///"):
+                Path(uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+            mlflow.set_tracking_uri(uri)
+            mlflow.set_experiment(experiment)
+            self.mlflow = mlflow
+
+    @contextlib.contextmanager
+    def run(self, name: str, nested: bool = False) -> Iterator[Any]:
+        if not self.enabled:
+            yield None
+            return
+        with self.mlflow.start_run(run_name=name, nested=nested) as run:
+            yield run
+
+    def params(self, params: dict[str, Any]) -> None:
+        if not self.enabled:
+            return
+        flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
+        items = sorted(flat.items())
+        for i in range(0, len(items), 100):
+            self.mlflow.log_params(dict(items[i : i + 100]))
+
+    def metrics(self, metrics: dict[str, float]) -> None:
+        if not self.enabled:
+            return
+        clean = {_clean_metric_name(k): float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
+        if clean:
+            self.mlflow.log_metrics(clean)
+
+    def artifacts(self, paths: list[Path], artifact_path: str | None = None) -> None:
+        if not self.enabled:
+            return
+        for p in paths:
+            if p.is_file():
+                self.mlflow.log_artifact(str(p), artifact_path=artifact_path)
+
+    def tags(self, tags: dict[str, str]) -> None:
+        if self.enabled:
+            self.mlflow.set_tags(tags)
+
+
+def evaluation_metrics(eval_dir: Path) -> dict[str, float]:
+    """The MLflow view of one evaluate output: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<sel>/<class>."""
+    import pandas as pd
+
+    metrics: dict[str, float] = {}
+    xi = pd.read_csv(eval_dir / "xi.csv")
+    for row in xi.itertuples():
+        prefix = "xi" if row.reference_model != "ground_truth" else "xi_gt"
+        if row.class_name == "mean":
+            metrics[f"{prefix}_mean/{row.condition}"] = row.xi
+        else:
+            metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
+    rho = pd.read_csv(eval_dir / "rho_valid.csv")
+    summary = json.loads((eval_dir / "summary.json").read_text())
+    conds = list(dict.fromkeys(rho["condition"]))
+    main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
+    for row in rho.itertuples():
+        metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
+        if row.condition == main:
+            metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
+    for cond, v in summary.get("gt_miou", {}).items():
+        metrics[f"gt_miou/{cond}"] = v
+    for cond, v in summary.get("agreement", {}).items():
+        metrics[f"agreement/{cond}"] = v
+    return metrics
