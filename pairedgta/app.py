@@ -76,7 +76,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         dataset_key = f"external:{dataset.fingerprint()}"
     log.info("dataset %s: %d groups, reference %s", dataset.name, len(dataset), dataset.reference)
     needs_eval = any(s in stages for s in ("pseudolabel", "evaluate", "plot"))
-    summary: dict[str, Any] = {"dataset": str(dataset.root), "evaluate": {}, "plot": None}
+    summary: dict[str, Any] = {"dataset": str(dataset.root), "evaluate": {}, "plot": None, "stages": ctx.results.setdefault("stages", [])}
     if not needs_eval:
         return summary
     with tracker.run(str(container.get("name", "run"))):
@@ -97,9 +97,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 tracker.metrics(evaluation_metrics(result.path))
                 tracker.artifacts(sorted(result.path.glob("*.csv")) + [result.path / "summary.json"], "evaluate")
             summary["evaluate"][model_cfg["name"]] = str(result.path)
-        if "plot" in stages or ctx.cache.root.exists():
-            if "plot" in stages:
-                figures = plot.run(ctx, evaluations)
-                summary["plot"] = str(figures.path)
-                tracker.artifacts(sorted(p for p in figures.path.iterdir() if p.suffix in (".png", ".pdf", ".csv")), "figures")
+        if "plot" in stages:
+            figures = plot.run(ctx, evaluations)
+            summary["plot"] = str(figures.path)
+            tracker.artifacts(sorted(p for p in figures.path.iterdir() if p.suffix in (".png", ".pdf", ".csv")), "figures")
     return summary

@@ -123,12 +123,12 @@ def build_condition_grid(cfg: Mapping[str, Any]) -> ConditionGrid:
     for extra in cfg.get("extra") or []:
         extra = dict(extra)
         base_time, base_weather = extra.get("time"), extra.get("weather")
-        if base_time not in times or base_weather not in weathers:
+        if base_time not in times or not base_weather:
             raise ConfigError(
-                f"conditions.extra entry {extra.get('name')!r} needs time in {list(times)} "
-                f"and weather in {list(weathers)}"
+                f"conditions.extra entry {extra.get('name')!r} needs time in {list(times)} and a weather name"
             )
-        params = {**dict(times[base_time] or {}), **dict(weathers[base_weather] or {})}
+        # a weather outside the grid (e.g. FOGGY in a sweep) starts from clear-sky parameters
+        params = {**dict(times[base_time] or {}), **dict(weathers.get(base_weather) or {})}
         params.update({k: v for k, v in extra.items() if k not in ("time", "weather", "name")})
         unknown = set(params) - fields
         if unknown:

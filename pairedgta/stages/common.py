@@ -56,7 +56,9 @@ def run_cached(
     forced = stage in ctx.force
     if ctx.cache.is_hit(stage, key) and not forced:
         log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
-        return StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+        result = StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+        ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": True})
+        return result
     if stage not in ctx.stages:
         raise PairedGTAError(
             f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
@@ -73,4 +75,5 @@ def run_cached(
     work_dir = ctx.cache.partial_path(stage, key) if resumable else None
     with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
         extra = build(tmp) or {}
+    ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": False})
     return StageResult(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)

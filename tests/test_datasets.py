@@ -1,0 +1,61 @@
+"""Readers of the released PairedGTA layout and of the project's own layout."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from PIL import Image
+
+from pairedgta.conditions import build_condition_grid
+from pairedgta.datasets import load_group_images, load_image, open_dataset
+from pairedgta.errors import DataError
+from tests.conftest import compose_cfg
+
+
+def write_release(root, locs, size=(16, 8), missing=()):
+    for loc in locs:
+        for time in ("Day", "Sunset", "Night"):
+            for weather in ("EXTRASUNNY", "RAIN", "FOGGY"):
+                if (loc, f"{time}-{weather}") in missing:
+                    continue
+                d = root / time
+                d.mkdir(parents=True, exist_ok=True)
+                arr = np.random.default_rng(loc).integers(0, 255, size=(size[1], size[0], 3), dtype=np.uint8)
+                Image.fromarray(arr).save(d / f"{loc}_{time}_{weather}.png")
+
+
+@pytest.fixture
+def grid():
+    return build_condition_grid(OmegaConf.to_container(compose_cfg([]).conditions))
+
+
+def test_release_layout_groups_and_missing_reference(tmp_path, grid, caplog):
+    write_release(tmp_path, [3, 10, 7], missing={(7, "Day-EXTRASUNNY"), (3, "Night-RAIN")})
+    (tmp_path / "Day" / "notes.txt").write_text("x")
+    Image.new("RGB", (16, 8)).save(tmp_path / "Day" / "5_Day_SNOW.png")  # condition outside the grid
+    ds = open_dataset({"kind": "paired_gta", "name": "paired_gta"}, grid, root=tmp_path)
+    assert [g.group_id for g in ds.groups] == ["3", "10"]
+    assert ds.skipped_without_reference == 1
+    assert "Night-RAIN" not in ds.groups[0].images and len(ds.groups[1].images) == 9
+    assert "skipped 1 group" in caplog.text
+    fp = ds.fingerprint()
+    assert fp == open_dataset({"kind": "paired_gta"}, grid, root=tmp_path).fingerprint()
+
+
+def test_release_layout_errors(tmp_path, grid):
+    with pytest.raises(DataError, match="does not exist"):
+        open_dataset({"kind": "paired_gta"}, grid, root=tmp_path / "nope")
+    with pytest.raises(DataError, match="holds no"):
+        open_dataset({"kind": "paired_gta"}, grid, root=tmp_path)
+
+
+def test_corrupt_and_mismatched_images(tmp_path, grid):
+    write_release(tmp_path, [1])
+    ds = open_dataset({"kind": "paired_gta"}, grid, root=tmp_path)
+    bad = tmp_path / "Day" / "1_Day_RAIN.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(DataError, match="1_Day_RAIN.png: not a readable image"):
+        load_image(bad)
+    Image.new("RGB", (20, 8)).save(bad)
+    with pytest.raises(DataError, match="differ in size"):
+        load_group_images(ds.groups[0], grid.names)
