@@ -12,7 +12,7 @@ from pairedgta.errors import DataError
 from tests.conftest import compose_cfg
 
 
-def write_release(root, locs, size=(16, 8), missing=()):
+def write_release(root, locs, size=(64, 32), missing=()):
     for loc in locs:
         for time in ("Day", "Sunset", "Night"):
             for weather in ("EXTRASUNNY", "RAIN", "FOGGY"):
@@ -32,7 +32,7 @@ def grid():
 def test_release_layout_groups_and_missing_reference(tmp_path, grid, caplog):
     write_release(tmp_path, [3, 10, 7], missing={(7, "Day-EXTRASUNNY"), (3, "Night-RAIN")})
     (tmp_path / "Day" / "notes.txt").write_text("x")
-    Image.new("RGB", (16, 8)).save(tmp_path / "Day" / "5_Day_SNOW.png")  # condition outside the grid
+    Image.new("RGB", (64, 32)).save(tmp_path / "Day" / "5_Day_SNOW.png")  # condition outside the grid
     ds = open_dataset({"kind": "paired_gta", "name": "paired_gta"}, grid, root=tmp_path)
     assert [g.group_id for g in ds.groups] == ["3", "10"]
     assert ds.skipped_without_reference == 1
@@ -56,6 +56,6 @@ def test_corrupt_and_mismatched_images(tmp_path, grid):
     bad.write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(DataError, match="1_Day_RAIN.png: not a readable image"):
         load_image(bad)
-    Image.new("RGB", (20, 8)).save(bad)
+    Image.new("RGB", (20, 32)).save(bad)
     with pytest.raises(DataError, match="differ in size"):
         load_group_images(ds.groups[0], grid.names)

@@ -3,7 +3,6 @@ the share still predicted as c under condition i, pooled over all images (not av
 from __future__ import annotations
 
 import torch
-from torchmetrics import Metric
 
 
 def reference_consistency_counts(
@@ -21,27 +20,37 @@ def reference_consistency_counts(
     return retained, reference
 
 
-class ReferenceConsistency(Metric):
+class ReferenceConsistency:
     """Streaming xi: `update(reference_labels, predicted_labels)` adds counts, `compute()` divides.
 
+    The torchmetrics update/compute contract with sum-reduced state, written out because importing
+    torchmetrics costs seconds per CLI start; `merge` combines shards (e.g. per-process results).
     Classes without reference pixels are NaN (undefined, not zero)."""
 
-    full_state_update = False
     higher_is_better = True
 
-    def __init__(self, num_classes: int = 19, ignore_index: int = 255, **kwargs) -> None:
-        super().__init__(**kwargs)
+    def __init__(self, num_classes: int = 19, ignore_index: int = 255) -> None:
         self.num_classes = int(num_classes)
         self.ignore_index = int(ignore_index)
-        self.add_state("retained", default=torch.zeros(self.num_classes, dtype=torch.long), dist_reduce_fx="sum")
-        self.add_state("reference", default=torch.zeros(self.num_classes, dtype=torch.long), dist_reduce_fx="sum")
+        self.reset()
 
-    def update(self, reference_labels: torch.Tensor, predicted_labels: torch.Tensor) -> None:
+    def reset(self) -> None:
+        self.retained = torch.zeros(self.num_classes, dtype=torch.long)
+        self.reference = torch.zeros(self.num_classes, dtype=torch.long)
+
+    def update(self, reference_labels: torch.Tensor, predicted_labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Add one batch; returns that batch's (retained, reference) counts for per-image statistics."""
         retained, reference = reference_consistency_counts(
             reference_labels, predicted_labels, self.num_classes, self.ignore_index
         )
-        self.retained += retained.to(self.retained.device)
-        self.reference += reference.to(self.reference.device)
+        self.retained += retained
+        self.reference += reference
+        return retained, reference
+
+    def merge(self, other: "ReferenceConsistency") -> "ReferenceConsistency":
+        self.retained += other.retained
+        self.reference += other.reference
+        return self
 
     def compute(self) -> torch.Tensor:
         ref = self.reference.double()

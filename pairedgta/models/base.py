@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
-from pairedgta.errors import DataError
+from pairedgta.errors import DataError, ModelError
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -62,10 +62,11 @@ class Segmenter(abc.ABC):
     # -- public API ----------------------------------------------------------------------------
     def _as_tensor(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
         if isinstance(images, np.ndarray):
+            # astype copies, so read-only arrays (decoded images) are fine
             if images.dtype == np.uint8:
-                images = torch.from_numpy(images).float().div_(255.0)
+                images = torch.from_numpy(images.astype(np.float32)).div_(255.0)
             else:
-                images = torch.from_numpy(images).float()
+                images = torch.from_numpy(images.astype(np.float32))
             if images.ndim == 3:
                 images = images.unsqueeze(0)
             if images.shape[-1] == 3 and images.shape[1] != 3:
@@ -87,12 +88,21 @@ class Segmenter(abc.ABC):
             chunk = images[start : start + self.batch_size].to(self.device, non_blocking=True)
             if self.channels_last:
                 chunk = chunk.contiguous(memory_format=torch.channels_last)
-            if self.amp:
-                dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
-                with torch.autocast(device_type="cuda", dtype=dtype):
+            try:
+                if self.amp:
+                    dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
+                    with torch.autocast(device_type="cuda", dtype=dtype):
+                        probs = self._probabilities(chunk)
+                else:
                     probs = self._probabilities(chunk)
-            else:
-                probs = self._probabilities(chunk)
+            except RuntimeError as exc:
+                if "out of memory" in str(exc).lower():
+                    raise ModelError(f"{self.name}: out of memory on {self.device}; lower model.batch_size") from None
+                first = str(exc).strip().splitlines()[0][:200]
+                raise ModelError(
+                    f"{self.name}: forward failed on a {chunk.shape[-1]}x{chunk.shape[-2]} image ({first}); "
+                    "check the image size the model accepts"
+                ) from None
             outputs.append(probs.float().cpu())
         return torch.cat(outputs, dim=0)
 

@@ -51,10 +51,9 @@ class _Accumulator:
         self.reference: list[np.ndarray] = []
 
     def update(self, ref: torch.Tensor, pred: torch.Tensor) -> None:
-        before_ret, before_ref = self.metric.retained.clone(), self.metric.reference.clone()
-        self.metric.update(ref, pred)
-        self.retained.append((self.metric.retained - before_ret).numpy().astype(np.int64))
-        self.reference.append((self.metric.reference - before_ref).numpy().astype(np.int64))
+        retained, reference = self.metric.update(ref, pred)
+        self.retained.append(retained.numpy().astype(np.int64))
+        self.reference.append(reference.numpy().astype(np.int64))
 
 
 def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) -> dict[str, Any]:

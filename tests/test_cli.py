@@ -1,0 +1,111 @@
+"""The CLI as a user runs it: the smoke experiment end to end, and bad input as one-line errors."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from PIL import Image
+
+from pairedgta.metrics import ReferenceConsistency, prediction_mass, rho_valid
+from pairedgta.models import build_segmenter
+from tests.conftest import run_cli
+from tests.test_datasets import write_release
+
+
+def stage_dirs(cache: Path) -> set[str]:
+    return {str(p.relative_to(cache)) for p in cache.glob("*/*")} if cache.exists() else set()
+
+
+def test_smoke_experiment_end_to_end(tmp_path):
+    cache = tmp_path / "cache"
+    db = tmp_path / "mlflow.db"
+    proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri=sqlite:///{db}",
+                    "generate.num_scenes=3", "metric.bootstrap.resamples=50"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "results: " in proc.stdout
+    evals = {json.loads((p / "manifest.json").read_text())["config"]["model"]["name"]: p
+             for p in (cache / "evaluate").iterdir() if not p.name.startswith(".")}
+    assert set(evals) == {"tiny_segformer", "tiny_mask2former"}
+    for name in ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv"):
+        assert (evals["tiny_mask2former"] / name).is_file()
+    plots = [p for p in (cache / "plot").iterdir() if not p.name.startswith(".")]
+    assert {"xi_table.png", "xi_table.pdf", "ranking.png"} <= {p.name for p in plots[0].iterdir()}
+
+    # recompute the numbers independently from the cached dataset, pseudo-labels and the model
+    gen = next(p for p in (cache / "generate").iterdir() if not p.name.startswith("."))
+    pseudo = next(p for p in (cache / "pseudolabel").iterdir() if not p.name.startswith("."))
+    model = build_segmenter("tiny_mask2former")
+    xi_night = ReferenceConsistency(19, 255)
+    clean_mass, adv_mass = [], []
+    for scene in sorted((gen / "scenes").iterdir()):
+        ref = np.asarray(Image.open(pseudo / "labels" / f"{scene.name}.png"))
+        imgs = [np.asarray(Image.open(scene / f"{c}.png")) for c in ("Day-EXTRASUNNY", "Night-EXTRASUNNY")]
+        probs = model.predict_proba(np.stack(imgs))
+        xi_night.update(torch.from_numpy(ref.astype(np.int64)), probs[1].argmax(0))
+        clean_mass.append(int(prediction_mass(probs[0], 13, 0.9)))
+        adv_mass.append(int(prediction_mass(probs[1], 13, 0.9)))
+    xi = pd.read_csv(evals["tiny_mask2former"] / "xi.csv")
+    night = xi[(xi.condition == "Night-EXTRASUNNY") & (xi.reference_model == "tiny_segformer") & (xi.class_id >= 0)]
+    np.testing.assert_allclose(night.xi.to_numpy(), xi_night.compute().numpy(), equal_nan=True)
+    counts = pd.read_csv(evals["tiny_mask2former"] / "frame_counts.csv")
+    car = counts[(counts.condition == "Night-EXTRASUNNY") & (counts.class_name == "car")].sort_values("pair_id")
+    assert car.clean_count.tolist() == clean_mass and car.adv_count.tolist() == adv_mass
+    rho = pd.read_csv(evals["tiny_mask2former"] / "rho_valid.csv")
+    r = rho[(rho.condition == "Night-EXTRASUNNY") & (rho.class_name == "car") & (rho.selection == "top_m")].rho.item()
+    np.testing.assert_equal(r, rho_valid(clean_mass, adv_mass, m=25))
+
+    # MLflow: one parent run, a nested run per model holding the same numbers
+    import mlflow
+
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
+    exp = client.get_experiment_by_name("smoke")
+    runs = client.search_runs([exp.experiment_id])
+    nested = {r.info.run_name: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
+    assert len(runs) == 3 and set(nested) == {"tiny_segformer", "tiny_mask2former"}
+    logged = nested["tiny_mask2former"].data.metrics
+    mean = night.xi.mean()
+    assert logged["xi_mean/Night-EXTRASUNNY"] == pytest.approx(mean)
+    arts = {a.path for a in client.list_artifacts(nested["tiny_mask2former"].info.run_id, "evaluate")}
+    assert "evaluate/xi.csv" in arts
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["missing_root", "empty_root", "corrupt_png", "size_mismatch", "unknown_condition", "unknown_model"],
+)
+def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
+    root = tmp_path / "PairedGTA"
+    args = ["+experiment=evaluate_release", f"dataset.root={root}", "model=tiny_segformer",
+            "reference_model=tiny_segformer", f"cache_dir={tmp_path / 'cache'}", "tracking.enabled=false"]
+    expect = {"missing_root": "does not exist", "empty_root": "holds no", "corrupt_png": "not a readable image",
+              "size_mismatch": "differ in size", "unknown_condition": "unknown condition",
+              "unknown_model": "unknown model 'segformer_b9'"}[case]
+    if case != "missing_root":
+        root.mkdir()
+    if case in ("corrupt_png", "size_mismatch", "unknown_condition", "unknown_model"):
+        write_release(root, [1, 2])
+    if case == "corrupt_png":
+        (root / "Night" / "2_Night_RAIN.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+        expect = "2_Night_RAIN.png: not a readable image"
+    if case == "size_mismatch":
+        Image.new("RGB", (48, 32)).save(root / "Sunset" / "2_Sunset_FOGGY.png")
+    if case == "unknown_condition":
+        args.append("conditions.only=[Day-EXTRASUNNY,Day-HAIL]")
+    if case == "unknown_model":
+        args[2] = "models=[segformer_b9]"
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and expect in errors[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    cache = tmp_path / "cache"
+    # nothing half-written: no temp dirs, and no stage dir that is not complete
+    assert not list(cache.glob("*/.tmp-*"))
+    for d in stage_dirs(cache):
+        assert (cache / d / "manifest.json").is_file()
+    if case in ("corrupt_png", "size_mismatch"):
+        assert not list((cache / "evaluate").glob("*")) if (cache / "evaluate").exists() else True
