@@ -1,0 +1,245 @@
+"""Strict checkpoint loading and the shared wrapper for the in-project architectures.
+
+Released checkpoints come in several layouts (bare state dict, nested under `state_dict` / `model_state` /
+`model`, keys prefixed by `module.` (DataParallel) or `model.` (training wrappers)). All of them are accepted,
+but after the documented normalisation every remaining key must match the architecture exactly: a silently
+skipped block would still produce plausible-looking but wrong predictions.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pairedgta.cityscapes import NUM_CLASSES
+from pairedgta.errors import ConfigError, ModelError
+from pairedgta.models.base import Segmenter
+
+log = logging.getLogger(__name__)
+
+NESTING_KEYS = ("state_dict", "model_state", "model")
+STRIP_PREFIXES = ("module.", "model.")
+# Loss buffers saved by training wrappers (e.g. the class weights of a weighted cross-entropy).
+LOSS_PREFIXES = ("loss.", "sem_loss.", "bd_loss.")
+_SHOW = 4  # keys listed per category in an error message
+
+
+def _numpy_safe_globals() -> list[Any]:
+    """Numpy scalars/dtypes are plain numbers (e.g. a stored `best_score`); allowing them is harmless."""
+    allowed: list[Any] = [np.dtype]
+    if int(np.__version__.split(".")[0]) >= 2:
+        from numpy._core.multiarray import scalar
+
+        allowed += [scalar, (scalar, "numpy.core.multiarray.scalar")]  # also numpy-1 pickles
+    else:
+        from numpy.core.multiarray import scalar
+
+        allowed.append(scalar)
+    for t in (np.float16, np.float32, np.float64, np.int32, np.int64, np.bool_):
+        allowed.append(type(np.dtype(t)))
+    return allowed
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0][:160]}" if text else type(exc).__name__
+
+
+def _is_state_dict(obj: Any) -> bool:
+    return isinstance(obj, Mapping) and len(obj) > 0 and all(isinstance(v, torch.Tensor) for v in obj.values())
+
+
+def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str, torch.Tensor]:
+    """Read a checkpoint file into a flat state dict with the documented nesting and prefixes removed."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise ModelError(f"{model_name}: checkpoint file {path} does not exist; fix model.checkpoint_path=")
+    try:
+        with torch.serialization.safe_globals(_numpy_safe_globals()):
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # corrupt, truncated, or not a weights-only torch file
+        raise ModelError(
+            f"{model_name}: cannot read checkpoint {path} ({_first_line(exc)}); expected a torch state-dict file"
+        ) from None
+    seen = 0
+    while not _is_state_dict(obj):
+        nested = next((k for k in NESTING_KEYS if isinstance(obj, Mapping) and isinstance(obj.get(k), Mapping)), None)
+        if nested is None or seen > 3:
+            found = ", ".join(map(str, list(obj)[:8])) if isinstance(obj, Mapping) else type(obj).__name__
+            raise ModelError(
+                f"{model_name}: checkpoint {path} holds no state dict (found: {found}); expected tensors at the top "
+                f"level or under one of {', '.join(NESTING_KEYS)}"
+            )
+        obj = obj[nested]
+        seen += 1
+    state: dict[str, torch.Tensor] = {}
+    for key, value in obj.items():
+        name = str(key)
+        while name.startswith(STRIP_PREFIXES):
+            name = name.split(".", 1)[1]
+        if name in state:
+            raise ModelError(f"{model_name}: checkpoint {path} has '{key}' twice after removing module./model. prefixes")
+        state[name] = value
+    return state
+
+
+def _listing(keys: Sequence[str]) -> str:
+    shown = ", ".join(keys[:_SHOW])
+    return f"{shown}, ..." if len(keys) > _SHOW else shown
+
+
+def load_checkpoint_strict(
+    module: torch.nn.Module,
+    path: str | Path,
+    *,
+    training_only_prefixes: Iterable[str] = (),
+    model_name: str = "model",
+) -> list[str]:
+    """Load `path` into `module` with every key accounted for; returns the training-only keys that were dropped.
+
+    Keys under `training_only_prefixes` (auxiliary heads, loss buffers) are reported in one log line and dropped;
+    any other missing, unexpected or shape-mismatched key raises ModelError.
+    """
+    path = Path(path).expanduser()
+    state = read_state_dict(path, model_name=model_name)
+    expected = module.state_dict()
+    prefixes = tuple(training_only_prefixes) + LOSS_PREFIXES
+
+    extra = [k for k in state if k not in expected]
+    dropped = sorted(k for k in extra if k.startswith(prefixes))
+    unexpected = sorted(k for k in extra if not k.startswith(prefixes))
+    missing = sorted(k for k in expected if k not in state)
+    mismatched = sorted(k for k in expected if k in state and tuple(state[k].shape) != tuple(expected[k].shape))
+    if missing or unexpected or mismatched:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing ({_listing(missing)})")
+        if unexpected:
+            parts.append(f"{len(unexpected)} unexpected ({_listing(unexpected)})")
+        if mismatched:
+            shapes = [f"{k} file {list(state[k].shape)} vs model {list(expected[k].shape)}" for k in mismatched]
+            parts.append(f"{len(mismatched)} shape mismatches ({_listing(shapes)})")
+        raise ModelError(
+            f"{model_name}: checkpoint {path} does not fit the architecture: {'; '.join(parts)}; "
+            f"is model.checkpoint_path the released file for {model_name}?"
+        )
+    if dropped:
+        heads = sorted({k.split(".", 1)[0] for k in dropped})
+        log.info("%s: dropped %d training-only entries (%s) from %s", model_name, len(dropped), ", ".join(heads), path)
+    module.load_state_dict({k: v for k, v in state.items() if k in expected}, strict=True)
+    return dropped
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Shared by deeplabv3plus / pidnet / ddrnet: normalisation, padding and the config handling of `build`.
+
+
+class NormalizedSegmenter(Segmenter):
+    """Normalises, pads to `pad_multiple` (bottom/right, zeros after normalisation), runs, upsamples and crops.
+
+    `_logits` already returns logits at input size, because cropping the padding is only exact at full size.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        module: torch.nn.Module,
+        *,
+        mean: Sequence[float],
+        std: Sequence[float],
+        pad_multiple: int = 1,
+        align_corners: bool = False,
+        **runtime: Any,
+    ) -> None:
+        super().__init__(name, module, **runtime)
+        self.pad_multiple = max(1, int(pad_multiple))
+        self.align_corners = bool(align_corners)
+        self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.std = torch.tensor(std, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+
+    def _logits(self, images: torch.Tensor) -> torch.Tensor:
+        height, width = images.shape[-2:]
+        x = (images.float() - self.mean) / self.std
+        pad_h = -height % self.pad_multiple
+        pad_w = -width % self.pad_multiple
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h))
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        logits = self.module(x)
+        logits = F.interpolate(
+            logits.float(), size=(height + pad_h, width + pad_w), mode="bilinear", align_corners=self.align_corners
+        )
+        return logits[..., :height, :width]
+
+    def _probabilities(self, images: torch.Tensor) -> torch.Tensor:
+        return self._logits(images).softmax(dim=1)
+
+
+def _check_triplet(cfg: Mapping[str, Any], key: str) -> list[float]:
+    value = cfg.get(key)
+    if isinstance(value, str) or not isinstance(value, Sequence) or len(value) != 3:
+        raise ConfigError(f"model '{cfg.get('name')}': {key} must be a list of 3 floats (RGB), got {value!r}")
+    return [float(v) for v in value]
+
+
+def build_inproject(
+    cfg: Mapping[str, Any],
+    make_module: Callable[[], torch.nn.Module],
+    *,
+    training_only_prefixes: Iterable[str] = (),
+    checkpoint_file: str,
+    checkpoint_source: str,
+    default_align_corners: bool = False,
+    default_pad_multiple: int = 1,
+) -> NormalizedSegmenter:
+    """Common `build(cfg)` body: validate runtime keys, seed, construct, load weights, wrap."""
+    name = str(cfg.get("name") or cfg.get("family"))
+    if int(cfg.get("num_classes", NUM_CLASSES)) != NUM_CLASSES:
+        raise ConfigError(f"model '{name}': num_classes must be {NUM_CLASSES} (Cityscapes train ids)")
+    amp = cfg.get("amp")
+    if amp not in (None, "bf16", "fp16"):
+        raise ConfigError(f"model '{name}': amp must be null, bf16 or fp16, got {amp!r}")
+    mean, std = _check_triplet(cfg, "mean"), _check_triplet(cfg, "std")
+    pad_multiple = int(cfg.get("pad_multiple") or default_pad_multiple)
+    if pad_multiple < 1:
+        raise ConfigError(f"model '{name}': pad_multiple must be >= 1, got {pad_multiple}")
+
+    checkpoint_path = cfg.get("checkpoint_path")
+    if not checkpoint_path and not cfg.get("random_init", False):
+        file = cfg.get("checkpoint_file") or checkpoint_file
+        source = cfg.get("checkpoint_source") or checkpoint_source
+        raise ModelError(
+            f"model '{name}' needs its released weights ({file}; published at {source}); "
+            f"download them and set model.checkpoint_path=<path to the file>"
+        )
+
+    seed = cfg.get("init_seed")
+    with torch.random.fork_rng(devices=[]):
+        if seed is not None:
+            torch.manual_seed(int(seed))
+        module = make_module()
+    if checkpoint_path:
+        load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=training_only_prefixes, model_name=name)
+
+    align = cfg.get("upsample_align_corners")
+    return NormalizedSegmenter(
+        name,
+        module,
+        mean=mean,
+        std=std,
+        pad_multiple=pad_multiple,
+        align_corners=default_align_corners if align is None else bool(align),
+        device=cfg.get("device", "cpu"),
+        batch_size=int(cfg.get("batch_size", 4)),
+        amp=amp,
+        channels_last=bool(cfg.get("channels_last", False)),
+        compile=bool(cfg.get("compile", False)),
+    )
+
+
+__all__ = ["load_checkpoint_strict", "read_state_dict", "NormalizedSegmenter", "build_inproject"]
