@@ -62,8 +62,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     tracking = container.get("tracking") or {}
     tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), str(tracking.get("experiment_name") or container.get("name", "default")), bool(tracking.get("enabled", True)))
 
-    # dataset: the generate stage's output, or an existing root
     dcfg = container["dataset"]
+    if dcfg.get("kind") == "cityscapes":
+        # a sanity check of the models themselves (wrong preprocessing shows up here), not a paired run
+        from pairedgta.stages import cityscapes_val
+
+        with tracker.run(str(container.get("name", "run"))):
+            tracker.params({k: v for k, v in container.items() if k not in ("hydra",)})
+            return cityscapes_val.run(ctx, models, tracker)
+
+    # dataset: the generate stage's output, or an existing root
     if dcfg.get("kind") == "generated" and not dcfg.get("root"):
         gen = generate.run(ctx)
         dataset = open_dataset(dcfg, grid, root=gen.path)
