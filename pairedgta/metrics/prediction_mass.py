@@ -1,6 +1,7 @@
 """phi^c, eq. (prediction_mass): pixels predicted as c with probability >= tau."""
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -22,12 +23,12 @@ def prediction_mass(probs: torch.Tensor, class_id: int | None, tau: float = 0.9)
     return counts[0] if squeeze else counts
 
 
-def prediction_mass_from_labels(labels: torch.Tensor, confidence: torch.Tensor, num_classes: int, tau: float) -> torch.Tensor:
+def prediction_mass_from_labels(labels, confidence, num_classes: int, tau: float) -> torch.Tensor:
     """Same as `prediction_mass(probs, None, tau)` from (argmax labels, max probability): B x C counts."""
-    labels = torch.as_tensor(labels).long()
+    labels = np.asarray(labels.numpy() if isinstance(labels, torch.Tensor) else labels).astype(np.int64, copy=False)
+    conf = np.asarray(confidence.numpy() if isinstance(confidence, torch.Tensor) else confidence)
     if labels.ndim == 2:
-        labels, confidence = labels.unsqueeze(0), torch.as_tensor(confidence).unsqueeze(0)
-    confident = torch.as_tensor(confidence) >= tau
+        labels, conf = labels[None], conf[None]
     B = labels.shape[0]
-    flat = (labels + num_classes * torch.arange(B).view(-1, 1, 1))[confident]
-    return torch.bincount(flat, minlength=num_classes * B).view(B, num_classes)
+    keyed = (labels + num_classes * np.arange(B).reshape(-1, 1, 1))[conf >= tau]
+    return torch.from_numpy(np.bincount(keyed, minlength=num_classes * B).reshape(B, num_classes))

@@ -1,6 +1,7 @@
 """Ground-truth metrics where the backend gives labels: per-class IoU from a streaming confusion matrix."""
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -10,12 +11,13 @@ class ConfusionMatrix:
         self.ignore_index = ignore_index
         self.mat = torch.zeros(num_classes, num_classes, dtype=torch.long)
 
-    def update(self, target: torch.Tensor, pred: torch.Tensor) -> None:
-        t = torch.as_tensor(target).long().reshape(-1)
-        p = torch.as_tensor(pred).long().reshape(-1)
+    def update(self, target, pred) -> None:
+        t = np.asarray(target.numpy() if isinstance(target, torch.Tensor) else target).astype(np.int64, copy=False).reshape(-1)
+        p = np.asarray(pred.numpy() if isinstance(pred, torch.Tensor) else pred).astype(np.int64, copy=False).reshape(-1)
         valid = (t != self.ignore_index) & (t >= 0) & (t < self.num_classes) & (p >= 0) & (p < self.num_classes)
         idx = t[valid] * self.num_classes + p[valid]
-        self.mat += torch.bincount(idx, minlength=self.num_classes**2).view(self.num_classes, self.num_classes)
+        n = self.num_classes
+        self.mat += torch.from_numpy(np.bincount(idx, minlength=n * n).reshape(n, n))
 
     def iou(self) -> torch.Tensor:
         """Per-class IoU; NaN for classes absent from both target and prediction."""

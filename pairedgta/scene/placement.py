@@ -85,8 +85,9 @@ def place_objects(
         category = str(rng.choice(list(cfg.categories), p=probs))
         for _try in range(cfg.max_tries):
             # round before the spacing check so the stored descriptor satisfies d_min exactly
-            forward = round(float(rng.uniform(*cfg.forward_range)), 3)
-            right = round(float(rng.uniform(*cfg.lateral_range)), 3)
+            # (and clip, so rounding never leaves R_k)
+            forward = float(np.clip(round(float(rng.uniform(*cfg.forward_range)), 3), *cfg.forward_range))
+            right = float(np.clip(round(float(rng.uniform(*cfg.lateral_range)), 3), *cfg.lateral_range))
             if any((forward - f) ** 2 + (right - r) ** 2 < cfg.d_min**2 for f, r in positions):
                 continue
             surface = region.surface_at(*world_offset(location, forward, right))

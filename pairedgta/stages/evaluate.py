@@ -114,19 +114,20 @@ def compute(
                 f"{pl_path}: pseudo-label is {pseudo.shape[1]}x{pseudo.shape[0]} but the images of group "
                 f"{group.group_id} are {shape[1]}x{shape[0]}; rerun with force=[pseudolabel]"
             )
-        pseudo_t = torch.from_numpy(pseudo.astype(np.int64))
+        pseudo_t = pseudo.astype(np.int64)
         gt_t = None
         if use_gt and dataset.reference in group.labels:
             gt = load_label(group.labels[dataset.reference])
             if gt.shape != shape:
                 raise DataError(f"{group.labels[dataset.reference]}: label map size differs from its image")
-            gt_t = torch.from_numpy(gt.astype(np.int64))
-        preds: dict[str, torch.Tensor] = {}
+            gt_t = gt.astype(np.int64)
+        preds: dict[str, np.ndarray] = {}
         masses: dict[str, np.ndarray] = {}
         for start in range(0, len(present), batch):
             names = present[start : start + batch]
             labels, conf = segmenter.predict(np.stack([images[c] for c in names]))
             mass = prediction_mass_from_labels(labels, conf, NUM_CLASSES, s["tau_mass"]).numpy()
+            labels = labels.numpy()
             for i, c in enumerate(names):
                 preds[c] = labels[i]
                 masses[c] = mass[i]
@@ -137,7 +138,7 @@ def compute(
             if gt_t is not None:
                 acc.setdefault((GT, c), _Accumulator()).update(gt_t, pred)
                 own = group.labels.get(c)
-                target = torch.from_numpy(load_label(own).astype(np.int64)) if own else gt_t
+                target = load_label(own).astype(np.int64) if own else gt_t
                 gt_cm.setdefault(c, ConfusionMatrix(NUM_CLASSES)).update(target, pred)
             valid = pseudo_t != IGNORE_INDEX
             n_valid = int(valid.sum())
