@@ -47,6 +47,21 @@ class StageCache:
         """A stable work directory for resumable stages (generate): never a hit, reused by a rerun."""
         return self.root / stage / f".partial-{key}"
 
+    @contextlib.contextmanager
+    def lock(self, stage: str, key: str) -> Iterator[None]:
+        """Exclusive per-hash lock so parallel jobs don't compute the same stage twice; the atomic
+        rename stays the guarantee where flock is unavailable (some network file systems)."""
+        path = self.root / stage / f".lock-{key}"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a") as handle:
+            try:
+                import fcntl
+
+                fcntl.flock(handle, fcntl.LOCK_EX)
+            except (ImportError, OSError):  # pragma: no cover - platform without flock
+                pass
+            yield
+
     def invalidate(self, stage: str, key: str) -> None:
         final = self.path(stage, key)
         if final.exists():

@@ -27,6 +27,23 @@ def _clean_metric_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "_-./ " else "_" for ch in name)
 
 
+@contextlib.contextmanager
+def _store_lock(uri: str) -> Iterator[None]:
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    db = Path(uri[len("sqlite:///"):])
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with open(db.with_name(db.name + ".lock"), "a") as handle:
+        try:
+            import fcntl
+
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except (ImportError, OSError):  # pragma: no cover
+            pass
+        yield
+
+
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
         self.enabled = enabled
@@ -35,10 +52,10 @@ class Tracker:
         if enabled:
             import mlflow
 
-            if uri.startswith("sqlite:///"):
-                Path(uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
             mlflow.set_tracking_uri(uri)
-            mlflow.set_experiment(experiment)
+            with _store_lock(uri):
+                # parallel jobs would race on creating the sqlite schema and the experiment
+                mlflow.set_experiment(experiment)
             self.mlflow = mlflow
 
     @contextlib.contextmanager

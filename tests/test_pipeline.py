@@ -117,3 +117,17 @@ def test_generate_is_deterministic_and_paired(tmp_path):
     assert all(np.array_equal(labels[0], lab) for lab in labels[1:])
     day, night = (np.asarray(Image.open(d1 / f"{c}.png")).astype(float) for c in ("Day-EXTRASUNNY", "Night-EXTRASUNNY"))
     assert night.mean() < 0.6 * day.mean()
+
+
+def test_two_jobs_on_one_hash_first_rename_wins(tmp_path):
+    from pairedgta.cache import StageCache
+
+    cache = StageCache(tmp_path)
+    with cache.build("evaluate", "abc", {"job": "slow"}) as slow:
+        (slow / "xi.csv").write_text("slow")
+        with cache.build("evaluate", "abc", {"job": "fast"}) as fast:
+            (fast / "xi.csv").write_text("fast")
+        assert cache.is_hit("evaluate", "abc")
+    assert (tmp_path / "evaluate" / "abc" / "xi.csv").read_text() == "fast"
+    assert cache.manifest("evaluate", "abc")["job"] == "fast"
+    assert [p.name for p in (tmp_path / "evaluate").iterdir()] == ["abc"]

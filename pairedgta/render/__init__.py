@@ -10,6 +10,7 @@ from pairedgta.render.base import Renderer, RenderResult
 # backend name -> "module:Class"; modules import lazily so bpy/pyzmq are only needed when used
 BACKENDS: dict[str, str] = {
     "synthetic": "pairedgta.render.synthetic:SyntheticRenderer",
+    "blender": "pairedgta.render.blender:BlenderRenderer",
     "deepgtav": "pairedgta.render.deepgtav:DeepGTAVRenderer",
 }
 

@@ -39,6 +39,12 @@ def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
 
 
+def _hit(ctx: Context, stage: str, key: str, label: str, what: str) -> StageResult:
+    log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
+    ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": True})
+    return StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+
+
 def run_cached(
     ctx: Context,
     stage: str,
@@ -54,26 +60,26 @@ def run_cached(
     key = stage_hash(stage, version, config, inputs)
     what = f"{stage}{' ' + label if label else ''}"
     forced = stage in ctx.force
-    if ctx.cache.is_hit(stage, key) and not forced:
-        log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
-        result = StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
-        ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": True})
-        return result
+    if not forced and ctx.cache.is_hit(stage, key):
+        return _hit(ctx, stage, key, label, what)
     if stage not in ctx.stages:
         raise PairedGTAError(
             f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
             f"run it first, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
         )
-    if forced:
-        ctx.cache.invalidate(stage, key)
-        if resumable:
-            import shutil
+    with ctx.cache.lock(stage, key):
+        if not forced and ctx.cache.is_hit(stage, key):  # another job finished it while we waited
+            return _hit(ctx, stage, key, label, what)
+        if forced:
+            ctx.cache.invalidate(stage, key)
+            if resumable:
+                import shutil
 
-            shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)
-    log.info("%s: computing -> %s", what, ctx.cache.path(stage, key))
-    manifest = {"version": version, "config": config, "inputs": inputs}
-    work_dir = ctx.cache.partial_path(stage, key) if resumable else None
-    with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
-        extra = build(tmp) or {}
+                shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)
+        log.info("%s: computing -> %s", what, ctx.cache.path(stage, key))
+        manifest = {"version": version, "config": config, "inputs": inputs}
+        work_dir = ctx.cache.partial_path(stage, key) if resumable else None
+        with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
+            extra = build(tmp) or {}
     ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": False})
     return StageResult(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)
