@@ -29,8 +29,12 @@ def base_overrides(tmp: Path) -> list[str]:
 
 
 def fast_overrides(tmp: Path) -> list[str]:
-    """A tiny, quick pipeline: 3 scenes of 64x32, 3 conditions, few bootstrap resamples."""
+    """A tiny, quick pipeline: synthetic backend, tiny models, 3 scenes of 64x32, 3 conditions."""
     return base_overrides(tmp) + [
+        "renderer=synthetic",
+        "region=synthetic_street",
+        "model=tiny_segformer",
+        "reference_model=tiny_segformer",
         "generate.num_scenes=3",
         "renderer.width=64",
         "renderer.height=32",

@@ -17,7 +17,7 @@ from tests.test_datasets import write_release
 
 
 def stage_dirs(cache: Path) -> set[str]:
-    return {str(p.relative_to(cache)) for p in cache.glob("*/*")} if cache.exists() else set()
+    return {str(p.relative_to(cache)) for p in cache.glob("*/[!.]*")} if cache.exists() else set()
 
 
 def test_smoke_experiment_end_to_end(tmp_path):
@@ -108,4 +108,4 @@ def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
     for d in stage_dirs(cache):
         assert (cache / d / "manifest.json").is_file()
     if case in ("corrupt_png", "size_mismatch"):
-        assert not list((cache / "evaluate").glob("*")) if (cache / "evaluate").exists() else True
+        assert not list((cache / "evaluate").glob("[!.]*")) if (cache / "evaluate").exists() else True

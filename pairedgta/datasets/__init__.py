@@ -22,7 +22,11 @@ def open_dataset(cfg: Mapping[str, Any], grid: ConditionGrid, root: str | Path |
         from pairedgta.datasets.paired_gta import open_paired_gta
 
         return open_paired_gta(root, grid, cfg.get("name", "paired_gta"))
-    raise ConfigError(f"dataset.kind={kind!r} is unknown; use generated or paired_gta")
+    if kind == "acdc":
+        from pairedgta.datasets.acdc import open_acdc
+
+        return open_acdc(cfg, root)[0]
+    raise ConfigError(f"dataset.kind={kind!r} is unknown; use generated, paired_gta or acdc")
 
 
 __all__ = ["Group", "PairedDataset", "open_dataset", "load_image", "load_label", "load_group_images"]

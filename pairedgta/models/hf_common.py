@@ -17,8 +17,14 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+
 def pretrained_source(cfg: dict[str, Any]) -> str:
     path = cfg.get("path")
+    if path and str(path).startswith("pkg://"):
+        # weights shipped inside the package (the demo model): no network, no cache
+        path = str(PACKAGE_DIR / str(path)[len("pkg://"):])
     if path:
         if not Path(path).is_dir():
             raise ModelError(

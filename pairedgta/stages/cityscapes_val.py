@@ -103,15 +103,14 @@ def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_
         "model": model_hash_config(model_cfg),
         "dataset": {"split": dataset.split, "n_images": len(dataset), "scale": dataset.scale},
     }
-    # cityscapes_val is no stage of the paired graph (check_config rejects it in `stages`), so it always
-    # may compute here; force=[...] does not reach it: delete outputs/cache/cityscapes_val/<hash> instead
-    own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE], force=set())
+    # a check outside the paired graph: it always may compute when this experiment runs
+    own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
     result = run_cached(
         own, STAGE, VERSION, config, {"dataset": dataset_key},
         lambda out: compute(dataset, model_cfg, out), label=f"[{model_cfg['name']}]",
     )
     if result.hit:
-        log.info("%s [%s]: to recompute, delete %s", STAGE, model_cfg["name"], result.path)
+        log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
     return result
 
 

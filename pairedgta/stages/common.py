@@ -11,7 +11,7 @@ from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import PairedGTAError
 
 log = logging.getLogger("pairedgta")
-STAGES = ("generate", "pseudolabel", "evaluate", "plot")
+STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
 # model keys that change speed, not numbers: left out of cache hashes
 RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 

@@ -1,6 +1,8 @@
 """Evaluate stage, per model: xi per condition and class (eq. class_reference_consistency), pixel
 agreement, phi per image and class (eq. prediction_mass) and rho_valid (eq. valid_spearman), with
-percentile-bootstrap intervals over images; ground-truth IoU and xi-vs-ground-truth where labels exist.
+percentile-bootstrap intervals over images; ground-truth IoU per condition where that condition's
+labels exist (or the reference's, when only the reference is labelled) and xi-vs-ground-truth only
+where the reference condition itself is labelled.
 
 Streaming: per image only a few per-class counts are kept (for the bootstrap and for rho), never
 predictions, so memory does not grow with the image size times the number of images.
@@ -137,8 +139,17 @@ def compute(
                 acc.setdefault(("pseudo_label", c), _Accumulator()).update(pseudo_t, pred)
             if gt_t is not None:
                 acc.setdefault((GT, c), _Accumulator()).update(gt_t, pred)
-                own = group.labels.get(c)
-                target = load_label(own).astype(np.int64) if own else gt_t
+            # IoU of condition c needs c's own truth; the reference's truth stands in only where the
+            # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
+            # only: they are never used as reference truth nor for the reference image)
+            own = group.labels.get(c) if use_gt else None
+            if own is not None:
+                target = load_label(own).astype(np.int64)
+                if target.shape != shape:
+                    raise DataError(f"{own}: label map size differs from its image")
+            else:
+                target = gt_t
+            if target is not None:
                 gt_cm.setdefault(c, ConfusionMatrix(NUM_CLASSES)).update(target, pred)
             valid = pseudo_t != IGNORE_INDEX
             n_valid = int(valid.sum())

@@ -1,6 +1,13 @@
 """Generate stage, Algorithm 1 of the paper: per scene, sample a location, build the descriptor with
 dynamic objects, then render it under every condition. Resumable: each finished scene is renamed into
-the stage's partial directory, so a rerun after a crash keeps it and continues."""
+the stage's partial directory, so a rerun after a crash keeps it and continues.
+
+Pairing hook (`generate.pairing`): by default every condition is rendered from the one SceneDescriptor
+(perfect pairing). Non-zero `camera_jitter_m`, `camera_jitter_deg`, `object_resample_prob` or
+`object_move_m` perturb the descriptor once per adverse condition (camera offset and rotation, objects
+re-drawn in R_k or moved), emulating coarsely paired real data such as ACDC; the reference condition
+always uses the unperturbed descriptor. The perturbation acts on the descriptor only, so it works with
+every renderer; it is seeded by (scene seed, condition name) and enters the stage hash."""
 from __future__ import annotations
 
 import concurrent.futures as cf
@@ -11,6 +18,8 @@ import multiprocessing as mp
 import os
 import shutil
 import time
+import zlib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +31,7 @@ from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, scene_files
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError
 from pairedgta.render import Renderer, build_renderer
-from pairedgta.scene.descriptor import CameraPose, SceneDescriptor
+from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region
 from pairedgta.stages.common import Context, StageResult, run_cached
@@ -36,8 +45,71 @@ TIMING_COLUMNS = [
 EXECUTION_KEYS = ("workers", "endpoints")  # where scenes run, not what they are
 
 
+PAIRING_DEFAULTS = {"camera_jitter_m": 0.0, "camera_jitter_deg": 0.0, "object_resample_prob": 0.0, "object_move_m": 0.0}
+
+
+def pairing_config(gen: dict[str, Any]) -> dict[str, float]:
+    """`generate.pairing` with defaults (0 = perfect pairing), validated."""
+    raw = dict(gen.get("pairing") or {})
+    unknown = sorted(set(raw) - set(PAIRING_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"generate.pairing: unknown keys {unknown}; known: {sorted(PAIRING_DEFAULTS)}")
+    values = {k: float(raw[k]) if raw.get(k) is not None else d for k, d in PAIRING_DEFAULTS.items()}
+    for k, v in values.items():
+        if v < 0 or (k == "object_resample_prob" and v > 1):
+            raise ConfigError(f"generate.pairing.{k}={v}; use {'0..1' if k == 'object_resample_prob' else '>= 0'}")
+    return values
+
+
+def is_perfect(pairing: dict[str, float]) -> bool:
+    return all(v == 0 for v in pairing.values())
+
+
+def perturb_descriptor(
+    descriptor: SceneDescriptor, condition: str, pairing: dict[str, float], placement: PlacementConfig, region: Any
+) -> SceneDescriptor:
+    """The scene as a coarse pair would show it under `condition`: the camera offset by up to
+    camera_jitter_m per axis and rotated by up to camera_jitter_deg per axis (uniform), each object
+    re-drawn in R_k with probability object_resample_prob (dropped if R_k has no room within d_min),
+    else moved by up to object_move_m. Static geometry (seed, scene id, location) is kept."""
+    rng = np.random.default_rng(np.random.SeedSequence([descriptor.seed, zlib.crc32(condition.encode())]))
+    jm, jd = pairing["camera_jitter_m"], pairing["camera_jitter_deg"]
+    cam = descriptor.camera
+    dx, dy, dz = rng.uniform(-jm, jm, size=3) if jm > 0 else (0.0, 0.0, 0.0)
+    rx, ry, rz = rng.uniform(-jd, jd, size=3) if jd > 0 else (0.0, 0.0, 0.0)
+    camera = replace(
+        cam, x=round(cam.x + dx, 4), y=round(cam.y + dy, 4), z=round(max(0.3, cam.z + dz), 4),
+        rot_x=round(cam.rot_x + rx, 4), rot_y=round(cam.rot_y + ry, 4), rot_z=round(cam.rot_z + rz, 4),
+    )
+    kept: list[DynamicObject] = []
+    redraw: list[int] = []
+    for i, obj in enumerate(descriptor.objects):
+        if pairing["object_resample_prob"] > 0 and rng.random() < pairing["object_resample_prob"]:
+            redraw.append(i)
+            continue
+        m = pairing["object_move_m"]
+        if m > 0:
+            df, dr = rng.uniform(-m, m, size=2)
+            obj = replace(obj, forward=round(obj.forward + df, 3), right=round(obj.right + dr, 3))
+        kept.append(obj)
+    one = replace(placement, min=1, max=1)
+    for _ in redraw:
+        for _try in range(20):
+            new, _ = place_objects(rng, descriptor.location, region, one)
+            if new and all((new[0].forward - o.forward) ** 2 + (new[0].right - o.right) ** 2 >= placement.d_min**2 for o in kept):
+                kept.append(new[0])
+                break
+    extra = dict(descriptor.extra)
+    extra["pairing"] = {"condition": condition, **pairing}
+    return replace(descriptor, camera=camera, objects=tuple(kept), extra=tuple(sorted(extra.items())))
+
+
 def hash_config(cfg: dict[str, Any], grid: ConditionGrid) -> dict[str, Any]:
     gen = {k: v for k, v in cfg["generate"].items() if k not in EXECUTION_KEYS}
+    pairing = pairing_config(gen)
+    gen.pop("pairing", None)
+    if not is_perfect(pairing):  # perfect pairing hashes as before the hook existed
+        gen["pairing"] = pairing
     renderer = {k: v for k, v in cfg["renderer"].items() if k not in ("host", "port", "timeout_s", "retries")}
     return {
         "generate": gen, "renderer": renderer, "region": cfg["region"],
@@ -62,6 +134,8 @@ def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDes
     descriptor = SceneDescriptor(
         scene_id=f"{k:05d}", seed=seed, location=location, camera=camera, objects=objects,
         region=getattr(region, "name", ""), requested_objects=requested,
+        # regions with a generated layout store it, so the descriptor alone replays the scene
+        extra=(("town", region.params()),) if hasattr(region, "params") else (),
     )
     if len(objects) < requested:
         log.info("scene %s: placed %d of %d objects (region R_k too small for d_min)", descriptor.scene_id, len(objects), requested)
@@ -84,8 +158,17 @@ def render_scene(
         t1 = time.perf_counter()
         states: dict[str, dict] = {}
         images: dict[str, np.ndarray] = {}
+        pairing = pairing_config(cfg["generate"])
+        perturbed: dict[str, SceneDescriptor] = {}
         for condition in grid:
-            result = renderer.render(descriptor, condition)
+            shown = descriptor
+            if condition.name != grid.reference and not is_perfect(pairing):
+                shown = perturb_descriptor(
+                    descriptor, condition.name, pairing, PlacementConfig.from_cfg(cfg["generate"]["objects"]), region
+                )
+                perturbed[condition.name] = shown
+                shown.save(tmp / f"{condition.name}_descriptor.json")
+            result = renderer.render(shown, condition)
             if result.image.shape[:2] != (renderer.height, renderer.width):
                 raise RendererError(
                     f"renderer returned {result.image.shape[1]}x{result.image.shape[0]} for "
@@ -100,7 +183,7 @@ def render_scene(
             states[condition.name] = result.state
             images[condition.name] = result.image
         rendering = time.perf_counter() - t1
-        validation = validate(images, grid, descriptor, states, cfg)
+        validation = validate(images, grid, descriptor, states, cfg, perturbed)
         descriptor.save(tmp / "descriptor.json")
         # the backend's overhead (reconnects, retries, waiting) happens inside the phases; the paper
         # reports it apart from the pipeline time, so it is moved out of the phases here
@@ -123,19 +206,25 @@ def render_scene(
         raise
 
 
-def validate(images, grid, descriptor, states, cfg) -> dict[str, Any]:
+def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str, Any]:
     vcfg = cfg["generate"].get("validation") or {}
     if not vcfg.get("enabled", True):
         return {"ok": True, "reasons": [], "structure": {}}
     try:
-        from pairedgta.scene.validation import validate_group
+        from pairedgta.scene.validation import entity_mismatches, validate_group
     except ImportError:  # pragma: no cover - validation module ships with the package
         return {"ok": True, "reasons": ["validation unavailable"], "structure": {}}
+    perturbed = perturbed or {}
     res = validate_group(
-        images, grid.reference, descriptor=descriptor, states=states,
+        images, grid.reference, descriptor=descriptor,
+        states={c: s for c, s in states.items() if c not in perturbed},
         threshold=float(vcfg.get("structure_threshold", 0.5)),
     )
-    return {"ok": bool(res.ok), "reasons": list(res.reasons), "structure": dict(res.structure)}
+    reasons = list(res.reasons)
+    # a deliberately perturbed condition is checked against the descriptor it was rendered from
+    for cond, shown in perturbed.items():
+        reasons += [f"{cond}: {why}" for why in entity_mismatches(shown, states.get(cond) or {})]
+    return {"ok": not reasons, "reasons": reasons, "structure": dict(res.structure)}
 
 
 # -- worker processes for generate.workers > 1 -------------------------------------------------

@@ -1,0 +1,7 @@
+"""Package data: reference measurements shipped with the code (see README.md in this folder)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+DATA_DIR = Path(__file__).resolve().parent
+PAPER_GENERATION_TIMES = DATA_DIR / "paper_generation_times.csv"

@@ -1,0 +1,112 @@
+"""What every figure shares: paper sizes and style, class order and palette, model and condition names."""
+from __future__ import annotations
+
+import contextlib
+import re
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import seaborn as sns
+
+from pairedgta.cityscapes import CLASS_NAMES, PALETTE
+
+# paper widths (inches): one column of a two-column layout, and the full text width
+COLUMN_WIDTH = 3.4
+TEXT_WIDTH = 7.0
+FONT_SIZE = 7
+
+# the class order of every table and figure (Cityscapes train ids) and its colours
+CLASS_ORDER: tuple[str, ...] = CLASS_NAMES
+CLASS_COLORS = {name: tuple(PALETTE[i] / 255.0) for i, name in enumerate(CLASS_NAMES)}
+CLASS_SHORT = {"traffic light": "T. light", "traffic sign": "T. sign", "motorcycle": "motor."}
+
+MODEL_DISPLAY = {
+    "segformer_b0": "SegFormer-B0", "segformer_b2": "SegFormer-B2", "segformer_b5": "SegFormer-B5",
+    "mask2former_swin_s": "Mask2Former Swin-S", "mask2former_swin_l": "Mask2Former Swin-L",
+    "deeplabv3plus_r101": "DeepLabV3+ R101", "pidnet_m": "PIDNet-M", "ddrnet_23": "DDRNet-23",
+}
+# a fixed colour per model, so a model has the same colour in every figure of every run
+_MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
+WEATHER_DISPLAY = {"EXTRASUNNY": "Sunny", "RAIN": "Rain", "FOGGY": "Foggy", "CLEAR": "Clear"}
+
+
+def model_display(name: str) -> str:
+    return MODEL_DISPLAY.get(name, name)
+
+
+def model_color(name: str) -> tuple[float, float, float]:
+    import zlib
+
+    palette = sns.color_palette("tab10", 10) + sns.color_palette("Dark2", 8)
+    idx = _MODEL_ORDER.index(name) if name in _MODEL_ORDER else zlib.crc32(name.encode())
+    return tuple(palette[idx % len(palette)])  # type: ignore[return-value]
+
+
+def condition_display(name: str) -> str:
+    """Day-EXTRASUNNY -> Day-Sunny (the paper's wording); other parts of the name unchanged."""
+    return "-".join(WEATHER_DISPLAY.get(part, part) for part in name.split("-"))
+
+
+def class_short(name: str) -> str:
+    return CLASS_SHORT.get(name, name)
+
+
+def ordered_classes(names: Iterable[str]) -> list[str]:
+    present = set(names)
+    return [c for c in CLASS_ORDER if c in present]
+
+
+def slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_").lower() or "x"
+
+
+@contextlib.contextmanager
+def paper_style() -> Iterator[None]:
+    """Small fonts that stay readable when the figure is printed at column or text width."""
+    rc = {
+        "font.size": FONT_SIZE, "axes.titlesize": FONT_SIZE + 1, "axes.labelsize": FONT_SIZE,
+        "xtick.labelsize": FONT_SIZE - 1, "ytick.labelsize": FONT_SIZE - 1, "legend.fontsize": FONT_SIZE - 1,
+        "axes.linewidth": 0.6, "lines.linewidth": 1.0, "pdf.fonttype": 42, "ps.fonttype": 42,
+        "savefig.bbox": "tight", "savefig.pad_inches": 0.02,
+    }
+    with plt.style.context("seaborn-v0_8-ticks"), plt.rc_context(rc):
+        yield
+
+
+def save(fig: plt.Figure, out: Path, stem: str, formats: list[str], dpi: int) -> list[Path]:
+    paths = []
+    for fmt in formats:
+        path = out / f"{stem}.{fmt}"
+        fig.savefig(path, dpi=dpi, bbox_inches="tight")
+        paths.append(path)
+    plt.close(fig)
+    return paths
+
+
+def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average with shrinking windows at the ends (the paper's trend line)."""
+    import pandas as pd
+
+    k = max(1, min(int(window), len(values)))
+    return pd.Series(values, dtype=float).rolling(k, min_periods=1, center=True).mean().to_numpy()
+
+
+def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | None = None) -> str:
+    align = align or ["l"] + ["r"] * (len(header) - 1)
+    sep = ["---" if a == "l" else "---:" for a in align]
+    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join(sep) + " |"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+_LATEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+          "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\^{}"}
+
+
+def latex_escape(text: str) -> str:
+    return "".join(_LATEX.get(ch, ch) for ch in text)

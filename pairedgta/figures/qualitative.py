@@ -1,0 +1,108 @@
+"""Qualitative grids: for each adverse condition the worst and best groups by per-image agreement with
+the pseudo-label (pixel_agreement.csv), as clean image | clean prediction | adverse image | adverse
+prediction | adverse confidence | disagreement overlay, in the Cityscapes palette.
+
+Evaluate stores no predictions (it streams), so the few shown groups are predicted again here; the
+recomputed agreement is written next to the cached one, which also checks that they match."""
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from pairedgta.cityscapes import IGNORE_INDEX, colorize
+from pairedgta.datasets import PairedDataset, load_group_images, load_label
+from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
+
+log = logging.getLogger("pairedgta.plot")
+COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",
+           "disagreement with\npseudo-label (red)")
+
+
+def select_groups(agreement: pd.DataFrame, conditions: list[str], n: int) -> list[dict[str, Any]]:
+    """Per condition the ceil(n/2) worst and floor(n/2) best groups by agreement_reference
+    (groups without valid pixels are left out; ties break by group id; a group is shown once)."""
+    picks = []
+    per = agreement[(agreement["pair_id"] != "ALL") & agreement["agreement_reference"].notna()]
+    n_worst, n_best = math.ceil(n / 2), n // 2
+    for cond in conditions:
+        g = per[per["condition"] == cond].sort_values(["agreement_reference", "pair_id"], kind="stable")
+        if g.empty:
+            continue
+        worst = g.head(n_worst)
+        best = g[~g["pair_id"].isin(worst["pair_id"])].tail(n_best).iloc[::-1]
+        for kind, rows in (("worst", worst), ("best", best)):
+            for row in rows.itertuples():
+                picks.append({"condition": cond, "kind": kind, "pair_id": str(row.pair_id),
+                              "agreement": float(row.agreement_reference)})
+    return picks
+
+
+def disagreement_overlay(image: np.ndarray, pred: np.ndarray, pseudo: np.ndarray) -> np.ndarray:
+    """The image dimmed to grey; red where the prediction differs from a valid pseudo-label, green where
+    it agrees; void pixels stay grey."""
+    grey = image.astype(float).mean(axis=-1, keepdims=True).repeat(3, axis=-1) * 0.5
+    valid = pseudo != IGNORE_INDEX
+    out = grey.copy()
+    out[valid & (pred != pseudo)] = 0.35 * grey[valid & (pred != pseudo)] + 0.65 * np.array([230, 25, 25])
+    out[valid & (pred == pseudo)] = 0.7 * grey[valid & (pred == pseudo)] + 0.3 * np.array([40, 200, 60])
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.DataFrame, model_cfg: dict[str, Any],
+                     conditions: list[str], n: int, clean: str, out: Path, stem: str, formats: list[str], dpi: int,
+                     title: str = "") -> tuple[list[Path], pd.DataFrame]:
+    from pairedgta.models import build_segmenter
+    from pairedgta.stages.pseudolabel import label_path
+
+    picks = select_groups(agreement, conditions, n)
+    if not picks:
+        return [], pd.DataFrame()
+    segmenter = build_segmenter(model_cfg)
+    groups = {g.group_id: g for g in dataset.groups}
+    rows = []
+    panels = []
+    for p in picks:
+        group = groups.get(p["pair_id"])
+        if group is None or p["condition"] not in group.images:
+            continue
+        images = load_group_images(group, [clean, p["condition"]])
+        pseudo = load_label(label_path(pseudo_dir, group.group_id)).astype(np.int64)
+        labels, conf = segmenter.predict(np.stack([images[clean], images[p["condition"]]]))
+        labels, conf = labels.numpy(), conf.numpy()
+        valid = pseudo != IGNORE_INDEX
+        recomputed = float(((labels[1] == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
+        if not math.isclose(recomputed, p["agreement"], abs_tol=1e-6):
+            log.warning("qualitative %s/%s: recomputed agreement %.4f differs from evaluate's %.4f",
+                        p["condition"], group.group_id, recomputed, p["agreement"])
+        rows.append({**p, "model": segmenter.name, "agreement_recomputed": recomputed})
+        panels.append((p, images[clean], labels[0], images[p["condition"]], labels[1], conf[1], pseudo))
+    if not panels:
+        return [], pd.DataFrame(rows)
+    h, w = panels[0][1].shape[:2]
+    cell_w = TEXT_WIDTH / len(COLUMNS)
+    with paper_style():
+        fig, axes = plt.subplots(len(panels), len(COLUMNS), figsize=(TEXT_WIDTH, len(panels) * (cell_w * h / w + 0.22)),
+                                 squeeze=False)
+        for i, (p, clean_img, clean_pred, adv_img, adv_pred, adv_conf, pseudo) in enumerate(panels):
+            shown = [clean_img, colorize(clean_pred), adv_img, colorize(adv_pred), adv_conf,
+                     disagreement_overlay(adv_img, adv_pred, pseudo)]
+            for j, (ax, im) in enumerate(zip(axes[i], shown)):
+                if j == 4:
+                    ax.imshow(im, cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+                else:
+                    ax.imshow(im, interpolation="nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if i == 0:
+                    ax.set_title(COLUMNS[j], fontsize=6)
+            axes[i, 0].set_ylabel(f"{p['kind']}: {condition_display(p['condition'])}\n{p['pair_id']}\n"
+                                  f"agreement {p['agreement']:.2f}", fontsize=5)
+        fig.suptitle(title or model_display(segmenter.name), fontsize=7)
+        fig.tight_layout()
+        return save(fig, out, stem, formats, dpi), pd.DataFrame(rows)

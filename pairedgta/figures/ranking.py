@@ -1,0 +1,131 @@
+"""The paper's ranking figure (fig. consistency_comparisons): per dataset x model x class, frames sorted by
+their clean count phi, a two-row heatmap of clean and adverse counts, and below it the image-wise
+difference (clean - adverse) with its moving average; rho_valid in each title. Plus the rho table."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+import seaborn as sns
+
+from pairedgta.figures.common import (
+    TEXT_WIDTH,
+    condition_display,
+    markdown_table,
+    model_display,
+    moving_average,
+    paper_style,
+    save,
+)
+
+SELECTION_LABEL = {"top_m": "top-M", "nonzero": "non-zero"}
+
+
+@dataclass
+class RankingInput:
+    """One dataset's evaluations: its label, the adverse condition shown, counts and rho of every model."""
+
+    label: str
+    condition: str
+    counts: pd.DataFrame  # frame_counts.csv rows of every model
+    rho: pd.DataFrame  # rho_valid.csv rows of every model
+
+
+def pick_condition(conditions: list[str], wanted: str | None, reference: str) -> str | None:
+    """The configured condition when this dataset has it, else Night-EXTRASUNNY, else the first adverse."""
+    adverse = [c for c in conditions if c != reference]
+    if wanted and wanted in adverse:
+        return wanted
+    if "Night-EXTRASUNNY" in adverse:
+        return "Night-EXTRASUNNY"
+    return adverse[0] if adverse else None
+
+
+def sorted_counts(counts: pd.DataFrame, model: str, cls: str, condition: str) -> pd.DataFrame:
+    """Frames of (model, class, condition) sorted by clean count, largest first (ties by frame id)."""
+    g = counts[(counts["model"] == model) & (counts["class_name"] == cls) & (counts["condition"] == condition)]
+    return g.sort_values(["clean_count", "pair_id"], ascending=[False, True], kind="stable").reset_index(drop=True)
+
+
+def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, out: Path, formats: list[str],
+                   dpi: int, stem: str = "ranking", selections: tuple[str, ...] = ("top_m", "nonzero")) -> list[Path]:
+    columns: list[tuple[str, str]] = []
+    for inp in inputs:
+        for model in dict.fromkeys(inp.counts["model"]):
+            for cls in classes:
+                if (model, cls) not in columns and not sorted_counts(inp.counts, model, cls, inp.condition).empty:
+                    columns.append((model, cls))
+    if not columns:
+        return []
+    with paper_style():
+        width = min(TEXT_WIDTH * 1.5, max(TEXT_WIDTH / 2, 2.0 * len(columns)))
+        fig = plt.figure(figsize=(width, 2.3 * len(inputs)))
+        outer = fig.add_gridspec(len(inputs), 1, hspace=0.55)
+        for i, inp in enumerate(inputs):
+            # per dataset: the heatmap row and, tight below it, the difference row (shared x)
+            inner = outer[i].subgridspec(2, len(columns), height_ratios=[1, 1.4], hspace=0.08, wspace=0.45)
+            for j, (model, cls) in enumerate(columns):
+                top, bottom = fig.add_subplot(inner[0, j]), fig.add_subplot(inner[1, j])
+                g = sorted_counts(inp.counts, model, cls, inp.condition)
+                if g.empty:
+                    top.axis("off")
+                    bottom.axis("off")
+                    continue
+                heat = np.vstack([g["clean_count"].to_numpy(), g["adv_count"].to_numpy()]).astype(float)
+                cax = top.inset_axes([1.02, 0.0, 0.035, 1.0])  # outside, so heat and difference align
+                sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
+                            vmin=0, vmax=max(1.0, float(heat.max())))
+                cax.tick_params(labelsize=5, length=2)
+                r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
+                vals = {row.selection: row.rho for row in r.itertuples()}
+                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
+                top.set_title(f"{inp.label} \u00b7 {model_display(model)}\n{cls}: "
+                              f"\u03c1_valid {', '.join(parts) if parts else 'n/a'}", fontsize=6)
+                top.tick_params(length=0, labelsize=5)
+                diff = g["clean_count"].to_numpy() - g["adv_count"].to_numpy()
+                x = np.arange(len(diff))
+                bottom.plot(x + 0.5, diff, color="tab:blue", lw=0.7, label="clean \u2212 adverse")
+                if len(diff) >= 2:
+                    k = max(1, min(window, len(diff)))
+                    bottom.plot(x + 0.5, moving_average(diff, k), color="tab:orange", lw=1.3, label=f"moving avg ({k})")
+                bottom.axhline(0, color="grey", lw=0.4)
+                bottom.set_xlim(0, len(diff))  # the heatmap's cell edges
+                bottom.set_xlabel(f"frames sorted by clean \u03c6 ({condition_display(inp.condition)})", fontsize=5)
+                bottom.tick_params(labelsize=5)
+                if j == 0:
+                    bottom.set_ylabel("\u0394\u03c6 (pixels)", fontsize=6)
+                    if i == 0:
+                        bottom.legend(fontsize=5, frameon=False)
+        return save(fig, out, stem, formats, dpi)
+
+
+def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: str = "rho_valid") -> list[Path]:
+    """Every rho_valid of the shown condition per dataset, model, class and selection: CSV (with the
+    bootstrap interval and the number of frames) and a Markdown pivot."""
+    rows = []
+    for inp in inputs:
+        r = inp.rho[(inp.rho["condition"] == inp.condition) & inp.rho["class_name"].isin(classes)].copy()
+        r.insert(0, "dataset_label", inp.label)
+        rows.append(r)
+    if not rows:
+        return []
+    table = pd.concat(rows, ignore_index=True)
+    table.to_csv(out / f"{stem}.csv", index=False)
+    selections = list(dict.fromkeys(table["selection"]))
+    header = ["Dataset", "Adverse", "Model"] + [f"{c} ({SELECTION_LABEL.get(s, s)})" for c in classes for s in selections]
+    md_rows = []
+    for (label, model), g in table.groupby(["dataset_label", "model"], sort=False):
+        cells = []
+        for c in classes:
+            for s in selections:
+                v = g[(g["class_name"] == c) & (g["selection"] == s)]["rho"]
+                cells.append("–" if v.empty or math.isnan(float(v.iloc[0])) else f"{float(v.iloc[0]):.3f}")
+        md_rows.append([str(label), condition_display(str(g["condition"].iloc[0])), model_display(str(model))] + cells)
+    text = ("# \u03c1_valid (Spearman of clean vs adverse \u03c6 over the valid frames)\n\n"
+            + markdown_table(header, md_rows, ["l", "l", "l"] + ["r"] * (len(header) - 3)))
+    (out / f"{stem}.md").write_text(text)
+    return [out / f"{stem}.csv", out / f"{stem}.md"]

@@ -1,0 +1,262 @@
+"""Blender backend: pairing proofs at tiny resolution, determinism, label content, bad input.
+
+bpy is a dependency of the project (the default backend), so these tests always run.
+"""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.conditions import Condition, build_condition_grid
+from pairedgta.errors import ConfigError, RendererError
+from pairedgta.render import BACKENDS, build_renderer
+from pairedgta.render.blender import (
+    TEMPLATES,
+    BlenderRenderer,
+    decode_labels,
+    label_code,
+    lighting,
+    mesh_arrays,
+    model_parts,
+)
+from pairedgta.scene.descriptor import CATEGORIES, CameraPose, DynamicObject, Location, SceneDescriptor
+from pairedgta.scene.town import ProceduralTownRegion
+from tests.conftest import CONF, compose_cfg
+
+TOWN = {"town_seed": 1, "blocks": 2, "countryside_trees": 10}
+ROAD, BUILDING, SKY, PERSON, CAR = (CLASS_NAMES.index(c) for c in ("road", "building", "sky", "person", "car"))
+GRID = build_condition_grid(OmegaConf.to_container(OmegaConf.load(CONF / "conditions" / "paper.yaml")))
+
+
+def _descriptor(**changes) -> SceneDescriptor:
+    region = ProceduralTownRegion(**TOWN)
+    loc = region.sample_location(np.random.default_rng(2))
+    lane_to_sidewalk = region.road_width / 4 + region.sidewalk_width / 2
+    objects = (
+        DynamicObject("car", "sedan", forward=12.0, right=0.0, color=(200, 30, 30), secondary_color=(40, 40, 40)),
+        DynamicObject("person", "walker", forward=9.0, right=lane_to_sidewalk, heading=90.0, color=(40, 90, 200)),
+    )
+    base = {"scene_id": "t0", "seed": 0, "location": loc, "objects": objects, "region": "procedural_town",
+            "extra": (("town", TOWN),)}
+    base.update(changes)
+    return SceneDescriptor(**base)
+
+
+# ---- no bpy needed -------------------------------------------------------------------------
+
+def test_backend_is_registered_and_module_imports_without_bpy():
+    assert BACKENDS["blender"] == "pairedgta.render.blender:BlenderRenderer"
+    code = "import sys; import pairedgta.render.blender; assert 'bpy' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_mesh_templates_and_arrays():
+    for shape, (verts, faces) in TEMPLATES.items():
+        assert all(0 <= i < len(verts) for f in faces for i in f), shape
+    rows = np.array([[1.0, 2.0, 0.0, 2.0, 4.0, 3.0, 90.0, 1.0, 0.5, 0.0, 0.25]])
+    verts, _, starts, mats, cols = mesh_arrays([("box", rows, 3)])
+    assert verts.shape == (8, 3) and len(starts) == 6 and set(mats) == {3}
+    # yaw 90: the 4 m side now runs along x; base at z=0, top at z=3
+    assert np.ptp(verts[:, 0]) == pytest.approx(4.0) and np.ptp(verts[:, 1]) == pytest.approx(2.0)
+    assert verts[:, 2].min() == pytest.approx(0.0) and verts[:, 2].max() == pytest.approx(3.0)
+    assert cols[0, 0] == pytest.approx(1.0) and cols[0, 3] == pytest.approx(0.25)
+
+
+def test_label_codes_round_trip():
+    codes = np.array([[0, label_code("road"), label_code("car", 5), label_code("void"), label_code("rider", 1023)]])
+    train, inst = decode_labels(codes.astype(np.float32))
+    assert train.tolist() == [[SKY, ROAD, CAR, 255, CLASS_NAMES.index("rider")]]
+    assert inst.tolist() == [[0, 0, 5, 0, 1023]]
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_every_category_has_a_real_size_model(category):
+    parts, _ = model_parts(category, "m", (10, 20, 30), (40, 50, 60))
+    rows = np.array([p[3] for p in parts])
+    top = float((rows[:, 2] + rows[:, 5]).max())
+    length = float((np.abs(rows[:, 1]) + rows[:, 4] / 2).max() * 2)
+    expected_top = {"car": 1.4, "truck": 3.6, "bus": 3.2, "motorcycle": 1.0, "bicycle": 1.0, "person": 1.75,
+                    "rider": 1.6}
+    assert top == pytest.approx(expected_top[category], abs=0.25)
+    assert length < 13.0
+    if category == "rider":
+        assert {p[0] for p in parts} == {"rider", "bicycle"}
+
+
+def test_unknown_category_is_a_renderer_error():
+    with pytest.raises(RendererError, match="category 'tank'"):
+        model_parts("tank", "t", (0, 0, 0), (0, 0, 0))
+
+
+def test_light_model_is_continuous_and_ordered():
+    day, sunset, night = (lighting(GRID[n]) for n in ("Day-EXTRASUNNY", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY"))
+    assert day["sun_strength"] > sunset["sun_strength"] > night["sun_strength"] == 0.0
+    assert sunset["sun_color"][2] < 0.5 < sunset["sun_color"][0]  # warm low sun
+    assert day["exposure"] < sunset["exposure"] < night["exposure"]
+    assert night["lamps"] == 1.0 and day["lamps"] == 0.0
+    # a small change of any physical field makes a small change of every parameter
+    base = Condition(name="x", time="Day", weather="w", sun_elevation_deg=20.0, cloud_cover=0.3, fog_density=0.3,
+                     rain_intensity=0.3, wetness=0.3)
+    p0 = lighting(base)
+    for field in ("sun_elevation_deg", "cloud_cover", "fog_density", "rain_intensity", "wetness"):
+        p1 = lighting(dataclasses.replace(base, **{field: getattr(base, field) + 1e-4}))
+        for key, value in p0.items():
+            assert np.allclose(value, p1[key], atol=1e-2), (field, key)
+
+
+def test_bad_options_are_config_errors():
+    with pytest.raises(ConfigError, match="renderer.sampels"):
+        BlenderRenderer(width=64, height=32, sampels=4)
+    with pytest.raises(ConfigError, match="renderer.device"):
+        BlenderRenderer(width=64, height=32, device="TPU")
+
+
+def test_missing_bpy_is_a_one_line_renderer_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "bpy", None)
+    r = BlenderRenderer(width=64, height=32)
+    with pytest.raises(RendererError, match="pip install bpy==5.0.1") as err:
+        r.open()
+    assert "\n" not in str(err.value)
+
+
+def test_config_files_build_the_renderer_and_region():
+    cfg = compose_cfg(["renderer=blender", "region=procedural_town"])
+    rcfg = OmegaConf.to_container(cfg.renderer, resolve=True)
+    renderer = build_renderer(rcfg)
+    assert isinstance(renderer, BlenderRenderer) and renderer.gives_labels
+    assert (renderer.width, renderer.height) == (512, 256)
+    assert renderer.town_cfg["town_seed"] == cfg.region.town_seed
+    with pytest.raises(ConfigError, match="region=procedural_town"):
+        build_renderer(OmegaConf.to_container(compose_cfg(["renderer=blender"]).renderer, resolve=True))
+
+
+# ---- rendering -----------------------------------------------------------------------------
+
+
+CONDITIONS = ("Day-EXTRASUNNY", "Sunset-FOGGY", "Night-RAIN", "Day-FOGGY")
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """Four conditions of one scene, labels re-rendered for every condition, then the first
+    condition again."""
+    d = _descriptor()
+    r = BlenderRenderer(width=96, height=48, samples=2, town=TOWN, labels_per_condition=True)
+    r.open()
+    try:
+        results = {name: r.render(d, GRID[name]) for name in CONDITIONS}
+        again = r.render(d, GRID[CONDITIONS[0]])
+    finally:
+        r.close()
+    return d, results, again
+
+
+def test_labels_and_instances_are_identical_across_conditions_while_images_differ(rendered):
+    _, results, _ = rendered
+    ref = results[CONDITIONS[0]]
+    assert ref.image.shape == (48, 96, 3) and ref.image.dtype == np.uint8
+    assert ref.labels.shape == (48, 96) and ref.labels.dtype == np.uint8
+    assert ref.instances.shape == (48, 96) and ref.instances.dtype == np.uint16
+    for name in CONDITIONS[1:]:
+        res = results[name]
+        np.testing.assert_array_equal(res.labels, ref.labels, err_msg=name)
+        np.testing.assert_array_equal(res.instances, ref.instances, err_msg=name)
+    images = [results[n].image.astype(np.int16) for n in CONDITIONS]
+    for i in range(len(images)):
+        for j in range(i + 1, len(images)):
+            assert np.abs(images[i] - images[j]).mean() > 5.0, (CONDITIONS[i], CONDITIONS[j])
+    for name, res in results.items():  # exposure keeps every condition visible
+        assert res.image.mean() > 15 and res.image.std() > 8, name
+
+
+def test_same_descriptor_and_condition_give_the_same_image(rendered):
+    _, results, again = rendered
+    first = results[CONDITIONS[0]]
+    np.testing.assert_array_equal(again.image, first.image)
+    np.testing.assert_array_equal(again.labels, first.labels)
+
+
+def test_images_do_not_depend_on_what_was_rendered_before(rendered):
+    """A second renderer in the same process that caches labels, first renders another scene at
+    night, then this scene's conditions in reverse order, reproduces every image bit for bit."""
+    d, results, _ = rendered
+    loc = ProceduralTownRegion(**TOWN).sample_location(np.random.default_rng(5))
+    other = _descriptor(scene_id="t1", location=loc)
+    assert other.location != d.location
+    with BlenderRenderer(width=96, height=48, samples=2, town=TOWN) as r:
+        r.render(other, GRID["Night-EXTRASUNNY"])
+        again = {name: r.render(d, GRID[name]) for name in reversed(CONDITIONS)}
+    for name in CONDITIONS:
+        np.testing.assert_array_equal(again[name].image, results[name].image, err_msg=name)
+        np.testing.assert_array_equal(again[name].labels, results[name].labels, err_msg=name)
+        np.testing.assert_array_equal(again[name].instances, results[name].instances, err_msg=name)
+
+
+def test_labels_contain_the_scene_and_the_placed_objects(rendered):
+    _, results, _ = rendered
+    res = results[CONDITIONS[0]]
+    present = set(np.unique(res.labels).tolist())
+    assert {ROAD, SKY, BUILDING, CAR} <= present, present
+    car = res.instances == 1
+    assert car.sum() > 20 and (res.labels[car] == CAR).all()
+    # 12 m ahead in the ego lane: centred horizontally, below the horizon
+    ys, xs = np.nonzero(car)
+    assert abs(xs.mean() - 48) < 10 and ys.mean() > 24
+    person = res.instances == 2
+    assert person.any() and (res.labels[person] == PERSON).all()
+    assert set(np.unique(res.instances).tolist()) == {0, 1, 2}
+    assert (res.labels[res.instances == 0] != CAR).all()
+    assert res.state["objects"][0]["category"] == "car"
+
+
+def test_physical_order_of_conditions(rendered):
+    _, results, _ = rendered
+    day, fog, night = (results[n].image.astype(float) for n in ("Day-EXTRASUNNY", "Day-FOGGY", "Night-RAIN"))
+    lum = lambda im: im.mean(axis=2)
+    assert lum(night).mean() < lum(day).mean()
+    assert lum(fog).std() < lum(day).std()  # fog lowers contrast
+
+
+def test_all_nine_paper_conditions_pair_at_very_low_resolution():
+    d = _descriptor()
+    r = BlenderRenderer(width=48, height=24, samples=1, denoise=False, town=TOWN, labels_per_condition=True)
+    with r:
+        results = [r.render(d, c) for c in GRID]
+    assert len(results) == 9
+    for res in results[1:]:
+        np.testing.assert_array_equal(res.labels, results[0].labels)
+        np.testing.assert_array_equal(res.instances, results[0].instances)
+    images = {res.image.tobytes() for res in results}
+    assert len(images) == 9
+
+
+def test_bad_scenes_are_one_line_renderer_errors():
+    r = BlenderRenderer(width=32, height=16, samples=1, denoise=False, town=TOWN)
+    region = ProceduralTownRegion(**TOWN)
+    with r:
+        # ego inside a block instead of on a road
+        c = region.road_centres
+        mid = float((c[0] + c[1]) / 2)
+        with pytest.raises(RendererError, match="not a road") as err:
+            r.prepare(_descriptor(location=Location(x=mid, y=mid)))
+        assert "\n" not in str(err.value)
+        # camera pushed into a building
+        bx, by, bz = (float(v) for v in region.layout().solids[0][:3])
+        road_x = float(c[np.argmin(np.abs(c - bx))]) + region.road_width / 4
+        ego = Location(x=road_x, y=by, heading=0.0)
+        with pytest.raises(RendererError, match="inside a building"):
+            r.prepare(_descriptor(location=ego, camera=CameraPose(x=bx - road_x, y=0.0, z=bz + 2.0)))
+        # unknown category (the descriptor refuses it too; a hand-built object must still fail cleanly)
+        bad = DynamicObject("car", "x", forward=10.0, right=0.0)
+        object.__setattr__(bad, "category", "tank")
+        with pytest.raises(RendererError, match="category 'tank'"):
+            r.prepare(_descriptor(objects=(bad,)))
+        # a good scene still renders after the errors
+        res = r.render(_descriptor(), GRID["Day-EXTRASUNNY"])
+        assert res.image.shape == (16, 32, 3)

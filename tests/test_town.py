@@ -1,0 +1,111 @@
+"""Procedural town: determinism, lane sampling, surfaces and layout content (no bpy needed)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pairedgta.errors import ConfigError
+from pairedgta.scene.town import SHAPES, ProceduralTownRegion
+
+
+@pytest.fixture(scope="module")
+def town() -> ProceduralTownRegion:
+    return ProceduralTownRegion(town_seed=7, blocks=3)
+
+
+def test_layout_is_a_function_of_the_parameters(town):
+    again = ProceduralTownRegion(town_seed=7, blocks=3).layout()
+    layout = town.layout()
+    assert list(layout.groups) == list(again.groups)
+    for key in layout.groups:
+        np.testing.assert_array_equal(layout.groups[key], again.groups[key])
+    np.testing.assert_array_equal(layout.lamps, again.lamps)
+    np.testing.assert_array_equal(layout.solids, again.solids)
+    other = ProceduralTownRegion(town_seed=8, blocks=3).layout()
+    assert not np.array_equal(
+        layout.groups[("box", "facade", "building")], other.groups[("box", "facade", "building")]
+    )
+
+
+def test_layout_covers_the_static_classes(town):
+    layout = town.layout()
+    labels = {label for _, _, label in layout.groups}
+    for cls in ("road", "sidewalk", "building", "wall", "fence", "pole", "traffic light", "traffic sign",
+                "vegetation", "terrain"):
+        assert cls in labels, cls
+    assert {shape for shape, _, _ in layout.groups} <= set(SHAPES)
+    assert len(layout.lamps) > 0 and len(layout.solids) > 0
+    assert all(a.shape[1] == 11 and np.isfinite(a).all() for a in layout.groups.values())
+
+
+def test_sample_location_lands_on_the_right_lane_between_junctions(town):
+    rng = np.random.default_rng(0)
+    hw = town.road_width / 2
+    centres = town.road_centres
+    for _ in range(300):
+        loc = town.sample_location(rng)
+        assert town.surface_at(loc.x, loc.y) == "road"
+        assert loc.heading in (0.0, 90.0, 180.0, 270.0)
+        h = math.radians(loc.heading)
+        fx, fy = -math.sin(h), math.cos(h)
+        rx, ry = math.cos(h), math.sin(h)
+        # the nearest road centre line runs along the heading; the ego keeps right of it
+        along_y = abs(fx) < 0.5
+        centre = centres[np.argmin(np.abs(centres - (loc.x if along_y else loc.y)))]
+        offset = ((loc.x - centre) * rx) if along_y else ((loc.y - centre) * ry)
+        assert 0.0 < offset < hw
+        # not inside a junction, and at least 15 m of street before the next one
+        pos = loc.y if along_y else loc.x
+        direction = fy if along_y else fx
+        ahead = [(c - pos) * direction for c in centres if (c - pos) * direction > 0]
+        assert min(abs(pos - c) for c in centres) > hw + town.sidewalk_width
+        if ahead:
+            assert min(ahead) - hw - town.sidewalk_width >= 15.0 - 1e-6
+        assert not town.obstacle_at(loc.x, loc.y, 1.6)
+    # same generator state -> same locations
+    a = [town.sample_location(np.random.default_rng(3)) for _ in range(2)]
+    assert a[0] == a[1]
+
+
+def test_surface_at(town):
+    c = town.road_centres
+    hw, sw = town.road_width / 2, town.sidewalk_width
+    assert town.surface_at(c[1], 10.0) == "road"
+    assert town.surface_at(c[1] + hw + sw / 2, c[0] + 20) == "sidewalk"
+    assert town.surface_at(c[1] - hw - sw / 2, c[1] + 20) == "sidewalk"
+    mid = (c[0] + c[1]) / 2
+    assert town.surface_at(mid, mid) == "other"  # inside a block
+    assert town.surface_at(5000.0, 5000.0) == "other"
+    assert town.ground_height(c[1], 10.0) == 0.0
+    assert town.ground_height(c[1] + hw + sw / 2, c[0] + 20) == pytest.approx(town.kerb_height)
+
+
+def test_buildings_stand_on_lots_only(town):
+    solids = town.layout().solids
+    for cx, cy, *_ in solids[:: max(1, len(solids) // 50)]:
+        assert town.surface_at(float(cx), float(cy)) == "other"
+        assert town.obstacle_at(float(cx), float(cy), float(town.kerb_height) + 0.5)
+
+
+def test_bad_parameters_are_one_line_config_errors():
+    with pytest.raises(ConfigError, match="unknown keys"):
+        ProceduralTownRegion(town_seed=0, lanes=3)
+    with pytest.raises(ConfigError, match="road_width"):
+        ProceduralTownRegion(road_width=2.0)
+    with pytest.raises(ConfigError, match="blocks"):
+        ProceduralTownRegion(blocks=0)
+
+
+def test_region_dispatch_builds_the_town_from_its_config():
+    from pairedgta.scene import sampling
+    from omegaconf import OmegaConf
+
+    from tests.conftest import CONF
+
+    cfg = OmegaConf.to_container(OmegaConf.load(CONF / "region" / "procedural_town.yaml"))
+    region = sampling.build_region(cfg)
+    assert isinstance(region, ProceduralTownRegion) and region.name == "procedural_town"
+    loc = region.sample_location(np.random.default_rng(0))
+    assert region.surface_at(loc.x, loc.y) == "road"
