@@ -16,6 +16,9 @@ log = logging.getLogger("pairedgta")
 def main(cfg: DictConfig) -> None:
     from pairedgta.app import run
 
+    # PDF font subsetting logs every table at INFO; keep the run log about the run
+    logging.getLogger("fontTools").setLevel(logging.WARNING)
+
     try:
         summary = run(cfg)
     except PairedGTAError as exc:

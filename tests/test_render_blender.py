@@ -133,7 +133,7 @@ def test_config_files_build_the_renderer_and_region():
     assert (renderer.width, renderer.height) == (512, 256)
     assert renderer.town_cfg["town_seed"] == cfg.region.town_seed
     with pytest.raises(ConfigError, match="region=procedural_town"):
-        build_renderer(OmegaConf.to_container(compose_cfg(["renderer=blender"]).renderer, resolve=True))
+        build_renderer(OmegaConf.to_container(compose_cfg(["renderer=blender", "region=los_santos"]).renderer, resolve=True))
 
 
 # ---- rendering -----------------------------------------------------------------------------
