@@ -33,7 +33,7 @@ log = logging.getLogger("pairedgta.plot")
 VERSION = "2"
 NEEDS = {
     "xi_table": "evaluate", "ranking": "evaluate", "qualitative": "evaluate", "ablation": "evaluate",
-    "distribution": "pseudolabel", "cost": "generate",
+    "distribution": "pseudolabel", "cost": "generate", "contact_sheet": "generate",
 }
 DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
 
@@ -214,6 +214,13 @@ def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, A
             for r in hist.itertuples():
                 metrics[f"pseudo_label/{p.label}/share_of_valid/{r.class_name}"] = r.share_of_valid
             metrics[f"pseudo_label/{p.label}/void_share"] = 1 - float(hist["share_of_all"].sum())
+
+    if "contact_sheet" in figures:
+        from pairedgta.figures.contact_sheet import contact_sheet
+
+        for p in passes:
+            if p.dataset is not None and p.generate is not None:
+                files += contact_sheet(p.dataset, p.grid.names, out, ["png"], dpi, stem=f"contact_sheet{suffix(p)}")
 
     if "cost" in figures:
         from pairedgta.figures.cost import cost_figure, cost_table, load_timings, summary
