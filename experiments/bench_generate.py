@@ -81,7 +81,7 @@ def objects(rng: np.random.Generator, d_min: float = 3.0) -> tuple[DynamicObject
 
 
 def paper_means() -> dict[str, float] | None:
-    path = ROOT.parent / "shared" / "reference" / "paper_generation_times.csv"
+    path = ROOT / "pairedgta" / "data" / "paper_generation_times.csv"
     if not path.exists():
         return None
     with path.open(newline="") as fh:
