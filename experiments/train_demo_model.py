@@ -102,6 +102,9 @@ def main(dcfg: DictConfig) -> None:
     config = SegformerConfig(num_labels=NUM_CLASSES, id2label=dict(enumerate(CLASS_NAMES)),
                              label2id={n: i for i, n in enumerate(CLASS_NAMES)}, **cfg["arch"])
     model = SegformerForSemanticSegmentation(config)
+    if tcfg_init := cfg["train"].get("init_from"):
+        # continue from earlier weights (e.g. the shipped model) instead of a random init
+        model = SegformerForSemanticSegmentation.from_pretrained(str(ROOT / tcfg_init))
     n_params = sum(p.numel() for p in model.parameters())
     if n_params > 4_000_000:
         raise SystemExit(f"arch has {n_params} parameters; the demo model must stay <= 4 M")
@@ -133,6 +136,10 @@ def main(dcfg: DictConfig) -> None:
     present = cm.mat.sum(1).numpy() > 0
     out = ROOT / cfg["out_dir"]
     out.mkdir(parents=True, exist_ok=True)
+    previous = None
+    if cfg["train"].get("init_from") and (ROOT / cfg["train"]["init_from"] / "model_card.json").is_file():
+        old = json.loads((ROOT / cfg["train"]["init_from"] / "model_card.json").read_text())
+        previous = {k: old.get(k) for k in ("train", "val_miou", "train_seconds", "previous_card")}
     model.save_pretrained(out, safe_serialization=True)
     from transformers import SegformerImageProcessor
 
@@ -144,7 +151,7 @@ def main(dcfg: DictConfig) -> None:
                  "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]],
                  "train_scenes": cfg["data"]["train_scenes"], "train_seed": cfg["data"]["train_seed"],
                  "val_scenes": cfg["data"]["val_scenes"], "val_seed": cfg["data"]["val_seed"]},
-        "train": tcfg, "seed": cfg["seed"], "val_miou": cm.miou(), "val_pixel_accuracy": cm.accuracy(),
+        "train": tcfg, "seed": cfg["seed"], "previous_card": previous, "val_miou": cm.miou(), "val_pixel_accuracy": cm.accuracy(),
         "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if present[c]},
         "test_floor_miou": floor, "history": history, "render_seconds": render_s, "train_seconds": train_s,
     }
