@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from pairedgta.cityscapes import colorize  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
+from pairedgta.figures.common import save  # noqa: E402
 
 
 def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, formats: list[str], dpi: int,
@@ -38,10 +39,4 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
         ax.set_title("labels (identical in every condition)", fontsize=8)
     fig.suptitle(f"{dataset.name} group {group.group_id}", fontsize=9)
     fig.tight_layout()
-    paths = []
-    for fmt in formats:
-        path = out / f"{stem}.{fmt}"
-        fig.savefig(path, dpi=dpi, bbox_inches="tight")
-        paths.append(path)
-    plt.close(fig)
-    return paths
+    return save(fig, out, stem, formats, dpi)
