@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Callable
-
 import numpy as np
 
 
@@ -29,19 +27,6 @@ def ratio_ci(numer: np.ndarray, denom: np.ndarray, resamples: int = 1000, confid
         hi = np.nanquantile(boot, 1 - alpha, axis=0)
     undefined = denom.sum(axis=0) == 0
     return np.where(undefined, np.nan, lo), np.where(undefined, np.nan, hi)
-
-
-def statistic_ci(n: int, statistic: Callable[[np.ndarray], float], resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
-    """CI of statistic(indices) over resampled index sets; NaN draws (e.g. constant ranks) are dropped."""
-    if n < 2 or resamples <= 0:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    values = np.array([statistic(rng.integers(0, n, size=n)) for _ in range(resamples)], dtype=float)
-    values = values[np.isfinite(values)]
-    if len(values) == 0:
-        return math.nan, math.nan
-    alpha = (1 - confidence) / 2
-    return float(np.quantile(values, alpha)), float(np.quantile(values, 1 - alpha))
 
 
 def spearman_ci(x: np.ndarray, y: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
