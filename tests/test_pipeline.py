@@ -131,3 +131,18 @@ def test_two_jobs_on_one_hash_first_rename_wins(tmp_path):
     assert (tmp_path / "evaluate" / "abc" / "xi.csv").read_text() == "fast"
     assert cache.manifest("evaluate", "abc")["job"] == "fast"
     assert [p.name for p in (tmp_path / "evaluate").iterdir()] == ["abc"]
+
+
+def test_replacing_local_weights_behind_the_same_path_is_not_a_hit(tmp_path):
+    from pairedgta.models import build_segmenter
+
+    weights = tmp_path / "weights"
+    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    base = fast_overrides(tmp_path) + ["models=null", "model=segformer_b0", f"model.path={weights}",
+                                       "stages=[generate,pseudolabel,evaluate]"]
+    first = hits(run(compose_cfg(base)))
+    assert not first[("evaluate", "[segformer_b0]")]
+    assert hits(run(compose_cfg(base)))[("evaluate", "[segformer_b0]")]
+    build_segmenter("tiny_segformer", init_seed=1).module.save_pretrained(weights)  # same path, new weights
+    again = hits(run(compose_cfg(base)))
+    assert not again[("evaluate", "[segformer_b0]")] and again[("pseudolabel", "[tiny_segformer]")]

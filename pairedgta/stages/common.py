@@ -35,8 +35,39 @@ class Context:
     results: dict[str, Any] = field(default_factory=dict)
 
 
+def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
+    """Content hash of local weights (model.path, model.checkpoint_path): replacing a file behind an
+    unchanged path must not be a cache hit. Hub ids are pinned by name only."""
+    import hashlib
+
+    from pairedgta.models.hf_common import PACKAGE_DIR
+
+    files: list[Path] = []
+    path = model_cfg.get("path")
+    if path:
+        root = PACKAGE_DIR / str(path)[len("pkg://"):] if str(path).startswith("pkg://") else Path(path)
+        if root.is_dir():
+            files += sorted(p for p in root.iterdir() if p.suffix in (".safetensors", ".bin", ".pt", ".pth", ".json"))
+    ckpt = model_cfg.get("checkpoint_path")
+    if ckpt and Path(ckpt).is_file():
+        files.append(Path(ckpt))
+    if not files:
+        return None
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:16]
+
+
 def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
+    cfg = {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
+    fingerprint = _weights_fingerprint(model_cfg)
+    if fingerprint:
+        cfg["weights_sha256"] = fingerprint
+    return cfg
 
 
 def _hit(ctx: Context, stage: str, key: str, label: str, what: str) -> StageResult:
