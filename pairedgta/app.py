@@ -190,6 +190,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     tracking = container.get("tracking") or {}
     tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), str(tracking.get("experiment_name") or container.get("name", "default")), bool(tracking.get("enabled", True)))
 
+    if (container.get("plot") or {}).get("table_csv"):
+        # Table 1 from the authors' released per-class CSV: the plot stage alone, no dataset or model
+        ctx = Context(cfg=container, grid=build_condition_grid(container["conditions"]), cache=cache, stages=stages, force=force)
+        with tracker.run(str(container.get("name", "run"))):
+            result = plot.run_table_csv(ctx)
+            tracker.artifacts(sorted(q for q in result.path.iterdir() if q.suffix in (".png", ".pdf", ".csv", ".md", ".tex")), "figures")
+            tracker.metrics(json.loads((result.path / "metrics.json").read_text()))
+        return {"plot": str(result.path), "stages": ctx.results.get("stages", [])}
+
     if container["dataset"].get("kind") == "cityscapes":
         # a sanity check of the models themselves (wrong preprocessing shows up here), not a paired run
         from pairedgta.stages import cityscapes_val

@@ -25,14 +25,17 @@ GT = "ground_truth"
 
 
 def table_columns(xi: pd.DataFrame) -> list[str]:
-    """Classes with reference pixels (xi defined for some model), in Cityscapes order, then `mean`."""
-    defined = xi[(xi["class_name"] != "mean") & xi["xi"].notna()]
-    return ordered_classes(defined["class_name"]) + ["mean"]
+    """The classes the class-wise mean covers for some model (xi.csv's `in_mean`: under the paper
+    convention the 17 classes of Table 1, absent ones as 0; under the strict one the classes with
+    reference pixels), in Cityscapes order, then `mean`. Older outputs without `in_mean`: the defined ones."""
+    rows = xi[xi["class_name"] != "mean"]
+    shown = rows[rows["in_mean"].astype(bool)] if "in_mean" in rows else rows[rows["xi"].notna()]
+    return ordered_classes(shown["class_name"]) + ["mean"]
 
 
 def xi_tables(xi: pd.DataFrame, reference: str) -> dict[str, pd.DataFrame]:
     """One wide table per adverse condition: rows = models (sorted by display name), columns =
-    `table_columns`, values = xi in [0, 1] (the class-wise mean is evaluate's over defined classes)."""
+    `table_columns`, values = xi in [0, 1] (the Mean is evaluate's, under the run's metric convention)."""
     xi = xi[(xi["reference_model"] != GT) & (xi["condition"] != reference)]
     tables: dict[str, pd.DataFrame] = {}
     for cond in dict.fromkeys(xi["condition"]):

@@ -5,6 +5,8 @@ import math
 import warnings
 import numpy as np
 
+from pairedgta.metrics.reference_consistency import xi_from_counts
+
 
 def resample_weights(n: int, resamples: int, seed: int) -> np.ndarray:
     """resamples x n counts: how often each image is drawn in each bootstrap sample."""
@@ -12,8 +14,11 @@ def resample_weights(n: int, resamples: int, seed: int) -> np.ndarray:
     return rng.multinomial(n, np.full(n, 1.0 / n), size=resamples) if n else np.zeros((resamples, 0))
 
 
-def ratio_ci(numer: np.ndarray, denom: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """CI of sum(numer)/sum(denom) per column (N images x C classes); NaN where undefined."""
+def ratio_ci(numer: np.ndarray, denom: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0,
+             absent: str = "nan") -> tuple[np.ndarray, np.ndarray]:
+    """CI of sum(numer)/sum(denom) per column (N images x C classes). A resample without the class
+    gives NaN and is ignored (absent="nan"; a column never defined has a NaN interval) or scores 0
+    (absent="zero", the authors' clamp; a column never defined has [0, 0])."""
     numer, denom = np.asarray(numer, float), np.asarray(denom, float)
     nan = np.full(numer.shape[1:], np.nan)
     if numer.shape[0] == 0 or resamples <= 0:
@@ -22,11 +27,12 @@ def ratio_ci(numer: np.ndarray, denom: np.ndarray, resamples: int = 1000, confid
     alpha = (1 - confidence) / 2
     with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: classes never in the reference
-        boot = (w @ numer) / (w @ denom)  # a resample without the class gives NaN and is ignored
+        boot = xi_from_counts(w @ numer, w @ denom, absent)
         lo = np.nanquantile(boot, alpha, axis=0)
         hi = np.nanquantile(boot, 1 - alpha, axis=0)
     undefined = denom.sum(axis=0) == 0
-    return np.where(undefined, np.nan, lo), np.where(undefined, np.nan, hi)
+    fill = 0.0 if absent == "zero" else np.nan
+    return np.where(undefined, fill, lo), np.where(undefined, fill, hi)
 
 
 def spearman_ci(x: np.ndarray, y: np.ndarray, resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
@@ -50,3 +56,22 @@ def spearman_ci(x: np.ndarray, y: np.ndarray, resamples: int = 1000, confidence:
     rho = (rx * ry).sum(axis=1)[ok] / den[ok]
     alpha = (1 - confidence) / 2
     return float(np.quantile(rho, alpha)), float(np.quantile(rho, 1 - alpha))
+
+
+def class_mean_ci(numer: np.ndarray, denom: np.ndarray, include: np.ndarray, resamples: int = 1000,
+                  confidence: float = 0.95, seed: int = 0, absent: str = "nan") -> tuple[float, float]:
+    """Percentile CI of the class-wise mean of xi (N images x C classes, over the `include`d columns),
+    resampling images; each resample's mean follows the same absent-class convention as the estimate."""
+    numer, denom = np.asarray(numer, float), np.asarray(denom, float)
+    include = np.asarray(include, bool)
+    if numer.shape[0] == 0 or resamples <= 0 or not include.any():
+        return math.nan, math.nan
+    w = resample_weights(numer.shape[0], resamples, seed)
+    alpha = (1 - confidence) / 2
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        boot = xi_from_counts(w @ numer[:, include], w @ denom[:, include], absent)
+        means = np.nanmean(boot, axis=1)  # absent="nan": a class missing from a resample drops out of its mean
+        if np.all(np.isnan(means)):
+            return math.nan, math.nan
+        return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))

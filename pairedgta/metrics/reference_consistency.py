@@ -1,13 +1,62 @@
 """xi_c(i), eq. (class_reference_consistency): of the pixels the clean reference assigns to class c,
-the share still predicted as c under condition i, pooled over all images (not averaged per image)."""
+the share still predicted as c under condition i, pooled over all images (not averaged per image).
+
+Two conventions for a class without reference pixels (`absent`), because the paper's numbers and a
+strict reading of its equation differ there:
+  "nan"   undefined (0/0), left out of the class-wise mean: the project's strict convention;
+  "zero"  the authors' code, which divides by max(reference pixels, 1): the class scores 0 and the
+          class-wise mean (over a fixed class list) includes that 0. Table 1 is computed this way."""
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import numpy as np
 import torch
 
+ABSENT_POLICIES = ("nan", "zero")
+
 
 def _np(x) -> np.ndarray:
     return x.numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def check_absent(absent: str) -> str:
+    if absent not in ABSENT_POLICIES:
+        raise ValueError(f"unknown absent-class policy {absent!r}; use one of {ABSENT_POLICIES}")
+    return absent
+
+
+def xi_from_counts(retained, reference, absent: str = "nan") -> np.ndarray:
+    """retained / reference elementwise (any shape); a zero reference gives NaN or 0 per `absent`."""
+    check_absent(absent)
+    ret = np.asarray(_np(retained), dtype=float)
+    ref = np.asarray(_np(reference), dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = ret / np.maximum(ref, 1.0)  # the authors' clamp; identical to ret/ref wherever ref > 0
+    return np.where(ref > 0, ratio, 0.0 if absent == "zero" else np.nan)
+
+
+def mean_mask(num_classes: int, class_names: Iterable[str] | None = None, exclude: Iterable[str] = ()) -> np.ndarray:
+    """Which classes enter the class-wise mean: every class but the `exclude`d names (the paper drops
+    bus and train, which GTA V's pseudo-labels barely contain)."""
+    names = list(class_names) if class_names is not None else [str(k) for k in range(num_classes)]
+    if len(names) != num_classes:
+        raise ValueError(f"{len(names)} class names for {num_classes} classes")
+    excluded = set(exclude)
+    unknown = excluded - set(names)
+    if unknown:
+        raise ValueError(f"mean_exclude: unknown class(es) {sorted(unknown)}")
+    return np.array([n not in excluded for n in names])
+
+
+def class_mean(xi, include=None) -> float:
+    """Mean of xi over the included classes, skipping NaN (undefined) ones; NaN if none is left.
+    Under absent="zero" no class is NaN, so the zeros of absent classes count."""
+    xi = np.asarray(_np(xi), dtype=float)
+    keep = np.ones(xi.shape[-1], bool) if include is None else np.asarray(include, bool)
+    vals = xi[..., keep]
+    vals = vals[~np.isnan(vals)]
+    return float(vals.mean()) if vals.size else float("nan")
 
 
 def reference_consistency_counts(
@@ -31,13 +80,15 @@ class ReferenceConsistency:
 
     The torchmetrics update/compute contract with sum-reduced state, written out because importing
     torchmetrics costs seconds per CLI start; `merge` combines shards (e.g. per-process results).
-    Classes without reference pixels are NaN (undefined, not zero)."""
+    Classes without reference pixels are NaN (absent="nan", undefined) or 0 (absent="zero", the
+    authors' convention)."""
 
     higher_is_better = True
 
-    def __init__(self, num_classes: int = 19, ignore_index: int = 255) -> None:
+    def __init__(self, num_classes: int = 19, ignore_index: int = 255, absent: str = "nan") -> None:
         self.num_classes = int(num_classes)
         self.ignore_index = int(ignore_index)
+        self.absent = check_absent(absent)
         self.reset()
 
     def reset(self) -> None:
@@ -59,11 +110,9 @@ class ReferenceConsistency:
         return self
 
     def compute(self) -> torch.Tensor:
-        ref = self.reference.double()
-        return torch.where(ref > 0, self.retained.double() / ref.clamp_min(1), torch.full_like(ref, float("nan")))
+        return torch.from_numpy(xi_from_counts(self.retained, self.reference, self.absent))
 
-    def mean(self) -> float:
-        """Class-wise mean over the classes that are defined (have reference pixels)."""
-        xi = self.compute()
-        defined = ~torch.isnan(xi)
-        return float(xi[defined].mean()) if defined.any() else float("nan")
+    def mean(self, include=None) -> float:
+        """Class-wise mean over the included classes (all by default): over the defined ones under
+        absent="nan", with the absent ones as 0 under absent="zero"."""
+        return class_mean(self.compute(), include)

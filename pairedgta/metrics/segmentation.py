@@ -1,4 +1,5 @@
-"""Ground-truth metrics where the backend gives labels: per-class IoU from a streaming confusion matrix."""
+"""Ground-truth metrics where the backend gives labels: per-class IoU from a streaming confusion matrix.
+False positives count only on pixels whose ground truth is not void, as in cityscapesscripts."""
 from __future__ import annotations
 
 import numpy as np
@@ -27,10 +28,11 @@ class ConfusionMatrix:
         return torch.where(union > 0, tp / union.clamp_min(1), torch.full_like(tp, float("nan")))
 
     def miou(self) -> float:
-        """Mean over classes present in the ground truth (the Cityscapes convention)."""
+        """Mean over the classes with TP + FP + FN > 0, as cityscapesscripts' evaluator averages (a class
+        only predicted, never in the ground truth, counts with IoU 0; one in neither is left out)."""
         iou = self.iou()
-        present = self.mat.sum(1) > 0
-        return float(iou[present].mean()) if present.any() else float("nan")
+        defined = ~torch.isnan(iou)
+        return float(iou[defined].mean()) if defined.any() else float("nan")
 
     def accuracy(self) -> float:
         total = self.mat.sum()

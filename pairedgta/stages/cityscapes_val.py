@@ -47,11 +47,6 @@ PUBLISHED_MIOU: dict[str, float] = {
 WARN_FRACTION = 0.5
 
 
-def mean_iou(iou: np.ndarray) -> float:
-    defined = ~np.isnan(iou)
-    return float(iou[defined].mean()) if defined.any() else math.nan
-
-
 def preprocessing_warning(model: str, miou: float) -> str | None:
     """The warning line for a model far below its published mIoU, else None."""
     published = PUBLISHED_MIOU.get(model)
@@ -74,7 +69,7 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path) -> d
             cm.update(torch.from_numpy(label.astype(np.int64)), pred[0])
             del image, label, pred
     iou = cm.iou().numpy()
-    miou = mean_iou(iou)
+    miou = cm.miou()  # the Cityscapes convention: classes with TP + FP + FN > 0
     rows = [{"model": model, "class_id": k, "class_name": CLASS_NAMES[k], "iou": iou[k]} for k in range(NUM_CLASSES)]
     rows.append({"model": model, "class_id": -1, "class_name": "mean", "iou": miou})
     pd.DataFrame(rows, columns=["model", "class_id", "class_name", "iou"]).to_csv(out / "iou.csv", index=False)

@@ -13,7 +13,6 @@ import csv
 import json
 import logging
 import math
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +24,15 @@ from tqdm import tqdm
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
 from pairedgta.datasets import PairedDataset, load_group_images, load_label
 from pairedgta.errors import ConfigError, DataError
-from pairedgta.metrics.bootstrap import spearman_ci
+from pairedgta.metrics.bootstrap import class_mean_ci, spearman_ci
+from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics import (
     SELECTIONS,
     ConfusionMatrix,
     ReferenceConsistency,
+    aggregate_agreement,
+    class_mean,
+    mean_mask,
     prediction_mass_from_labels,
     ratio_ci,
     select_frames,
@@ -40,15 +43,15 @@ from pairedgta.stages.common import Context, StageResult, model_hash_config, run
 from pairedgta.stages.pseudolabel import label_path
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "1"
+VERSION = "2"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0
 GT = "ground_truth"
 
 
 class _Accumulator:
     """Per (reference source, condition): streaming xi plus the per-image counts the bootstrap needs."""
 
-    def __init__(self) -> None:
-        self.metric = ReferenceConsistency(NUM_CLASSES, IGNORE_INDEX)
+    def __init__(self, absent: str = "nan") -> None:
+        self.metric = ReferenceConsistency(NUM_CLASSES, IGNORE_INDEX, absent)
         self.retained: list[np.ndarray] = []
         self.reference: list[np.ndarray] = []
 
@@ -80,11 +83,38 @@ def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) 
     clean = rho.get("clean_condition") or reference
     if clean not in grid_names:
         raise ConfigError(f"metric.rho.clean_condition={clean!r} is not a condition; known: {', '.join(grid_names)}")
-    return {
+    ev = cfg.get("evaluate") or {}
+    sampling = str(ev.get("sampling") or "all")
+    if sampling not in SAMPLINGS:
+        raise ConfigError(f"evaluate.sampling={sampling!r}; use one of {', '.join(SAMPLINGS)}")
+    settings = {
         "tau_mass": tau, "m": m, "selections": selections, "class_ids": class_ids, "reference_mode": ref_mode,
         "resamples": int(boot.get("resamples", 1000)), "confidence": float(boot.get("confidence", 0.95)),
         "seed": int(boot.get("seed", 0)), "clean": clean,
+        "convention": convention_from_config(metric, selections).as_dict(),
+        "sampling": sampling,
     }
+    if sampling == "random_one":
+        settings["sampling_seed"] = int(ev.get("sampling_seed") or 0)
+    return settings
+
+
+SAMPLINGS = ("all", "random_one")
+
+
+def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: str, seed: int) -> list[str]:
+    """The conditions of one group to evaluate: all, or the clean one plus one adverse condition drawn
+    at random (the authors' loader). The draw depends only on (seed, group id), so it is reproducible
+    and does not change when groups are added or reordered."""
+    if sampling == "all":
+        return present
+    adverse = [c for c in present if c != clean]
+    if not adverse:
+        return present
+    import zlib
+
+    rng = np.random.default_rng([seed, zlib.crc32(str(group_id).encode())])
+    return [clean, adverse[int(rng.integers(len(adverse)))]]
 
 
 def compute(
@@ -92,6 +122,10 @@ def compute(
     reference_model: str, out: Path,
 ) -> dict[str, Any]:
     s = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
+    conv = convention_from_config(ctx.cfg["metric"], s["selections"])
+    log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
+             "sampling %s", conv.name, conv.absent, list(conv.mean_exclude) or "none", conv.agreement, conv.rho_headline,
+             s["sampling"])
     segmenter = build_segmenter(model_cfg)
     model = segmenter.name
     clean = s["clean"]
@@ -107,6 +141,7 @@ def compute(
         present = [c for c in order if c in group.images]
         if clean not in present:
             continue
+        present = sampled_conditions(group.group_id, present, clean, s["sampling"], s.get("sampling_seed", 0))
         images = load_group_images(group, present)
         shape = images[clean].shape[:2]
         pl_path = label_path(pseudo_dir, group.group_id)
@@ -136,9 +171,9 @@ def compute(
         for c in present:
             pred = preds[c]
             if use_pl:
-                acc.setdefault(("pseudo_label", c), _Accumulator()).update(pseudo_t, pred)
+                acc.setdefault(("pseudo_label", c), _Accumulator(conv.absent)).update(pseudo_t, pred)
             if gt_t is not None:
-                acc.setdefault((GT, c), _Accumulator()).update(gt_t, pred)
+                acc.setdefault((GT, c), _Accumulator(conv.absent)).update(gt_t, pred)
             # IoU of condition c needs c's own truth; the reference's truth stands in only where the
             # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
             # only: they are never used as reference truth nor for the reference image)
@@ -173,44 +208,61 @@ def compute(
 
 
 def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows) -> dict[str, Any]:
+    conv = s["convention"]
+    name = conv["name"]
     summary: dict[str, Any] = {"model": model, "reference_model": reference_model, "dataset": dataset.name,
-                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "gt_miou": {}, "agreement": {}}
+                               "convention": conv, "sampling": s["sampling"],
+                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "rho_valid_headline": {},
+                               "gt_miou": {}, "agreement": {}, "n_pairs": {}}
+    if s["sampling"] == "random_one":
+        summary["sampling_seed"] = s["sampling_seed"]
+    in_mean = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
     xi_rows = []
     for (source, cond), a in sorted(acc.items(), key=lambda kv: (kv[0][0], conditions.index(kv[0][1]))):
         xi = a.metric.compute().numpy()
-        lo, hi = ratio_ci(np.stack(a.retained), np.stack(a.reference), s["resamples"], s["confidence"], s["seed"])
+        retained, reference = np.stack(a.retained), np.stack(a.reference)
+        lo, hi = ratio_ci(retained, reference, s["resamples"], s["confidence"], s["seed"], conv["absent"])
         ref_name = reference_model if source == "pseudo_label" else GT
+        # which classes the mean covers: the convention's classes, minus the undefined ones (NaN)
+        included = in_mean & ~np.isnan(xi)
         for k in range(NUM_CLASSES):
             xi_rows.append({
                 "model": model, "reference_model": ref_name, "condition": cond, "class_id": k,
                 "class_name": CLASS_NAMES[k], "xi": xi[k], "ci_low": lo[k], "ci_high": hi[k],
                 "reference_pixels": int(a.metric.reference[k]), "retained_pixels": int(a.metric.retained[k]),
+                "in_mean": bool(included[k]), "n_pairs": len(a.retained), "convention": name,
             })
-        # the class-wise mean over defined classes, with its own bootstrap over images
-        defined = ~np.isnan(xi)
-        mean = float(xi[defined].mean()) if defined.any() else math.nan
-        mlo, mhi = _mean_ci(np.stack(a.retained), np.stack(a.reference), defined, s)
+        # the class-wise mean under the convention, with its own bootstrap over images
+        mean = class_mean(xi, included)
+        mlo, mhi = class_mean_ci(retained, reference, included, s["resamples"], s["confidence"], s["seed"], conv["absent"])
         xi_rows.append({
             "model": model, "reference_model": ref_name, "condition": cond, "class_id": -1, "class_name": "mean",
             "xi": mean, "ci_low": mlo, "ci_high": mhi,
             "reference_pixels": int(a.metric.reference.sum()), "retained_pixels": int(a.metric.retained.sum()),
+            "in_mean": False, "n_pairs": len(a.retained), "convention": name,
         })
         summary["xi_mean" if source == "pseudo_label" else "xi_mean_gt"][cond] = mean
+        if source == "pseudo_label" or not summary["n_pairs"].get(cond):
+            summary["n_pairs"][cond] = len(a.retained)
     pd.DataFrame(xi_rows).to_csv(out / "xi.csv", index=False)
 
     agree = pd.DataFrame(agreement_rows)
-    pooled = []
+    totals = []
     for cond, g in agree.groupby("condition", sort=False):
         n = g["valid_pixels"].sum()
-        pooled.append({
+        totals.append({
             "model": model, "condition": cond, "pair_id": "ALL", "valid_pixels": int(n),
             "agree_reference_pixels": int(g["agree_reference_pixels"].sum()),
             "agree_clean_pixels": int(g["agree_clean_pixels"].sum()),
-            "agreement_reference": g["agree_reference_pixels"].sum() / n if n else math.nan,
-            "agreement_clean": g["agree_clean_pixels"].sum() / n if n else math.nan,
+            "agreement_reference": aggregate_agreement(g["agree_reference_pixels"], g["valid_pixels"], conv["agreement"]),
+            "agreement_clean": aggregate_agreement(g["agree_clean_pixels"], g["valid_pixels"], conv["agreement"]),
         })
-        summary["agreement"][cond] = pooled[-1]["agreement_reference"]
-    pd.concat([agree, pd.DataFrame(pooled)], ignore_index=True).to_csv(out / "pixel_agreement.csv", index=False)
+        summary["agreement"][cond] = totals[-1]["agreement_reference"]
+    agree = pd.concat([agree, pd.DataFrame(totals)], ignore_index=True)
+    # per-image rows are ratios of one image; the ALL row aggregates them per the convention
+    agree["aggregation"] = np.where(agree["pair_id"] == "ALL", conv["agreement"], "image")
+    agree["convention"] = name
+    agree.to_csv(out / "pixel_agreement.csv", index=False)
 
     counts = pd.DataFrame(count_rows, columns=["dataset", "model", "class_name", "pair_id", "condition", "clean_count", "adv_count"])
     counts.to_csv(out / "frame_counts.csv", index=False)
@@ -226,9 +278,13 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             rho_rows.append({
                 "dataset": dataset.name, "model": model, "class_name": cls, "condition": cond, "selection": sel,
                 "m": s["m"] if sel == "top_m" else math.nan, "n_frames": len(idx), "rho": rho, "ci_low": lo, "ci_high": hi,
+                "headline": sel == conv["rho_headline"], "convention": name,
             })
             summary["rho_valid"].setdefault(cond, {}).setdefault(sel, {})[cls] = rho
-    pd.DataFrame(rho_rows, columns=["dataset", "model", "class_name", "condition", "selection", "m", "n_frames", "rho", "ci_low", "ci_high"]).to_csv(out / "rho_valid.csv", index=False)
+            if sel == conv["rho_headline"]:
+                summary["rho_valid_headline"].setdefault(cond, {})[cls] = rho
+    pd.DataFrame(rho_rows, columns=["dataset", "model", "class_name", "condition", "selection", "m", "n_frames", "rho",
+                                    "ci_low", "ci_high", "headline", "convention"]).to_csv(out / "rho_valid.csv", index=False)
 
     if gt_cm:
         rows = []
@@ -244,21 +300,6 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
         pd.DataFrame(rows).to_csv(out / "gt_iou.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return {"xi_mean": summary["xi_mean"]}
-
-
-def _mean_ci(retained: np.ndarray, reference: np.ndarray, defined: np.ndarray, s: dict[str, Any]) -> tuple[float, float]:
-    from pairedgta.metrics.bootstrap import resample_weights
-
-    n = retained.shape[0]
-    if n == 0 or s["resamples"] <= 0 or not defined.any():
-        return math.nan, math.nan
-    w = resample_weights(n, s["resamples"], s["seed"])
-    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        boot = (w @ retained[:, defined]) / (w @ reference[:, defined])
-        means = np.nanmean(boot, axis=1)  # a class absent from a resample drops out of that mean
-        alpha = (1 - s["confidence"]) / 2
-        return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))
 
 
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult, model_cfg: dict[str, Any]) -> StageResult:

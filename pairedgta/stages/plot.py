@@ -270,3 +270,32 @@ def run(ctx: Context, passes: list[PassResult]) -> StageResult:
     if "distribution" in figures:
         config["reference_model"] = [p.cfg.get("reference_model") for p in passes]
     return run_cached(ctx, "plot", VERSION, config, inputs, lambda out: make_plots(ctx, passes, out))
+
+
+# -- Table 1 from the authors' released per-class results (plot.table_csv) -----------------------------
+def run_table_csv(ctx: Context) -> StageResult:
+    """The plot stage on its own: Table 1 from plot.table_csv under the run's metric convention (cached
+    by the file's content, the filters and the convention). Logic in pairedgta.figures.paper_table."""
+    from pairedgta.figures.paper_table import paper_table
+    from pairedgta.metrics.conventions import convention_from_config
+
+    pcfg = ctx.cfg.get("plot") or {}
+    path = Path(str(pcfg["table_csv"]))
+    if not path.is_file():
+        raise ConfigError(f"plot.table_csv={path}: no such file; give the authors' results_class_retention_by_condition.csv")
+    if set(ctx.stages) - {"plot"}:
+        raise ConfigError("plot.table_csv draws Table 1 from a CSV and runs no data stage; use stages=[plot]")
+    conv = convention_from_config(ctx.cfg.get("metric") or {})
+    filters = dict(pcfg.get("table_filter") or {})
+    formats, dpi = list(pcfg.get("formats", ["png"])), int(pcfg.get("dpi", 150))
+    config = {"table_csv": path.name, "filter": filters, "convention": conv.as_dict(), "formats": formats, "dpi": dpi}
+
+    def build(out: Path) -> dict[str, Any]:
+        paths, xi = paper_table(path, out, conv, filters, formats, dpi)
+        means = xi[xi["class_name"] == "mean"]
+        metrics = {f"table/authors/xi_mean/{r.condition}/{r.model}": float(r.xi) for r in means.itertuples()
+                   if not math.isnan(float(r.xi))}
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
+        return {"figures": [p.name for p in paths], "metrics": metrics}
+
+    return run_cached(ctx, "plot", VERSION, config, {"table_csv": _file_hash(path)}, build, label="[table_csv]")

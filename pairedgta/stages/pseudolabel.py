@@ -20,7 +20,7 @@ from pairedgta.models import build_segmenter, model_config
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
 
 log = logging.getLogger("pairedgta.pseudolabel")
-VERSION = "1"
+VERSION = "2"  # 2: miou_on_kept in the Cityscapes convention (classes with TP + FP + FN > 0)
 
 
 def label_path(stage_dir: Path, group_id: str) -> Path:

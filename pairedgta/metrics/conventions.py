@@ -1,0 +1,53 @@
+"""The metric convention of a run (conf/metric/<name>.yaml): how absent classes score, which classes
+the class-wise mean covers, how pixel agreement aggregates over images and which rho_valid selection is
+the headline. Parsed and checked once here; the metric modules take the values as parameters, and every
+output records the convention that made it."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.errors import ConfigError
+from pairedgta.metrics.agreement import AGREEMENT_MODES
+from pairedgta.metrics.ranking import SELECTIONS
+from pairedgta.metrics.reference_consistency import ABSENT_POLICIES, mean_mask
+
+
+@dataclass(frozen=True)
+class Convention:
+    name: str                      # e.g. paper | strict: written into every output
+    absent: str                    # xi of a class without reference pixels: nan | zero
+    mean_exclude: tuple[str, ...]  # classes left out of the class-wise mean (and of Table 1)
+    agreement: str                 # pooled | per_image
+    rho_headline: str              # the rho_valid selection reported as the headline
+
+    def mean_classes(self):
+        """Boolean mask over the 19 Cityscapes classes: which enter the class-wise mean."""
+        return mean_mask(len(CLASS_NAMES), CLASS_NAMES, self.mean_exclude)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["mean_exclude"] = list(self.mean_exclude)
+        return d
+
+
+def convention_from_config(metric: dict[str, Any], selections: list[str] | None = None) -> Convention:
+    """metric: the `metric` config node; selections: the rho_valid selections the run computes."""
+    name = str(metric.get("convention") or "strict")
+    absent = str(metric.get("absent", "nan"))
+    if absent not in ABSENT_POLICIES:
+        raise ConfigError(f"metric.absent={absent!r}; use one of {', '.join(ABSENT_POLICIES)}")
+    exclude = tuple(str(c) for c in (metric.get("mean_exclude") or ()))
+    unknown = [c for c in exclude if c not in CLASS_NAMES]
+    if unknown:
+        raise ConfigError(f"metric.mean_exclude: unknown class(es) {unknown}; use Cityscapes names such as bus, train")
+    agreement = str(metric.get("agreement", "pooled"))
+    if agreement not in AGREEMENT_MODES:
+        raise ConfigError(f"metric.agreement={agreement!r}; use one of {', '.join(AGREEMENT_MODES)}")
+    rho = metric.get("rho") or {}
+    selections = list(selections or rho.get("selections") or SELECTIONS)
+    headline = str(rho.get("headline") or selections[0])
+    if headline not in selections:
+        raise ConfigError(f"metric.rho.headline={headline!r} is not among metric.rho.selections={selections}")
+    return Convention(name, absent, exclude, agreement, headline)
