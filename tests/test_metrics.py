@@ -8,9 +8,13 @@ import pytest
 import torch
 from scipy.stats import spearmanr
 
+from pairedgta.errors import ConfigError
 from pairedgta.metrics import (
     ConfusionMatrix,
     ReferenceConsistency,
+    aggregate_agreement,
+    class_mean,
+    mean_mask,
     pixel_agreement,
     prediction_mass,
     prediction_mass_from_labels,
@@ -18,7 +22,10 @@ from pairedgta.metrics import (
     rho_valid,
     select_frames,
     spearman_ci,
+    xi_from_counts,
 )
+from pairedgta.metrics.bootstrap import class_mean_ci
+from pairedgta.metrics.conventions import convention_from_config
 
 C = 19
 
@@ -158,3 +165,151 @@ def test_confusion_matrix_iou_matches_loop():
         inter = np.sum((t == c) & (p == c) & valid)
         union = np.sum(((t == c) | (p == c)) & valid)
         assert iou[c] == pytest.approx(inter / union)
+
+
+def test_xi_absent_zero_is_the_authors_clamp_and_the_mean_keeps_the_zeros():
+    rng = np.random.default_rng(5)
+    refs, preds = random_maps(rng, 4)
+    nan_metric, zero_metric = ReferenceConsistency(C, 255, absent="nan"), ReferenceConsistency(C, 255, absent="zero")
+    for r, p in zip(refs, preds):
+        nan_metric.update(torch.from_numpy(r), torch.from_numpy(p))
+        zero_metric.update(torch.from_numpy(r), torch.from_numpy(p))
+    want, num, den = xi_loop(refs, preds)
+    clamp = num / np.maximum(den, 1)  # the authors' code
+    np.testing.assert_allclose(zero_metric.compute().numpy(), clamp)
+    assert zero_metric.compute()[1].item() == 0.0 and math.isnan(nan_metric.compute()[1].item())
+    # the paper's Mean: 17 classes (bus, train dropped), absent ones as 0; the strict mean: defined of 19
+    keep = mean_mask(C, None, ())
+    assert keep.all()
+    names = [str(k) for k in range(C)]
+    paper17 = mean_mask(C, names, ("15", "16"))
+    assert zero_metric.mean(paper17) == pytest.approx(clamp[[k for k in range(C) if k not in (15, 16)]].sum() / 17)
+    assert nan_metric.mean() == pytest.approx(np.nanmean(want))
+    assert nan_metric.mean() > zero_metric.mean(paper17)  # 5 present classes out of 17: the zeros pull it down
+    with pytest.raises(ValueError, match="absent-class policy"):
+        ReferenceConsistency(C, 255, absent="skip")
+    with pytest.raises(ValueError, match="unknown class"):
+        mean_mask(C, names, ("bus",))
+
+
+def test_xi_from_counts_and_class_mean():
+    got = xi_from_counts([3, 0, 0], [4, 0, 2], "zero")
+    np.testing.assert_allclose(got, [0.75, 0.0, 0.0])
+    got = xi_from_counts([3, 0, 0], [4, 0, 2], "nan")
+    assert got[0] == 0.75 and math.isnan(got[1]) and got[2] == 0.0
+    assert class_mean(got) == pytest.approx(0.375)
+    assert class_mean(got, [False, True, True]) == 0.0
+    assert math.isnan(class_mean(got, [False, True, False]))
+
+
+def test_pixel_agreement_pooled_vs_per_image():
+    agree, valid = np.array([90, 1, 0, 5]), np.array([100, 10, 0, 5])
+    assert aggregate_agreement(agree, valid, "pooled") == pytest.approx(96 / 115)
+    # every image with valid pixels weighs the same; the empty one drops out
+    assert aggregate_agreement(agree, valid, "per_image") == pytest.approx((0.9 + 0.1 + 1.0) / 3)
+    assert math.isnan(aggregate_agreement([0], [0], "per_image")) and math.isnan(aggregate_agreement([0], [0], "pooled"))
+    with pytest.raises(ValueError):
+        aggregate_agreement(agree, valid, "median")
+
+
+def test_bootstrap_follows_the_absent_convention():
+    rng = np.random.default_rng(6)
+    den = rng.integers(0, 50, size=(30, 4)).astype(float)
+    den[:25, 1] = 0  # class 1 only in 5 images: many resamples lack it
+    den[:, 3] = 0    # class 3 never present
+    num = np.floor(den * 0.7)
+    lo_n, hi_n = ratio_ci(num, den, resamples=300, seed=2, absent="nan")
+    lo_z, hi_z = ratio_ci(num, den, resamples=300, seed=2, absent="zero")
+    assert np.isnan(lo_n[3]) and (lo_z[3], hi_z[3]) == (0.0, 0.0)
+    assert lo_z[1] <= lo_n[1]  # resamples without class 1 score 0 under the clamp
+    include = np.array([True, True, True, True])
+    point_z = class_mean(xi_from_counts(num.sum(0), den.sum(0), "zero"), include)
+    mlo, mhi = class_mean_ci(num, den, include, resamples=300, seed=2, absent="zero")
+    assert mlo <= point_z <= mhi
+    defined = den.sum(0) > 0
+    point_n = class_mean(xi_from_counts(num.sum(0), den.sum(0), "nan"), defined)
+    mlo, mhi = class_mean_ci(num, den, defined, resamples=300, seed=2, absent="nan")
+    assert mlo <= point_n <= mhi and point_n > point_z
+
+
+def test_convention_configs_parse_and_bad_values_name_the_key():
+    from tests.conftest import compose_cfg
+    from omegaconf import OmegaConf
+
+    paper = convention_from_config(OmegaConf.to_container(compose_cfg(["metric=paper"]).metric, resolve=True))
+    assert (paper.name, paper.absent, paper.mean_exclude, paper.agreement, paper.rho_headline) == (
+        "paper", "zero", ("bus", "train"), "per_image", "nonzero")
+    assert paper.mean_classes().sum() == 17
+    strict = convention_from_config(OmegaConf.to_container(compose_cfg(["metric=strict"]).metric, resolve=True))
+    assert (strict.absent, strict.mean_exclude, strict.agreement, strict.rho_headline) == ("nan", (), "pooled", "top_m")
+    assert strict.mean_classes().sum() == 19
+    with pytest.raises(ConfigError, match="metric.absent='skip'"):
+        convention_from_config({"absent": "skip"})
+    with pytest.raises(ConfigError, match="metric.mean_exclude"):
+        convention_from_config({"mean_exclude": ["buss"]})
+    with pytest.raises(ConfigError, match="metric.agreement"):
+        convention_from_config({"agreement": "mean"})
+    with pytest.raises(ConfigError, match="metric.rho.headline"):
+        convention_from_config({"rho": {"selections": ["top_m"], "headline": "nonzero"}})
+
+
+def test_miou_averages_classes_with_tp_fp_or_fn():
+    # class 0 and 1 in the truth; class 2 only predicted (IoU 0, counts); class 3 nowhere (left out)
+    t = np.array([0, 0, 0, 1, 1, 1, 255, 255])
+    p = np.array([0, 0, 2, 1, 1, 1, 3, 3])  # predictions on void pixels count nowhere
+    cm = ConfusionMatrix(num_classes=4)
+    cm.update(torch.from_numpy(t), torch.from_numpy(p))
+    iou = cm.iou().numpy()
+    assert iou[0] == pytest.approx(2 / 3) and iou[1] == 1.0 and iou[2] == 0.0 and math.isnan(iou[3])
+    assert cm.miou() == pytest.approx((2 / 3 + 1.0 + 0.0) / 3)  # not (2/3 + 1) / 2: the GT-present mean
+
+
+def _cityscapes_label_ids():
+    from cityscapesscripts.helpers.labels import trainId2label
+
+    lut = np.zeros(256, np.uint8)  # train id 255 (void) -> label id 0 (unlabeled, ignored in evaluation)
+    for train_id in range(C):
+        lut[train_id] = trainId2label[train_id].id
+    return lut
+
+
+def test_miou_matches_cityscapesscripts_on_the_same_predictions(tmp_path):
+    """cityscapesscripts' own evaluator on label-id PNGs written here vs ConfusionMatrix on the train ids."""
+    from PIL import Image
+    import copy
+
+    from cityscapesscripts.evaluation import evalPixelLevelSemanticLabeling as cs_eval
+
+    rng = np.random.default_rng(7)
+    lut = _cityscapes_label_ids()
+    cm = ConfusionMatrix(C, 255)
+    gts, preds = [], []
+    for i in range(4):
+        # the truth uses a few classes; the model predicts those plus others (FP-only classes)
+        truth = rng.choice([0, 1, 2, 8, 10, 13, 255], size=(24, 32)).astype(np.uint8)
+        pred = np.where(rng.random(truth.shape) < 0.7, truth, rng.choice([0, 5, 11, 13, 18], size=truth.shape))
+        pred = np.where(pred == 255, 0, pred).astype(np.uint8)
+        cm.update(torch.from_numpy(truth.astype(np.int64)), torch.from_numpy(pred.astype(np.int64)))
+        gt_file = tmp_path / f"city_000000_{i:06d}_gtFine_labelIds.png"
+        pred_file = tmp_path / f"pred_{i}.png"
+        Image.fromarray(lut[truth]).save(gt_file)
+        Image.fromarray(lut[pred]).save(pred_file)
+        gts.append(str(gt_file))
+        preds.append(str(pred_file))
+    args = copy.copy(cs_eval.args)
+    args.evalInstLevelScore = False
+    args.JSONOutput = False
+    args.quiet = True
+    args.exportFile = str(tmp_path / "result.json")
+    result = cs_eval.evaluateImgLists(preds, gts, args)
+    want = result["averageScoreClasses"]
+    assert cm.miou() == pytest.approx(want, abs=1e-12)
+    iou = cm.iou().numpy()
+    for k in range(C):
+        from cityscapesscripts.helpers.labels import trainId2label
+
+        cs = result["classScores"][trainId2label[k].name]
+        assert (math.isnan(cs) and math.isnan(iou[k])) or iou[k] == pytest.approx(cs)
+    # the ground-truth-present mean would differ: classes 5, 11, 18 are predicted but never true
+    present = cm.mat.sum(1) > 0
+    assert abs(float(cm.iou()[present].mean()) - want) > 1e-3

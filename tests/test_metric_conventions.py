@@ -1,0 +1,110 @@
+"""The evaluate stage under metric=paper and metric=strict on the same data, and evaluate.sampling:
+every output records its convention, and its numbers follow that convention, recomputed here from the
+per-class pixel counts and per-image rows the stage writes."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pairedgta.app import run
+from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.errors import ConfigError
+from pairedgta.stages.evaluate import sampled_conditions
+from tests.conftest import compose_cfg, fast_overrides
+
+PAPER17 = [c for c in CLASS_NAMES if c not in ("bus", "train")]
+
+
+def evaluate_dir(summary) -> Path:
+    return Path(next(iter(summary["evaluate"].values())))
+
+
+def test_paper_and_strict_outputs_follow_and_record_their_convention(tmp_path):
+    base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "plot.figures=[xi_table]"]
+    paper_run = run(compose_cfg(base + ["metric=paper"]))
+    strict_run = run(compose_cfg(base + ["metric=strict"]))
+    paper, strict = evaluate_dir(paper_run), evaluate_dir(strict_run)
+    assert paper != strict  # the convention is part of the evaluate hash
+
+    xi_p, xi_s = pd.read_csv(paper / "xi.csv"), pd.read_csv(strict / "xi.csv")
+    assert set(xi_p.convention) == {"paper"} and set(xi_s.convention) == {"strict"}
+    # same pixel counts, different conventions on top of them
+    np.testing.assert_array_equal(xi_p.reference_pixels, xi_s.reference_pixels)
+    absent_seen = False
+    for (src, cond), g in xi_p[xi_p.class_id >= 0].groupby(["reference_model", "condition"]):
+        ref, ret = g.reference_pixels.to_numpy(float), g.retained_pixels.to_numpy(float)
+        clamp = ret / np.maximum(ref, 1)
+        np.testing.assert_allclose(g.xi, clamp)
+        absent_seen |= bool((ref == 0).any())
+        assert list(g[g.in_mean].class_name) == PAPER17
+        mean = xi_p[(xi_p.reference_model == src) & (xi_p.condition == cond) & (xi_p.class_id == -1)].xi.item()
+        assert mean == pytest.approx(clamp[[CLASS_NAMES.index(c) for c in PAPER17]].mean())
+        s = xi_s[(xi_s.reference_model == src) & (xi_s.condition == cond)]
+        s_cls = s[s.class_id >= 0]
+        assert s_cls.xi.isna().tolist() == (ref == 0).tolist()
+        assert s[s.class_id == -1].xi.item() == pytest.approx(np.nanmean(s_cls.xi))
+        assert list(s_cls[s_cls.in_mean].class_name) == [c for c, r in zip(CLASS_NAMES, ref) if r > 0]
+    assert absent_seen  # the tiny reference model leaves classes without pseudo-label pixels
+
+    ag_p, ag_s = pd.read_csv(paper / "pixel_agreement.csv", dtype={"pair_id": str}), pd.read_csv(strict / "pixel_agreement.csv", dtype={"pair_id": str})
+    for ag, mode in ((ag_p, "per_image"), (ag_s, "pooled")):
+        assert set(ag.convention) == {"paper" if mode == "per_image" else "strict"}
+        for cond, g in ag.groupby("condition"):
+            per = g[g.pair_id != "ALL"]
+            total = g[g.pair_id == "ALL"].iloc[0]
+            assert total.aggregation == mode
+            want = ((per.agree_reference_pixels / per.valid_pixels).mean() if mode == "per_image"
+                    else per.agree_reference_pixels.sum() / per.valid_pixels.sum())
+            assert total.agreement_reference == pytest.approx(want)
+
+    for d, headline, name in ((paper, "nonzero", "paper"), (strict, "top_m", "strict")):
+        rho = pd.read_csv(d / "rho_valid.csv")
+        assert set(rho[rho.headline].selection) == {headline} and set(rho.convention) == {name}
+        summary = json.loads((d / "summary.json").read_text())
+        assert summary["convention"]["name"] == name and summary["convention"]["rho_headline"] == headline
+        assert summary["sampling"] == "all"
+        for cond, by_class in summary["rho_valid_headline"].items():
+            for cls, value in by_class.items():
+                row = rho[(rho.condition == cond) & (rho.class_name == cls) & (rho.selection == headline)].rho.item()
+                assert (value is None and np.isnan(row)) or value == pytest.approx(row, nan_ok=True)
+
+    # Table 1 from the paper-convention evaluation: the 17 classes of the paper, absent ones as 0
+    table = pd.read_csv(Path(paper_run["plot"]) / "table1_xi.csv")
+    assert [c for c in table.columns if c in CLASS_NAMES] == PAPER17
+
+
+def test_random_one_sampling_draws_one_adverse_condition_per_group(tmp_path):
+    conds = ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"]
+    base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "stages=[generate,pseudolabel,evaluate]",
+                                       "generate.num_scenes=5", "evaluate.sampling=random_one", "evaluate.sampling_seed=3"]
+    d = evaluate_dir(run(compose_cfg(base)))
+    agree = pd.read_csv(d / "pixel_agreement.csv", dtype={"pair_id": str})
+    per = agree[agree.pair_id != "ALL"]
+    for pair_id, g in per.groupby("pair_id"):
+        want = sampled_conditions(pair_id, conds, "Day-EXTRASUNNY", "random_one", 3)
+        assert sorted(g.condition) == sorted(want) and len(want) == 2
+    summary = json.loads((d / "summary.json").read_text())
+    assert summary["sampling"] == "random_one" and summary["sampling_seed"] == 3
+    assert summary["n_pairs"]["Day-EXTRASUNNY"] == 5
+    assert summary["n_pairs"].get("Day-RAIN", 0) + summary["n_pairs"].get("Night-EXTRASUNNY", 0) == 5
+    other = evaluate_dir(run(compose_cfg(base[:-1] + ["evaluate.sampling_seed=4"])))
+    assert other != d  # the seed is in the evaluate hash
+    with pytest.raises(ConfigError, match="evaluate.sampling='one'"):
+        run(compose_cfg(base[:-2] + ["evaluate.sampling=one"]))
+
+
+def test_sampled_conditions_are_deterministic_and_cover_the_conditions():
+    conds = ["Day-EXTRASUNNY", "Day-RAIN", "Day-FOGGY", "Night-EXTRASUNNY"]
+    picks = [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 0) for i in range(200)]
+    assert all(p[0] == "Day-EXTRASUNNY" and len(p) == 2 and p[1] != "Day-EXTRASUNNY" for p in picks)
+    counts = pd.Series([p[1] for p in picks]).value_counts()
+    assert set(counts.index) == set(conds[1:]) and counts.min() > 40  # ~ 200/3 each
+    assert picks == [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 0) for i in range(200)]
+    assert picks != [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 1) for i in range(200)]
+    # independent of the order the groups are visited in and of the other groups
+    assert sampled_conditions("00007", conds, "Day-EXTRASUNNY", "random_one", 0) == picks[7]
+    assert sampled_conditions("x", conds, "Day-EXTRASUNNY", "all", 0) == conds
