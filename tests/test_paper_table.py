@@ -1,7 +1,7 @@
 """Table 1 from the authors' per-class results CSV (pairedgta.figures.paper_table and the
 `plot.table_csv` CLI route): the Mean under the paper's convention (absent class = 0, 17 classes, bus
 and train dropped) and under the strict one, checked on small CSVs written here with known values and
-on the paper's own published Table 1 (tests/data/paper_table1.csv, transcribed from the paper)."""
+on the paper's own published Table 1 (pairedgta/data/paper_table1.csv, transcribed from the paper)."""
 from __future__ import annotations
 
 import json
@@ -16,7 +16,8 @@ from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures.paper_table import COLUMNS, condition_name, model_name, paper_table
 from pairedgta.metrics.conventions import convention_from_config
-from tests.conftest import ROOT, run_cli
+from pairedgta.data import PAPER_TABLE1
+from tests.conftest import run_cli
 
 PAPER = convention_from_config({"convention": "paper", "absent": "zero", "mean_exclude": ["bus", "train"],
                                 "agreement": "per_image", "rho": {"headline": "nonzero", "selections": ["nonzero", "top_m"]}})
@@ -106,7 +107,7 @@ def test_published_table1_means_come_out_under_the_paper_convention(tmp_path):
     """The paper's 24 Means (8 models x 3 conditions) are the mean over its 17 printed classes: feed the
     printed values through the authors' CSV format (bus and train present with other values, which the
     paper's Mean must ignore) and compare with the printed Mean to rounding."""
-    table = pd.read_csv(ROOT / "tests" / "data" / "paper_table1.csv")
+    table = pd.read_csv(PAPER_TABLE1)
     classes = [c for c in table.columns if c not in ("condition", "model", "mean")]
     assert len(classes) == 17 and len(table) == 24
     rows = []
@@ -196,3 +197,26 @@ def test_cli_writes_table1_from_the_csv_without_data_stages(tmp_path):
     proc = run_cli(args[:2] + [f"plot.table_csv={tmp_path / 'nope.csv'}", f"cache_dir={cache}", "tracking.enabled=false"], tmp_path)
     assert proc.returncode == 2 and "plot.table_csv=" in proc.stderr and "Traceback" not in proc.stderr
     assert np.isfinite(metrics["table/authors/xi_mean/Night-EXTRASUNNY/ddrnet_23"])
+
+
+def test_printed_table_as_results_round_trips_the_published_means(tmp_path):
+    from pairedgta.figures.paper_table import printed_table_as_results
+
+    csv = printed_table_as_results(tmp_path / "printed.csv")
+    rows = pd.read_csv(csv)
+    assert len(rows) == 24 * 19 and list(rows.columns) == list(COLUMNS)
+    night = rows[(rows.sec_condition == "Night-Sunny") & (rows.model == "SegFormer-B5")].set_index("class_name")
+    # rider and bicycle are 0.0 for every model at Night-Sunny: inferred absent; bus/train never printed
+    assert night.loc[["rider", "bicycle", "bus", "train"], "mass_reference_masked"].eq(0).all()
+    assert night.loc["truck", "mass_reference_masked"] == 1  # 0.0 for some models, 17.7 for B5: present
+    _, xi = paper_table(csv, tmp_path / "paper", PAPER)
+    table = pd.read_csv(PAPER_TABLE1)
+    got = xi[xi.class_name == "mean"].set_index(["condition", "model"])["xi"] * 100
+    for r in table.itertuples(index=False):
+        assert abs(got[(condition_name(r.condition), model_name(r.model))] - r.mean) <= 0.05 + 1e-9
+    _, strict = paper_table(csv, tmp_path / "strict", STRICT)
+    s = strict[strict.class_name == "mean"].set_index(["condition", "model"])["xi"] * 100
+    # Night-Sunny, SegFormer-B5: 17 printed values minus rider and bicycle -> mean over 15
+    b5 = table[(table.condition == "Night-Sunny") & (table.model == "SegFormer-B5")].iloc[0]
+    want = np.mean([b5[c] for c in table.columns[2:-1] if c not in ("rider", "bicycle")])
+    assert s[("Night-EXTRASUNNY", "segformer_b5")] == pytest.approx(want)

@@ -5,3 +5,4 @@ from pathlib import Path
 
 DATA_DIR = Path(__file__).resolve().parent
 PAPER_GENERATION_TIMES = DATA_DIR / "paper_generation_times.csv"
+PAPER_TABLE1 = DATA_DIR / "paper_table1.csv"

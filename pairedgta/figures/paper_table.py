@@ -201,3 +201,34 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
     log.info("Table 1 from %s (%s convention): %d models x %d conditions", csv_path.name, convention.name,
              xi["model"].nunique(), xi.loc[xi["condition"] != REFERENCE, "condition"].nunique())
     return paths, xi
+
+
+def printed_table_as_results(out_csv: str | Path, table: str | Path | None = None) -> Path:
+    """The paper's printed Table 1 (pairedgta/data/paper_table1.csv, percent) in the authors' per-class
+    CSV format, so the table pipeline can run on published numbers. The printed table holds no pixel
+    masses, so presence is inferred: a class is absent (mass 0) where it is 0.0 for every model of that
+    condition (the only absences the print reveals), present (mass 1) otherwise; bus and train are not
+    printed and are written as absent. `mass_clean_masked` is left empty."""
+    from pairedgta.data import PAPER_TABLE1
+
+    printed = pd.read_csv(table or PAPER_TABLE1)
+    classes = [c for c in printed.columns if c not in ("condition", "model", "mean")]
+    unknown = [c for c in classes if c not in CLASS_NAMES]
+    if unknown:
+        raise DataError(f"{table or PAPER_TABLE1}: unknown class column(s) {unknown}")
+    absent_cols = {cond: {c for c in classes if (g[c] == 0).all()} for cond, g in printed.groupby("condition")}
+    rows = []
+    for r in printed.to_dict("records"):
+        for k, name in enumerate(CLASS_NAMES):
+            shown = name in classes
+            absent = not shown or name in absent_cols[r["condition"]]
+            rows.append({"model": r["model"], "reference_model": "SegFormer-B5", "sec_condition": r["condition"],
+                         "class_id": k, "class_name": name, "retention_masked": r[name] / 100 if shown else 0.0,
+                         "mass_clean_masked": None, "mass_reference_masked": 0 if absent else 1,
+                         "metric_type": "printed_table1", "conf_threshold": 0.6})
+    out_csv = Path(out_csv)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_csv.with_name(f".{out_csv.name}.tmp")
+    pd.DataFrame(rows, columns=list(COLUMNS)).to_csv(tmp, index=False)
+    tmp.replace(out_csv)
+    return out_csv
