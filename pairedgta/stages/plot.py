@@ -9,6 +9,9 @@ families (modules of pairedgta.figures):
     distribution  pseudo-label pixel mass per class with an example                         needs pseudolabel
     cost          per-scene time boxplots and the phase split (+ the paper's CSV)           needs generate
 
+With plot.table_csv=PATH (and stages=[plot]) the stage draws only Table 1, from the authors' released
+per-class results CSV (`run_table_csv`, logic in pairedgta.figures.paper_table).
+
 Every output is written into the stage's cache directory; `metrics.json` holds the numbers the run logs
 to MLflow (so a cache hit logs them too)."""
 from __future__ import annotations
