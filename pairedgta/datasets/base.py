@@ -11,6 +11,7 @@ from typing import Iterable, Sequence
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -35,6 +36,7 @@ class PairedDataset:
     conditions: list[str]
     groups: list[Group]
     skipped_without_reference: int = 0
+    grid: ConditionGrid | None = None  # the conditions it is evaluated over (ACDC brings its own)
 
     def __len__(self) -> int:
         return len(self.groups)
@@ -95,6 +97,26 @@ def load_group_images(group: Group, conditions: Sequence[str]) -> dict[str, np.n
         detail = ", ".join(f"{group.images[c].name}={s[1]}x{s[0]}" for c, s in shapes.items())
         raise DataError(f"group {group.group_id}: images differ in size ({detail}); re-render or remove the group")
     return images
+
+
+@dataclass(frozen=True)
+class LabelMaps:
+    """A per-group layer of label maps that a stage derives from a dataset (the pseudo-labels): one
+    single-channel PNG of train ids per group under `<root>/labels/`. The layout lives here, with the
+    datasets, so the stage that writes it and every reader agree without naming files themselves."""
+
+    root: Path
+
+    def path(self, group_id: str) -> Path:
+        return Path(self.root) / "labels" / f"{group_id}.png"
+
+    def load(self, group_id: str) -> np.ndarray:
+        return load_label(self.path(group_id))
+
+    def save(self, group_id: str, labels: np.ndarray) -> None:
+        path = self.path(group_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_png_atomic(labels, path)
 
 
 def save_png_atomic(array: np.ndarray, path: Path) -> None:

@@ -19,6 +19,9 @@ from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError, ModelError
 from pairedgta.models.base import Segmenter
 
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
 log = logging.getLogger(__name__)
 
 NESTING_KEYS = ("state_dict", "model_state", "model")
@@ -199,12 +202,11 @@ def build_inproject(
 ) -> NormalizedSegmenter:
     """Common `build(cfg)` body: validate runtime keys, seed, construct, load weights, wrap."""
     name = str(cfg.get("name") or cfg.get("family"))
-    if int(cfg.get("num_classes", NUM_CLASSES)) != NUM_CLASSES:
-        raise ConfigError(f"model '{name}': num_classes must be {NUM_CLASSES} (Cityscapes train ids)")
     amp = cfg.get("amp")
     if amp not in (None, "bf16", "fp16"):
         raise ConfigError(f"model '{name}': amp must be null, bf16 or fp16, got {amp!r}")
-    mean, std = _check_triplet(cfg, "mean"), _check_triplet(cfg, "std")
+    mean = _check_triplet(cfg, "mean") if cfg.get("mean") is not None else list(IMAGENET_MEAN)
+    std = _check_triplet(cfg, "std") if cfg.get("std") is not None else list(IMAGENET_STD)
     pad_multiple = int(cfg.get("pad_multiple") or default_pad_multiple)
     if pad_multiple < 1:
         raise ConfigError(f"model '{name}': pad_multiple must be >= 1, got {pad_multiple}")
