@@ -19,8 +19,10 @@ def main(cfg: DictConfig) -> None:
     # PDF font subsetting logs every table at INFO; keep the run log about the run
     logging.getLogger("fontTools").setLevel(logging.WARNING)
 
+    from hydra.core.hydra_config import HydraConfig
+
     try:
-        summary = run(cfg)
+        summary = run(cfg, task_overrides=list(HydraConfig.get().overrides.task))
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix
         print(f"error: {exc}", file=sys.stderr)

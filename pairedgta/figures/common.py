@@ -5,12 +5,14 @@ import contextlib
 import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+import pandas as pd
 import seaborn as sns
 
 from pairedgta.cityscapes import CLASS_NAMES, PALETTE
@@ -33,6 +35,13 @@ MODEL_DISPLAY = {
 # a fixed colour per model, so a model has the same colour in every figure of every run
 _MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
 WEATHER_DISPLAY = {"EXTRASUNNY": "Sunny", "RAIN": "Rain", "FOGGY": "Foggy", "CLEAR": "Clear"}
+
+
+def concat_tables(results: Iterable[Any], table: str) -> pd.DataFrame:
+    """One table (`xi`, `rho`, `frame_counts`, `agreement`) over several evaluations, through each
+    evaluation's own reader (`result.xi()`, ...)."""
+    frames = [f for f in (getattr(r, table)() for r in results) if not f.empty]
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def model_display(name: str) -> str:

@@ -16,8 +16,9 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
-from pairedgta.datasets import PairedDataset, load_group_images, load_label
-from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
+from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
+from pairedgta.figures import FigureOptions
+from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save, slug
 
 log = logging.getLogger("pairedgta.plot")
 COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",
@@ -54,16 +55,15 @@ def disagreement_overlay(image: np.ndarray, pred: np.ndarray, pseudo: np.ndarray
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.DataFrame, model_cfg: dict[str, Any],
-                     conditions: list[str], n: int, clean: str, out: Path, stem: str, formats: list[str], dpi: int,
-                     title: str = "") -> tuple[list[Path], pd.DataFrame]:
+def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement: pd.DataFrame,
+                     model_cfg: dict[str, Any], conditions: list[str], n: int, clean: str, out: Path, stem: str,
+                     formats: list[str], dpi: int, title: str = "", device: str = "cpu") -> tuple[list[Path], pd.DataFrame]:
     from pairedgta.models import build_segmenter
-    from pairedgta.stages.pseudolabel import label_path
 
     picks = select_groups(agreement, conditions, n)
     if not picks:
         return [], pd.DataFrame()
-    segmenter = build_segmenter(model_cfg)
+    segmenter = build_segmenter(model_cfg, device=device)
     groups = {g.group_id: g for g in dataset.groups}
     rows = []
     panels = []
@@ -72,7 +72,7 @@ def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.Dat
         if group is None or p["condition"] not in group.images:
             continue
         images = load_group_images(group, [clean, p["condition"]])
-        pseudo = load_label(label_path(pseudo_dir, group.group_id)).astype(np.int64)
+        pseudo = pseudo_labels.load(group.group_id).astype(np.int64)
         labels, conf = segmenter.predict(np.stack([images[clean], images[p["condition"]]]))
         labels, conf = labels.numpy(), conf.numpy()
         valid = pseudo != IGNORE_INDEX
@@ -106,3 +106,36 @@ def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.Dat
         fig.suptitle(title or model_display(segmenter.name), fontsize=7)
         fig.tight_layout()
         return save(fig, out, stem, formats, dpi), pd.DataFrame(rows)
+
+
+def clean_condition(p: Any) -> str:
+    clean = ((p.cfg.get("metric") or {}).get("rho") or {}).get("clean_condition")
+    return clean if clean in p.grid.names else p.grid.reference
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Worst/best groups per adverse condition for every evaluated model of every pass."""
+    n = int(opts.plot.get("qualitative_groups", 2))
+    wanted = opts.plot.get("qualitative_conditions")
+    files: list[Path] = []
+    tables = []
+    for p in passes:
+        if not p.evaluations or p.dataset is None or p.pseudo is None or n < 1:
+            continue
+        clean = clean_condition(p)
+        conditions = [c for c in p.grid.names if c != clean and (not wanted or c in wanted)]
+        for e in p.evaluations:
+            model_cfg = e.model_config()
+            paths, table = qualitative_grid(
+                p.dataset, p.pseudo.labels, e.agreement(), model_cfg, conditions, n, clean, out,
+                opts.stem("qualitative", p.label) + f"_{slug(model_cfg['name'])}", opts.formats, opts.dpi,
+                title=f"{p.label} \u00b7 {model_cfg['name']}" if opts.multi else "", device=str(opts.cfg.get("device", "cpu")),
+            )
+            files += paths
+            if not table.empty:
+                table.insert(0, "dataset_label", p.label)
+                tables.append(table)
+    if tables:
+        pd.concat(tables, ignore_index=True).to_csv(out / "qualitative.csv", index=False)
+        files.append(out / "qualitative.csv")
+    return files, {}

@@ -12,8 +12,10 @@ import numpy as np
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
+    concat_tables,
     condition_display,
     markdown_table,
     model_display,
@@ -129,3 +131,30 @@ def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: s
             + markdown_table(header, md_rows, ["l", "l", "l"] + ["r"] * (len(header) - 3)))
     (out / f"{stem}.md").write_text(text)
     return [out / f"{stem}.csv", out / f"{stem}.md"]
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """The ranking figure and rho table over every evaluated pass (its own adverse condition each)."""
+    ranking = opts.plot.get("ranking") or {}
+    classes = list(ranking.get("classes") or ["person", "car"])
+    inputs = []
+    for p in passes:
+        if not p.evaluations:
+            continue
+        counts = concat_tables(p.evaluations, "frame_counts")
+        rho = concat_tables(p.evaluations, "rho")
+        wanted = ((p.cfg.get("plot") or {}).get("ranking") or {}).get("condition")
+        cond = pick_condition(list(dict.fromkeys(counts["condition"])) if not counts.empty else [], wanted, p.grid.reference)
+        if cond is not None:
+            inputs.append(RankingInput(p.label, cond, counts, rho))
+    if not inputs:
+        return [], {}
+    selections = tuple((opts.cfg.get("metric") or {}).get("rho", {}).get("selections") or ("top_m", "nonzero"))
+    files = ranking_figure(inputs, classes, int(ranking.get("window", 5)), out, opts.formats, opts.dpi, selections=selections)
+    files += rho_table(inputs, classes, out)
+    metrics: dict[str, float] = {}
+    for inp in inputs:
+        r = inp.rho[(inp.rho["condition"] == inp.condition) & inp.rho["class_name"].isin(classes)]
+        for row in r.itertuples():
+            metrics[f"rho_valid/{inp.label}/{row.model}/{row.selection}/{row.class_name}"] = row.rho
+    return files, metrics

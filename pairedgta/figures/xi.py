@@ -9,8 +9,10 @@ import matplotlib.pyplot as plt
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
+    concat_tables,
     class_short,
     condition_display,
     latex_escape,
@@ -147,3 +149,22 @@ def heatmap_figure(xi: pd.DataFrame, reference: str, out: Path, formats: list[st
             ax.set_xticklabels(ax.get_xticklabels(), rotation=45, ha="right")
         fig.tight_layout()
         return save(fig, out, stem, formats, dpi)
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Table 1 (CSV/Markdown/LaTeX) + heatmap per evaluated pass, xi against the pseudo-labels."""
+    files: list[Path] = []
+    metrics: dict[str, float] = {}
+    for p in passes:
+        if not p.evaluations:
+            continue
+        xi = concat_tables(p.evaluations, "xi")
+        pl = xi[xi["reference_model"] != GT]
+        files += heatmap_figure(pl, p.grid.reference, out, opts.formats, opts.dpi, stem=opts.stem("xi_table", p.label))
+        files += write_tables(pl, p.grid.reference, out, stem=opts.stem("table1_xi", p.label))
+        path = out / f"{opts.stem('xi_all_models', p.label)}.csv"
+        pl.to_csv(path, index=False)
+        files.append(path)
+        for r in pl[pl["class_name"] == "mean"].itertuples():
+            metrics[f"table/{p.label}/xi_mean/{r.condition}/{r.model}"] = r.xi
+    return files, metrics

@@ -15,7 +15,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError, ModelError
 from pairedgta.models.base import Segmenter
 

@@ -23,7 +23,9 @@ import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
-from pairedgta.datasets.cityscapes import CityscapesSplit, open_cityscapes
+from pairedgta.datasets import open_dataset
+from pairedgta.datasets.cityscapes import CityscapesSplit
+from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import build_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
@@ -63,8 +65,8 @@ def preprocessing_warning(model: str, miou: float) -> str | None:
     )
 
 
-def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path) -> dict[str, Any]:
-    segmenter = build_segmenter(model_cfg)
+def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, device: str = "cpu") -> dict[str, Any]:
+    segmenter = build_segmenter(model_cfg, device=device)
     model = model_cfg["name"]
     cm = ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX)
     with tqdm(dataset.samples, desc=f"{STAGE} [{model}]", unit="img") as bar:
@@ -107,7 +109,7 @@ def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_
     own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
     result = run_cached(
         own, STAGE, VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(dataset, model_cfg, out), label=f"[{model_cfg['name']}]",
+        lambda out: compute(dataset, model_cfg, out, ctx.cfg.get("device", "cpu")), label=f"[{model_cfg['name']}]",
     )
     if result.hit:
         log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
@@ -125,7 +127,9 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
 
 
 def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[str, Any]:
-    dataset = open_cityscapes(ctx.cfg["dataset"])
+    dataset = open_dataset(ctx.cfg["dataset"])
+    if not isinstance(dataset, CityscapesSplit):
+        raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")
     dataset_key = f"cityscapes:{dataset.fingerprint()}"
     tracker.tags({"dataset": dataset.name, "dataset_key": dataset_key, "split": dataset.split})
     summary: dict[str, Any] = {

@@ -18,11 +18,21 @@ RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
 @dataclass
 class StageResult:
+    """A stage's cache entry. Each stage subclasses it with readers of its own files, so no other stage,
+    figure or the app needs to know a file name of another stage."""
+
     stage: str
     key: str
     path: Path
     hit: bool
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def manifest(self) -> dict[str, Any]:
+        import json
+
+        from pairedgta.cache import MANIFEST
+
+        return json.loads((self.path / MANIFEST).read_text())
 
 
 @dataclass
@@ -70,10 +80,10 @@ def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
-def _hit(ctx: Context, stage: str, key: str, label: str, what: str) -> StageResult:
+def _hit(ctx: Context, stage: str, key: str, label: str, what: str, result_cls: type[StageResult]) -> StageResult:
     log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
     ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": True})
-    return StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+    return result_cls(stage, key, ctx.cache.path(stage, key), hit=True)
 
 
 def run_cached(
@@ -85,6 +95,7 @@ def run_cached(
     build: Callable[[Path], dict[str, Any] | None],
     label: str = "",
     resumable: bool = False,
+    result_cls: type[StageResult] = StageResult,
 ) -> StageResult:
     """Hit -> skip and say so; miss (or force) -> build into a temp dir and rename into place.
     A stage not listed in `stages` must already be cached: then the error names the stage to run."""
@@ -92,7 +103,7 @@ def run_cached(
     what = f"{stage}{' ' + label if label else ''}"
     forced = stage in ctx.force
     if not forced and ctx.cache.is_hit(stage, key):
-        return _hit(ctx, stage, key, label, what)
+        return _hit(ctx, stage, key, label, what, result_cls)
     if stage not in ctx.stages:
         raise PairedGTAError(
             f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
@@ -100,7 +111,7 @@ def run_cached(
         )
     with ctx.cache.lock(stage, key):
         if not forced and ctx.cache.is_hit(stage, key):  # another job finished it while we waited
-            return _hit(ctx, stage, key, label, what)
+            return _hit(ctx, stage, key, label, what, result_cls)
         if forced:
             ctx.cache.invalidate(stage, key)
             if resumable:
@@ -113,4 +124,4 @@ def run_cached(
         with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
             extra = build(tmp) or {}
     ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": False})
-    return StageResult(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)
+    return result_cls(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)

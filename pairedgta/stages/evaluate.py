@@ -36,12 +36,126 @@ from pairedgta.metrics import (
     spearman,
 )
 from pairedgta.models import build_segmenter
+from pairedgta.cache import MANIFEST, canonical_json
+from pairedgta.conditions import ConditionGrid
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.stages.pseudolabel import label_path
+from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
 VERSION = "1"
 GT = "ground_truth"
+
+
+class EvaluateResult(StageResult):
+    """One model's evaluate entry and the readers of its files (the only code that names them)."""
+
+    FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json")
+
+    def model_config(self) -> dict[str, Any]:
+        return dict(self.manifest()["config"]["model"])
+
+    @property
+    def model(self) -> str:
+        return str(self.model_config()["name"])
+
+    def _csv(self, name: str) -> pd.DataFrame:
+        path = self.path / name
+        return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
+
+    def xi(self) -> pd.DataFrame:
+        return self._csv("xi.csv")
+
+    def rho(self) -> pd.DataFrame:
+        return self._csv("rho_valid.csv")
+
+    def frame_counts(self) -> pd.DataFrame:
+        return self._csv("frame_counts.csv")
+
+    def agreement(self) -> pd.DataFrame:
+        return self._csv("pixel_agreement.csv")
+
+    def gt_iou(self) -> pd.DataFrame:
+        return self._csv("gt_iou.csv")
+
+    def summary(self) -> dict[str, Any]:
+        return json.loads((self.path / "summary.json").read_text())
+
+    def artifacts(self) -> list[Path]:
+        return [self.path / f for f in self.FILES if (self.path / f).is_file()]
+
+    def metrics(self) -> dict[str, float]:
+        """The MLflow view: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<cond>/<sel>/<class>, gt_miou/<cond>."""
+        metrics: dict[str, float] = {}
+        for row in self.xi().itertuples():
+            prefix = "xi" if row.reference_model != GT else "xi_gt"
+            if row.class_name == "mean":
+                metrics[f"{prefix}_mean/{row.condition}"] = row.xi
+            else:
+                metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
+        rho = self.rho()
+        conds = list(dict.fromkeys(rho["condition"])) if not rho.empty else []
+        main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
+        for row in rho.itertuples():
+            metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
+            if row.condition == main:
+                metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
+        summary = self.summary()
+        for cond, v in summary.get("gt_miou", {}).items():
+            metrics[f"gt_miou/{cond}"] = v
+        for cond, v in summary.get("agreement", {}).items():
+            metrics[f"agreement/{cond}"] = v
+        return metrics
+
+
+def concat(results: list[EvaluateResult], table: str) -> pd.DataFrame:
+    """One table (xi, rho, frame_counts, agreement, gt_iou) over several models' evaluations."""
+    frames = [getattr(r, table)() for r in results]
+    frames = [f for f in frames if not f.empty]
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def conditions_for(cfg: dict[str, Any], grid: ConditionGrid) -> list[str]:
+    """The conditions an evaluation covers: `evaluate.conditions` (always with the reference), else all."""
+    wanted = (cfg.get("evaluate") or {}).get("conditions")
+    if not wanted:
+        return list(grid.names)
+    unknown = [c for c in wanted if c not in grid.names]
+    if unknown:
+        raise ConfigError(f"evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(grid.names)}")
+    return [c for c in grid.names if c in wanted or c == grid.reference]
+
+
+def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult,
+                exclude: set[str]) -> list[EvaluateResult]:
+    """Every cached evaluation of this dataset and pseudo-labels under the same metric settings and
+    conditions (e.g. the models of an earlier multirun over `model=`): the newest per model, except the
+    models in `exclude`."""
+    root = ctx.cache.root / "evaluate"
+    if not root.is_dir():
+        return []
+    want_inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
+    grid = dataset.grid or ctx.grid
+    settings = json.loads(canonical_json(metric_settings(ctx.cfg, grid.names, dataset.reference)))
+    conditions = conditions_for(ctx.cfg, grid)
+    found: dict[str, tuple[float, EvaluateResult]] = {}
+    for manifest_path in root.glob(f"*/{MANIFEST}"):
+        d = manifest_path.parent
+        if d.name.startswith("."):
+            continue
+        try:
+            m = json.loads(manifest_path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        cfg = m.get("config") or {}
+        if m.get("inputs") != want_inputs or cfg.get("metric") != settings or cfg.get("conditions") != conditions:
+            continue
+        name = str((cfg.get("model") or {}).get("name"))
+        if name in exclude:
+            continue
+        mtime = manifest_path.stat().st_mtime
+        if name not in found or mtime > found[name][0]:
+            found[name] = (mtime, EvaluateResult("evaluate", d.name, d, hit=True))
+    return [r for _, r in sorted(found.values(), key=lambda t: t[1].key)]
 
 
 class _Accumulator:
@@ -88,11 +202,12 @@ def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) 
 
 
 def compute(
-    ctx: Context, dataset: PairedDataset, pseudo_dir: Path, model_cfg: dict[str, Any], conditions: list[str],
+    ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
     reference_model: str, out: Path,
 ) -> dict[str, Any]:
-    s = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
-    segmenter = build_segmenter(model_cfg)
+    grid = dataset.grid or ctx.grid
+    s = metric_settings(ctx.cfg, grid.names, dataset.reference)
+    segmenter = build_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
     model = segmenter.name
     clean = s["clean"]
     order = [clean] + [c for c in conditions if c != clean]
@@ -109,7 +224,7 @@ def compute(
             continue
         images = load_group_images(group, present)
         shape = images[clean].shape[:2]
-        pl_path = label_path(pseudo_dir, group.group_id)
+        pl_path = pseudo_labels.labels.path(group.group_id)
         pseudo = load_label(pl_path)
         if pseudo.shape != shape:
             raise DataError(
@@ -261,20 +376,17 @@ def _mean_ci(retained: np.ndarray, reference: np.ndarray, defined: np.ndarray, s
         return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))
 
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult, model_cfg: dict[str, Any]) -> StageResult:
-    wanted = ctx.cfg["evaluate"].get("conditions")
-    if wanted:
-        unknown = [c for c in wanted if c not in ctx.grid.names]
-        if unknown:
-            raise ConfigError(f"evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(ctx.grid.names)}")
-        conditions = [c for c in ctx.grid.names if c in wanted or c == dataset.reference]
-    else:
-        conditions = list(ctx.grid.names)
-    settings = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLabels,
+        model_cfg: dict[str, Any]) -> EvaluateResult:
+    grid = dataset.grid or ctx.grid
+    conditions = conditions_for(ctx.cfg, grid)
+    settings = metric_settings(ctx.cfg, grid.names, dataset.reference)
     config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions}
-    reference_model = ctx.cfg["reference_model"]
-    return run_cached(
+    reference_model = pseudo.reference_model()
+    result = run_cached(
         ctx, "evaluate", VERSION, config, {"dataset": dataset_key, "pseudolabel": pseudo.key},
-        lambda out: compute(ctx, dataset, pseudo.path, model_cfg, conditions, reference_model, out),
-        label=f"[{model_cfg['name']}]",
+        lambda out: compute(ctx, dataset, pseudo, model_cfg, conditions, reference_model, out),
+        label=f"[{model_cfg['name']}]", result_cls=EvaluateResult,
     )
+    assert isinstance(result, EvaluateResult)
+    return result

@@ -45,6 +45,20 @@ TIMING_COLUMNS = [
 EXECUTION_KEYS = ("workers", "endpoints")  # where scenes run, not what they are
 
 
+class GeneratedData(StageResult):
+    """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records."""
+
+    @property
+    def timings_csv(self) -> Path:
+        return self.path / "timings.csv"
+
+    def validation(self) -> "pd.DataFrame | None":
+        import pandas as pd
+
+        path = self.path / "validation.csv"
+        return pd.read_csv(path, dtype={"scene_id": str}) if path.is_file() else None
+
+
 PAIRING_DEFAULTS = {"camera_jitter_m": 0.0, "camera_jitter_deg": 0.0, "object_resample_prob": 0.0, "object_move_m": 0.0}
 
 
@@ -338,10 +352,12 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     os.replace(tmp, path)
 
 
-def run(ctx: Context) -> StageResult:
+def run(ctx: Context) -> GeneratedData:
     cfg = ctx.cfg
     config = hash_config(cfg, ctx.grid)
-    return run_cached(
+    result = run_cached(
         ctx, "generate", VERSION, config, {},
-        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True,
+        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True, result_cls=GeneratedData,
     )
+    assert isinstance(result, GeneratedData)
+    return result
