@@ -34,5 +34,19 @@ def main(cfg: DictConfig) -> None:
         print(f"  evaluate [{name}]: {path}")
 
 
-if __name__ == "__main__":
+OPEN_MAPPINGS = ("model_overrides.",)
+
+
+def _open_mapping_overrides(argv: list[str]) -> list[str]:
+    """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in conf/config.yaml, which
+    Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`."""
+    return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
+
+
+def cli() -> None:
+    sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
     main()
+
+
+if __name__ == "__main__":
+    cli()

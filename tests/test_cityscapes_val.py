@@ -15,7 +15,7 @@ from PIL import Image
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError
 from pairedgta.models import build_segmenter
-from tests.conftest import run_cli
+from pairedgta.testing.cli import run_cli
 
 # (city, seq, frame, which ground-truth files exist)
 FRAMES = [
@@ -187,15 +187,15 @@ def test_scale_options_and_preprocessing_warning(tree):
     from pairedgta.stages.cityscapes_val import preprocessing_warning
 
     root, truth = tree
-    ds = open_cityscapes({"root": str(root), "split": "val", "max_images": 2, "scale": 0.5})
+    ds = open_cityscapes(root=str(root), split="val", max_images=2, scale=0.5)
     assert [s.frame_id for s in ds.samples] == ["frankfurt_000000_000294", "frankfurt_000001_007973"]
     image, label = ds.load(ds.samples[1])
     assert image.shape == (16, 32, 3) and label.shape == (16, 32)
     assert set(np.unique(label)) <= set(np.unique(truth[1][1]))  # nearest: no invented label values
-    full = open_cityscapes({"root": str(root)})
+    full = open_cityscapes(root=str(root))
     np.testing.assert_array_equal(full.load(full.samples[2])[1], truth[2][1])  # labelIds -> train ids
     for bad in ({"scale": 2.0}, {"scale": 0}, {"max_images": 0}, {"split": "../val"}):
         with pytest.raises(ConfigError):
-            open_cityscapes({"root": str(root), **bad})
+            open_cityscapes(root=str(root), **bad)
     assert "check preprocessing" in preprocessing_warning("segformer_b0", 0.2)
     assert preprocessing_warning("segformer_b0", 0.5) is None and preprocessing_warning("tiny_segformer", 0.0) is None

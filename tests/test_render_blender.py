@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.conditions import Condition, build_condition_grid
 from pairedgta.errors import ConfigError, RendererError
-from pairedgta.render import BACKENDS, build_renderer
+from pairedgta.render import RENDERERS, build_renderer
 from pairedgta.render.blender import (
     TEMPLATES,
     BlenderRenderer,
@@ -27,7 +27,7 @@ from pairedgta.render.blender import (
 )
 from pairedgta.scene.descriptor import CATEGORIES, CameraPose, DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.town import ProceduralTownRegion
-from tests.conftest import CONF, compose_cfg
+from pairedgta.testing.cli import CONF, compose_cfg
 
 TOWN = {"town_seed": 1, "blocks": 2, "countryside_trees": 10}
 ROAD, BUILDING, SKY, PERSON, CAR = (CLASS_NAMES.index(c) for c in ("road", "building", "sky", "person", "car"))
@@ -51,7 +51,7 @@ def _descriptor(**changes) -> SceneDescriptor:
 # ---- no bpy needed -------------------------------------------------------------------------
 
 def test_backend_is_registered_and_module_imports_without_bpy():
-    assert BACKENDS["blender"] == "pairedgta.render.blender:BlenderRenderer"
+    assert RENDERERS.resolve("blender").__name__ == "BlenderRenderer"
     code = "import sys; import pairedgta.render.blender; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 

@@ -102,7 +102,7 @@ def test_region_dispatch_builds_the_town_from_its_config():
     from pairedgta.scene import sampling
     from omegaconf import OmegaConf
 
-    from tests.conftest import CONF
+    from pairedgta.testing.cli import CONF
 
     cfg = OmegaConf.to_container(OmegaConf.load(CONF / "region" / "procedural_town.yaml"))
     region = sampling.build_region(cfg)
