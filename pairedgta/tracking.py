@@ -91,30 +91,3 @@ class Tracker:
     def tags(self, tags: dict[str, str]) -> None:
         if self.enabled:
             self.mlflow.set_tags(tags)
-
-
-def evaluation_metrics(eval_dir: Path) -> dict[str, float]:
-    """The MLflow view of one evaluate output: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<sel>/<class>."""
-    import pandas as pd
-
-    metrics: dict[str, float] = {}
-    xi = pd.read_csv(eval_dir / "xi.csv")
-    for row in xi.itertuples():
-        prefix = "xi" if row.reference_model != "ground_truth" else "xi_gt"
-        if row.class_name == "mean":
-            metrics[f"{prefix}_mean/{row.condition}"] = row.xi
-        else:
-            metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
-    rho = pd.read_csv(eval_dir / "rho_valid.csv")
-    summary = json.loads((eval_dir / "summary.json").read_text())
-    conds = list(dict.fromkeys(rho["condition"]))
-    main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
-    for row in rho.itertuples():
-        metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
-        if row.condition == main:
-            metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
-    for cond, v in summary.get("gt_miou", {}).items():
-        metrics[f"gt_miou/{cond}"] = v
-    for cond, v in summary.get("agreement", {}).items():
-        metrics[f"agreement/{cond}"] = v
-    return metrics
