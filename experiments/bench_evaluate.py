@@ -78,7 +78,7 @@ def main() -> None:
         for n in args.sizes:
             root = Path(tmp) / f"ds{n}"
             make_release_dataset(root, n, args.width, args.height)
-            out = subprocess.run([sys.executable, "-c", CHILD, str(root), str(Path(tmp) / f"cache{n}"), str(ROOT / "conf")],
+            out = subprocess.run([sys.executable, "-c", CHILD, str(root), str(Path(tmp) / f"cache{n}"), str(ROOT / "pairedgta" / "conf")],
                                  capture_output=True, text=True, check=True)
             t = json.loads(out.stdout.strip().splitlines()[-1])
             images = n * 3

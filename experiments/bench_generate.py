@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
 
     rng = np.random.default_rng(args.seed)
-    sample = region_sampler(ROOT / "conf" / "region" / "los_santos.yaml")
+    sample = region_sampler(ROOT / "pairedgta" / "conf" / "region" / "los_santos.yaml")
     grid = conditions()
     rows = []
     t_session = time.perf_counter()

@@ -6,7 +6,7 @@ condition-wise rendering.
     python experiments/bench_render.py --sweep              # a few quality/speed settings at 512x256
     python experiments/bench_render.py --contact /tmp/blender_contact.png   # 9 conditions + labels of scene 0
 
-Trailing key=value pairs override conf/renderer/blender.yaml. Wall time is what a user waits; CPU
+Trailing key=value pairs override pairedgta/conf/renderer/blender.yaml. Wall time is what a user waits; CPU
 seconds / cores is printed beside it because a shared machine inflates wall time (the load average
 is printed too, so numbers from a busy machine can be recognised).
 """
@@ -49,8 +49,8 @@ def _value(text: str):
 
 
 def load_cfg(overrides: list[str]) -> tuple[dict, dict]:
-    renderer = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "renderer" / "blender.yaml"))
-    region = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "region" / "procedural_town.yaml"))
+    renderer = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "renderer" / "blender.yaml"))
+    region = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "region" / "procedural_town.yaml"))
     renderer.pop("backend")
     renderer["town"] = region
     for item in overrides:
@@ -146,7 +146,7 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*", help="renderer key=value")
     args = ap.parse_args()
     renderer_cfg, region_cfg = load_cfg(args.overrides)
-    grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "conditions" / "paper.yaml")))
+    grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "conditions" / "paper.yaml")))
     scenes = descriptors(region_cfg, args.scenes, args.seed)
     cores = os.cpu_count() or 1
     if args.contact:

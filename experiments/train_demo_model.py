@@ -85,7 +85,7 @@ def evaluate(model, images, labels) -> ConfusionMatrix:
     return cm
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train_demo")
+@hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="train_demo")
 def main(dcfg: DictConfig) -> None:
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 

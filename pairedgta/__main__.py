@@ -12,7 +12,7 @@ from pairedgta.errors import PairedGTAError
 log = logging.getLogger("pairedgta")
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     from pairedgta.app import run
 
@@ -29,16 +29,26 @@ def main(cfg: DictConfig) -> None:
         log.error("%s", exc)
         sys.exit(2)
     where = summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
-    print(f"results: {where}")
-    for name, path in summary.get("evaluate", {}).items():
-        print(f"  evaluate [{name}]: {path}")
+    lines = [f"results: {where}"] + [f"  evaluate [{name}]: {path}" for name, path in summary.get("evaluate", {}).items()]
+    print("\n".join(lines))
+    _to_log_files(lines)
+
+
+def _to_log_files(lines: list[str]) -> None:
+    """The `results:` lines go to stdout bare (to copy a path) and into the job's log file(s), so the log
+    of a run says where its results are; logging them would print them twice on the console."""
+    handlers = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+    for line in lines:
+        record = log.makeRecord(log.name, logging.INFO, __file__, 0, line, None, None)
+        for h in handlers:
+            h.handle(record)
 
 
 OPEN_MAPPINGS = ("model_overrides.",)
 
 
 def _open_mapping_overrides(argv: list[str]) -> list[str]:
-    """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in conf/config.yaml, which
+    """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in pairedgta/conf/config.yaml, which
     Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`."""
     return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
 

@@ -2,7 +2,8 @@
 
 A run composes its `model` group through Hydra; the other models it names (`models=[...]`,
 `reference_model`) are read here through the same search path, so inside a running app they come from
-exactly the files `model=<name>` would compose, and outside one (scripts, tests) from the project's tree."""
+exactly the files `model=<name>` would compose, and outside one (scripts, tests) from the package's own
+tree, `pairedgta/conf` (Hydra's `pkg://pairedgta.conf`), which ships in the wheel."""
 from __future__ import annotations
 
 import contextlib
@@ -14,19 +15,20 @@ from omegaconf import OmegaConf
 
 from pairedgta.errors import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONFIG_MODULE = "pairedgta.conf"  # the config tree as a package: found wherever pairedgta is installed
+CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 
 @contextlib.contextmanager
 def _search_path() -> Iterator[None]:
-    from hydra import initialize_config_dir
+    from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
     if GlobalHydra.instance().is_initialized():
         yield
         return
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
         yield
 
 
@@ -56,4 +58,4 @@ def group_option(group: str, name: str) -> dict[str, Any]:
     return dict(out[group]) if set(out) == {group} else out
 
 
-__all__ = ["CONFIG_DIR", "group_option", "group_options"]
+__all__ = ["CONFIG_DIR", "CONFIG_MODULE", "group_option", "group_options"]

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from pairedgta.conditions import Condition
+from pairedgta.configs import CONFIG_DIR
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render import build_renderer
 from pairedgta.render.deepgtav import (
@@ -142,7 +143,7 @@ def test_render_builds_scene_and_switches_with_config(server):
 
 
 def test_build_renderer_from_conf():
-    cfg = yaml.safe_load((ROOT / "conf" / "renderer" / "deepgtav.yaml").read_text())
+    cfg = yaml.safe_load((CONFIG_DIR / "renderer" / "deepgtav.yaml").read_text())
     r = build_renderer(cfg)
     assert isinstance(r, DeepGTAVRenderer)
     assert (r.width, r.height, r.transport, r.settle_s) == (1280, 720, "zmq", 1.0)

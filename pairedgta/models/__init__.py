@@ -25,7 +25,7 @@ def available_models() -> list[str]:
 
 
 def model_config(name: str, **overrides: Any) -> dict[str, Any]:
-    """conf/model/<name>.yaml (through the config search path) with `overrides` applied."""
+    """pairedgta/conf/model/<name>.yaml (through the config search path) with `overrides` applied."""
     cfg = group_option("model", name)
     cfg.update(overrides)
     return cfg

@@ -235,7 +235,7 @@ def build(
     upsample_align_corners: bool | None = None, device: str = "cpu",
     layers: list = (2, 2, 2, 2), planes: int = 64, spp_planes: int = 128, head_planes: int = 128,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
     cfg = dict(locals())
     return build_inproject(
         cfg,

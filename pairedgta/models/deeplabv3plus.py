@@ -129,7 +129,7 @@ def build(
     layers: list = (3, 4, 23, 3), backbone_channels: list = (64, 128, 256, 512), output_stride: int = 16,
     aspp_rates: list = (6, 12, 18), aspp_channels: int = 256, low_level_channels: int = 48, decoder_channels: int = 256,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
     cfg = dict(locals())
     return build_inproject(
         cfg,

@@ -161,7 +161,7 @@ def build(
     upsample_align_corners: bool | None = None, device: str = "cpu",
     m: int = 2, n: int = 3, planes: int = 64, ppm_planes: int = 96, head_planes: int = 128,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
     cfg = dict(locals())
     # The official evaluation upsamples the 1/8 logits with align_corners=True (config default ALIGN_CORNERS).
     return build_inproject(

@@ -26,7 +26,7 @@ def build(
     batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
     device: str = "cpu",
 ) -> Segmenter:
-    """Keyword arguments = the keys of a conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
     cfg = dict(locals())
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 

@@ -6,16 +6,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pairedgta.configs import CONFIG_DIR
+from pairedgta.configs import CONFIG_DIR, CONFIG_MODULE
 
 CONF = CONFIG_DIR
 OFFLINE = {"HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
 
 
 def compose_cfg(overrides: list[str]):
-    from hydra import compose, initialize_config_dir
+    from hydra import compose, initialize_config_module
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
 
 
