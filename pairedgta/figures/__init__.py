@@ -7,7 +7,8 @@ readers belong to the stages (`p.evaluations[i].xi()`, `p.pseudo.labels.load(gro
 never name a stage's files and import no stage."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from pairedgta.registry import Registry
@@ -28,6 +29,15 @@ class FigureOptions:
     dpi: int
     cfg: dict[str, Any]  # the run's config (the first pass's): plot.*, metric.*, cost.*, device
     multi: bool = False  # several passes: file stems get the pass label
+    # file name -> the model (and pass) a figure shows alone; the plot stage saves it so each model's
+    # MLflow run can carry its own figures
+    owners: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def own(self, paths: list[Path], model: str, label: str) -> list[Path]:
+        """Record `paths` as figures of one model of one pass; returns them."""
+        for path in paths:
+            self.owners[Path(path).name] = {"model": str(model), "pass": str(label)}
+        return paths
 
     @property
     def plot(self) -> dict[str, Any]:

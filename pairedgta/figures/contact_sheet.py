@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from pairedgta.cityscapes import colorize  # noqa: E402
+from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
 from pairedgta.figures.common import save  # noqa: E402
@@ -33,7 +34,7 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
         ax.axis("off")
     for ax, name in zip(axes.flat, names):
         ax.imshow(load_image(group.images[name]))
-        ax.set_title(name, fontsize=8)
+        ax.set_title(condition_display(name), fontsize=8)
     if has_labels:
         ax = axes.flat[len(names)]
         ax.imshow(colorize(load_label(group.labels[dataset.reference])))

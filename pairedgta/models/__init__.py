@@ -2,10 +2,16 @@
 
 `build_segmenter(name_or_config, device=..., **overrides)` reads the model's YAML through the config
 search path (or takes an already composed config), applies overrides and calls the family's builder
-with the config's keys as keyword arguments; architecture modules know nothing about Hydra."""
+with the config's keys as keyword arguments; architecture modules know nothing about Hydra.
+
+Inside `run_models()` (one run of the app) `shared_segmenter` builds each distinct model config once:
+pseudo-labelling, evaluation and the qualitative figure use the same loaded model."""
 from __future__ import annotations
 
-from typing import Any, Mapping
+import contextlib
+import json
+import logging
+from typing import Any, Iterator, Mapping
 
 from pairedgta.configs import group_option, group_options
 from pairedgta.models.base import Segmenter, resolve_device
@@ -18,6 +24,8 @@ FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:build")
 FAMILIES.register("pidnet", "pairedgta.models.pidnet:build")
 FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:build")
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
+log = logging.getLogger("pairedgta.models")
+_RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
 
 
 def available_models() -> list[str]:
@@ -46,5 +54,36 @@ def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, *
     return FAMILIES.build(cfg.get("family"), cfg, where=f"model ({cfg.get('name')})", device=device)
 
 
-__all__ = ["Segmenter", "build_segmenter", "model_config", "check_model_config", "available_models",
+def _cache_key(cfg: Mapping[str, Any], device: str | None) -> str:
+    return json.dumps({"config": dict(cfg), "device": device}, sort_keys=True, default=str)
+
+
+@contextlib.contextmanager
+def run_models() -> Iterator[dict[str, Segmenter]]:
+    """The scope of one run: `shared_segmenter` keeps every model it builds until the scope ends
+    (nested scopes share the outer one). Outside a scope it builds a fresh model each call."""
+    global _RUN_CACHE
+    if _RUN_CACHE is not None:
+        yield _RUN_CACHE
+        return
+    _RUN_CACHE = {}
+    try:
+        yield _RUN_CACHE
+    finally:
+        _RUN_CACHE = None
+
+
+def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Segmenter:
+    """`build_segmenter(model, device)`, built once per run for the same composed config and device."""
+    if _RUN_CACHE is None:
+        return build_segmenter(model, device=device)
+    key = _cache_key(model, device)
+    if key not in _RUN_CACHE:
+        _RUN_CACHE[key] = build_segmenter(model, device=device)
+    else:
+        log.debug("model %s: reused within this run", model.get("name"))
+    return _RUN_CACHE[key]
+
+
+__all__ = ["Segmenter", "build_segmenter", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
            "resolve_device", "FAMILIES", "RUNTIME_KEYS"]

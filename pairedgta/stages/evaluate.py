@@ -35,7 +35,7 @@ from pairedgta.metrics import (
     select_frames,
     spearman,
 )
-from pairedgta.models import build_segmenter
+from pairedgta.models import shared_segmenter
 from pairedgta.cache import MANIFEST, canonical_json
 from pairedgta.conditions import ConditionGrid
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
@@ -52,7 +52,13 @@ class EvaluateResult(StageResult):
     FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json")
 
     def model_config(self) -> dict[str, Any]:
-        return dict(self.manifest()["config"]["model"])
+        """The model's composed config: as this run built it, or (an evaluation collected from the cache)
+        as its manifest recorded it, without the weights' fingerprint the hash adds."""
+        if "model_config" in self.extra:
+            return dict(self.extra["model_config"])
+        cfg = dict(self.manifest()["config"]["model"])
+        cfg.pop("weights_sha256", None)
+        return cfg
 
     @property
     def model(self) -> str:
@@ -207,7 +213,7 @@ def compute(
 ) -> dict[str, Any]:
     grid = dataset.grid or ctx.grid
     s = metric_settings(ctx.cfg, grid.names, dataset.reference)
-    segmenter = build_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
     model = segmenter.name
     clean = s["clean"]
     order = [clean] + [c for c in conditions if c != clean]
@@ -389,4 +395,5 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
         label=f"[{model_cfg['name']}]", result_cls=EvaluateResult,
     )
     assert isinstance(result, EvaluateResult)
+    result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
     return result

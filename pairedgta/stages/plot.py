@@ -4,7 +4,8 @@ families registered in pairedgta.figures (xi_table, ranking, qualitative, ablati
 contact_sheet, cost); each draws itself from the passes.
 
 Every output is written into the stage's cache directory; `metrics.json` holds the numbers the run logs
-to MLflow (so a cache hit logs them too)."""
+to MLflow (so a cache hit logs them too) and `owners.json` which figures show one model alone (those
+go to that model's MLflow run)."""
 from __future__ import annotations
 
 import inspect
@@ -14,11 +15,13 @@ import math
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from pairedgta.figures import FIGURES, FigureOptions, lookup
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
-VERSION = "3"
+VERSION = "4"  # 4: one xi heatmap per model, owners.json
 DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
 
 
@@ -27,6 +30,20 @@ class Figures(StageResult):
 
     def files(self) -> list[Path]:
         return sorted(q for q in self.path.iterdir() if q.suffix in (".png", ".pdf", ".csv", ".md", ".tex"))
+
+    def owners(self) -> dict[str, dict[str, str]]:
+        path = self.path / "owners.json"
+        return json.loads(path.read_text()) if path.is_file() else {}
+
+    def files_of(self, model: str, label: str | None = None) -> list[Path]:
+        """The figures that show `model` alone (of pass `label`, when given)."""
+        return [self.path / name for name, o in sorted(self.owners().items())
+                if o["model"] == model and (label is None or o["pass"] == label) and (self.path / name).is_file()]
+
+    def shared_files(self) -> list[Path]:
+        """Everything that is not one model's own figure: the run-level artifacts."""
+        owned = set(self.owners())
+        return [q for q in self.files() if q.name not in owned]
 
     def metrics(self) -> dict[str, float]:
         path = self.path / "metrics.json"
@@ -60,12 +77,16 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
     opts = options(ctx.cfg, passes)
     files: list[Path] = []
     metrics: dict[str, float] = {}
-    for name in figures_of(ctx.cfg):
+    names = figures_of(ctx.cfg)
+    bar = tqdm(names, desc="plot", unit="figure")
+    for name in bar:
+        bar.set_postfix_str(name)
         drawn, numbers = FIGURES.resolve(name)(passes, out, opts)
         files += drawn
         metrics.update(numbers)
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
     (out / "metrics.json").write_text(json.dumps(clean_metrics, indent=2, sort_keys=True))
+    (out / "owners.json").write_text(json.dumps(opts.owners, indent=2, sort_keys=True))
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 

@@ -17,7 +17,7 @@ import pandas as pd
 from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
-from pairedgta.models import build_segmenter
+from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
 
 log = logging.getLogger("pairedgta.pseudolabel")
@@ -54,7 +54,7 @@ def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
-    segmenter = build_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
     maps = LabelMaps(out)
     hist = np.zeros(NUM_CLASSES, dtype=np.int64)
     total = 0
