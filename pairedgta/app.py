@@ -1,5 +1,7 @@
 """The run: plan it, open each pass's dataset, then pseudo-label, evaluate every model and plot, each
-stage cached by config hash (pairedgta.stages.planning says what and over which data), logged to MLflow."""
+stage cached by config hash (pairedgta.stages.planning says what and over which data), logged to MLflow:
+a parent run with the invocation's config and the shared figures, a nested run per model and dataset
+with its metrics, xi table, dataset, config and its own figures. Each model is loaded once per run."""
 from __future__ import annotations
 
 import logging
@@ -9,8 +11,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from pairedgta.cache import StageCache
 from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
-from pairedgta.tracking import Tracker
+from pairedgta.tracking import Tracker, bundle, dataset_label, run_name, xi_table
 
 log = logging.getLogger("pairedgta")
 
@@ -25,8 +28,22 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     pseudolabel.check_tau(container)
     cache = StageCache(container["cache_dir"])
     tracking = container.get("tracking") or {}
-    tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"),
-                      str(tracking.get("experiment_name") or container.get("name", "default")), bool(tracking.get("enabled", True)))
+    experiment = str(tracking.get("experiment_name") or container.get("name", "default"))
+    tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)))
+    model_names = [m["name"] for m in models.evaluated]
+    with loaded_once():
+        return _run(container, plan, models, cache, tracker, experiment, model_names)
+
+
+def _log_invocation(tracker: Tracker, container: dict[str, Any]) -> None:
+    config = {k: v for k, v in container.items() if k != "hydra"}
+    tracker.params(config)
+    tracker.config(config)
+    tracker.hydra_config()
+
+
+def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunModels, cache: StageCache,
+         tracker: Tracker, experiment: str, model_names: list[str]) -> dict[str, Any]:
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 
@@ -34,8 +51,8 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
         from pairedgta.stages import cityscapes_val
 
         ctx = planning.pass_context(container, cache, plan, results)
-        with tracker.run(str(container.get("name", "run"))):
-            tracker.params({k: v for k, v in container.items() if k != "hydra"})
+        with tracker.run(run_name(experiment, model_names, [str(container["dataset"].get("name"))])):
+            _log_invocation(tracker, container)
             return cityscapes_val.run(ctx, models.evaluated, tracker)
 
     passes = []
@@ -50,30 +67,46 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
             summary["dataset"] = summary["dataset"] or str(p.dataset.root)
     if not (plan.run_pseudo or plan.plotting):
         return summary
-    with tracker.run(str(container.get("name", "run"))):
-        tracker.params({k: v for k, v in container.items() if k != "hydra"})
+    datasets = [dataset_label(p.dataset.name, p.dataset_key) for _, p in passes if p.dataset is not None]
+    with tracker.run(run_name(experiment, model_names, datasets)):
+        _log_invocation(tracker, container)
         tracker.tags({"dataset": passes[0][1].dataset.name if passes[0][1].dataset else "none",
-                      "dataset_key": str(passes[0][1].dataset_key), "passes": ", ".join(p.label for _, p in passes)})
+                      "dataset_key": str(passes[0][1].dataset_key), "passes": ", ".join(p.label for _, p in passes),
+                      "models": ", ".join(model_names)})
+        model_runs: list[tuple[str | None, str, str]] = []  # (nested run, model, pass) for the figures
         for ctx, p in passes:
             if p.dataset is not None and plan.run_pseudo:
-                _data_stages(ctx, p, plan, models, tracker, summary, multi=len(passes) > 1)
+                _log_dataset(tracker, p)
+                model_runs += _data_stages(ctx, p, plan, models, tracker, summary, experiment, multi=len(passes) > 1)
         if plan.plotting:
             figures = plot.run(passes[0][0], [p for _, p in passes])
             summary["plot"] = str(figures.path)
-            tracker.artifacts(figures.files(), "figures")
+            tracker.stage_files(bundle("plot", figures.key), figures.hit, figures.shared_files(), "figures")
             tracker.metrics(figures.metrics())
+            for run_id, model, label in model_runs:  # each model's own figures into its nested run
+                with tracker.run(run_id=run_id, nested=True):
+                    tracker.stage_files(bundle("plot", figures.key, label, model), figures.hit,
+                                        figures.files_of(model, label), "figures")
     return summary
 
 
+def _log_dataset(tracker: Tracker, p: planning.PassResult) -> None:
+    assert p.dataset is not None
+    tracker.dataset(p.dataset.name, p.dataset.root, str(p.dataset_key).split(":", 1)[-1],
+                    {"pass": p.label, "dataset_key": str(p.dataset_key), "reference": p.dataset.reference})
+
+
 def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: planning.RunModels, tracker: Tracker,
-                 summary: dict[str, Any], multi: bool) -> None:
+                 summary: dict[str, Any], experiment: str, multi: bool) -> list[tuple[str | None, str, str]]:
     """Pseudo-labels, then every model's evaluation (a nested MLflow run each) of one pass."""
     assert p.dataset is not None and p.dataset_key is not None
     p.pseudo = pseudolabel.run(ctx, p.dataset, p.dataset_key, models.reference)
     summary.setdefault("pseudolabel", str(p.pseudo.path))
-    tracker.artifacts(p.pseudo.artifacts(), f"pseudolabel/{p.label}" if multi else "pseudolabel")
+    tracker.stage_files(bundle("pseudolabel", p.pseudo.key), p.pseudo.hit, p.pseudo.artifacts(),
+                        f"pseudolabel/{p.label}" if multi else "pseudolabel")
+    runs: list[tuple[str | None, str, str]] = []
     if not plan.run_eval:
-        return
+        return runs
     collect = plan.plotting and bool((ctx.cfg.get("plot") or {}).get("collect_cached"))
     for model_cfg in models.evaluated:
         name = f"{p.label}/{model_cfg['name']}" if multi else model_cfg["name"]
@@ -85,11 +118,16 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
                 continue
             raise
         p.evaluations.append(result)
-        with tracker.run(name, nested=True):
+        with tracker.run(run_name(experiment, [model_cfg["name"]], [dataset_label(p.dataset.name, p.dataset_key)]), nested=True):
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})
-            tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label})
+            tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label,
+                          "model": model_cfg["name"]})
             tracker.metrics(result.metrics())
-            tracker.artifacts(result.artifacts(), "evaluate")
+            _log_dataset(tracker, p)
+            tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
+            tracker.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
+                                tables={"xi_table.json": xi_table(result.xi())})
+            runs.append((tracker.run_id(), model_cfg["name"], p.label))
         summary["evaluate"][name] = str(result.path)
     if collect:
         extra = planning.collect_cached(ctx, p)
@@ -99,3 +137,4 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
             p.evaluations.extend(extra)
     if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
         raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")
+    return runs

@@ -27,9 +27,9 @@ from pairedgta.datasets import open_dataset
 from pairedgta.datasets.cityscapes import CityscapesSplit
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
-from pairedgta.models import build_segmenter
+from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.tracking import Tracker
+from pairedgta.tracking import Tracker, bundle, dataset_label, run_name
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -66,7 +66,7 @@ def preprocessing_warning(model: str, miou: float) -> str | None:
 
 
 def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, device: str = "cpu") -> dict[str, Any]:
-    segmenter = build_segmenter(model_cfg, device=device)
+    segmenter = shared_segmenter(model_cfg, device=device)
     model = model_cfg["name"]
     cm = ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX)
     with tqdm(dataset.samples, desc=f"{STAGE} [{model}]", unit="img") as bar:
@@ -138,12 +138,15 @@ def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[st
     }
     for model_cfg in models:
         name = model_cfg["name"]
-        with tracker.run(name, nested=True):
+        with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
             result = check_model(ctx, dataset, dataset_key, model_cfg)
             tracker.params({"model": model_cfg, "dataset": ctx.cfg["dataset"]})
-            tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit)})
+            tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit), "model": name})
             tracker.metrics(tracked_metrics(result.path))
-            tracker.artifacts([result.path / "iou.csv", result.path / "summary.json"], STAGE)
+            tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1], {"split": dataset.split})
+            tracker.config({**{k: v for k, v in ctx.cfg.items() if k != "hydra"}, "model": model_cfg})
+            tracker.stage_files(bundle(STAGE, result.key), result.hit, [result.path / "iou.csv", result.path / "summary.json"],
+                                STAGE)
         s = json.loads((result.path / "summary.json").read_text())
         published = s.get("published_miou")
         log.info(
