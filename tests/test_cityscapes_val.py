@@ -149,7 +149,8 @@ def test_check_matches_numpy_logs_to_mlflow_and_caches(tree, bad_runs, tmp_path)
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("cityscapes_val_check")
     nested = [r for r in client.search_runs([exp.experiment_id]) if r.data.tags.get("mlflow.parentRunId")]
-    assert [r.info.run_name for r in nested] == ["tiny_segformer"]
+    assert [r.data.tags["model"] for r in nested] == ["tiny_segformer"]
+    assert nested[0].info.run_name.startswith("cityscapes_val_check \u00b7 tiny_segformer \u00b7 cityscapes")
     metrics = nested[0].data.metrics
     assert metrics["cityscapes_val/miou"] == pytest.approx(miou)
     for k, name in enumerate(CLASS_NAMES):  # NaN classes (absent from labels and predictions) are not logged

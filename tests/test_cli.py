@@ -33,7 +33,7 @@ def test_smoke_experiment_end_to_end(tmp_path):
     for name in ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv"):
         assert (evals["tiny_mask2former"] / name).is_file()
     plots = [p for p in (cache / "plot").iterdir() if not p.name.startswith(".")]
-    assert {"xi_table.png", "xi_table.pdf", "ranking.png"} <= {p.name for p in plots[0].iterdir()}
+    assert {"xi_table_tiny_segformer.png", "xi_table_tiny_mask2former.pdf", "ranking.png"} <= {p.name for p in plots[0].iterdir()}
 
     # recompute the numbers independently from the cached dataset, pseudo-labels and the model
     gen = next(p for p in (cache / "generate").iterdir() if not p.name.startswith("."))
@@ -58,14 +58,21 @@ def test_smoke_experiment_end_to_end(tmp_path):
     r = rho[(rho.condition == "Night-EXTRASUNNY") & (rho.class_name == "car") & (rho.selection == "top_m")].rho.item()
     np.testing.assert_equal(r, rho_valid(clean_mass, adv_mass, m=25))
 
-    # MLflow: one parent run, a nested run per model holding the same numbers
+    # MLflow: one parent run (with the job's Hydra config), a nested run per model holding the same numbers
     import mlflow
 
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
     exp = client.get_experiment_by_name("smoke")
     runs = client.search_runs([exp.experiment_id])
-    nested = {r.info.run_name: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
+    nested = {r.data.tags["model"]: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
     assert len(runs) == 3 and set(nested) == {"tiny_segformer", "tiny_mask2former"}
+    dataset = f"generated@{gen.name[:8]}"
+    assert nested["tiny_mask2former"].info.run_name == f"smoke \u00b7 tiny_mask2former \u00b7 {dataset}"
+    (parent,) = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    assert parent.info.run_name == f"smoke \u00b7 tiny_segformer, tiny_mask2former \u00b7 {dataset}"
+    hydra_files = {a.path for a in client.list_artifacts(parent.info.run_id, "hydra")}
+    assert {"hydra/config.yaml", "hydra/overrides.yaml", "hydra/hydra.yaml"} <= hydra_files
+    assert "+experiment=smoke" in parent.data.tags["pairedgta.overrides"]
     logged = nested["tiny_mask2former"].data.metrics
     mean = night.xi.mean()
     assert logged["xi_mean/Night-EXTRASUNNY"] == pytest.approx(mean)

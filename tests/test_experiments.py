@@ -103,7 +103,8 @@ def test_paper_table_one_run_qualitative_and_multirun_aggregate(work):
     s = run(compose_cfg(base(work) + TINY + ["+experiment=paper_table"]))
     plot_dir = Path(s["plot"])
     evals = {m: Path(p) for m, p in s["evaluate"].items()}
-    assert {"xi_table.png", "table1_xi.md", "table1_xi.tex", "table1_xi.csv"} <= {p.name for p in plot_dir.iterdir()}
+    assert {"table1_xi.md", "table1_xi.tex", "table1_xi.csv"} <= {p.name for p in plot_dir.iterdir()}
+    assert {f"xi_table_{m}.png" for m in evals} <= {p.name for p in plot_dir.iterdir()}  # a heatmap per model
     check_table(plot_dir, evals)
 
     # qualitative grids: the worst and the best group per condition by the cached per-image agreement,
