@@ -81,7 +81,8 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
         if plan.plotting:
             figures = plot.run(passes[0][0], [p for _, p in passes])
             summary["plot"] = str(figures.path)
-            tracker.stage_files(bundle("plot", figures.key), figures.hit, figures.shared_files(), "figures")
+            own_runs = {(model, label) for _, model, label in model_runs}
+            tracker.stage_files(bundle("plot", figures.key), figures.hit, figures.files_except(own_runs), "figures")
             tracker.metrics(figures.metrics())
             for run_id, model, label in model_runs:  # each model's own figures into its nested run
                 with tracker.run(run_id=run_id, nested=True):

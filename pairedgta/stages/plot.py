@@ -40,10 +40,12 @@ class Figures(StageResult):
         return [self.path / name for name, o in sorted(self.owners().items())
                 if o["model"] == model and (label is None or o["pass"] == label) and (self.path / name).is_file()]
 
-    def shared_files(self) -> list[Path]:
-        """Everything that is not one model's own figure: the run-level artifacts."""
-        owned = set(self.owners())
-        return [q for q in self.files() if q.name not in owned]
+    def files_except(self, models: set[tuple[str, str]]) -> list[Path]:
+        """Every file but the figures of the given (model, pass) pairs, which go to those models' own
+        records: the run-level artifacts (a model collected from the cache has no run of its own)."""
+        owners = self.owners()
+        return [q for q in self.files()
+                if q.name not in owners or (owners[q.name]["model"], owners[q.name]["pass"]) not in models]
 
     def metrics(self) -> dict[str, float]:
         path = self.path / "metrics.json"
