@@ -28,7 +28,8 @@ def main(cfg: DictConfig) -> None:
         print(f"error: {exc}", file=sys.stderr)
         log.error("%s", exc)
         sys.exit(2)
-    where = summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
+    where = (summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
+             or summary.get("generate"))
     print(f"results: {where}")
     for name, path in summary.get("evaluate", {}).items():
         print(f"  evaluate [{name}]: {path}")

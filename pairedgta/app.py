@@ -48,6 +48,8 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
             log.info("dataset %s%s: %d groups, reference %s", p.dataset.name, f" ({label})" if len(configs) > 1 else "",
                      len(p.dataset), p.dataset.reference)
             summary["dataset"] = summary["dataset"] or str(p.dataset.root)
+    if "generate" in results:
+        summary["generate"] = str(results["generate"].path)
     if not (plan.run_pseudo or plan.plotting):
         return summary
     with tracker.run(str(container.get("name", "run"))):

@@ -34,6 +34,7 @@ from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region
+from pairedgta.cache import stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.generate")
@@ -42,11 +43,14 @@ TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
 ]
-EXECUTION_KEYS = ("workers", "endpoints")  # where scenes run, not what they are
+EXECUTION_KEYS = ("workers", "endpoints", "num_shards", "shard")  # where scenes run, not what they are
 
 
 class GeneratedData(StageResult):
-    """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records."""
+    """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records.
+    `complete` is False for a shard job that left scenes to other shards (nothing to read yet)."""
+
+    complete: bool = True
 
     @property
     def timings_csv(self) -> Path:
@@ -261,21 +265,71 @@ def _work(k: int, scenes_dir: str) -> dict[str, Any]:
     return render_scene(k, w["cfg"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
 
 
-def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
-    gen = cfg["generate"]
-    n = int(gen["num_scenes"])
-    workers = int(gen.get("workers", 1))
+def _int_key(gen: dict[str, Any], key: str, default: int) -> int:
+    value = gen.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        try:
+            value = int(str(value))
+        except ValueError:
+            raise ConfigError(f"generate.{key}={value!r} is not a whole number") from None
+    return value
+
+
+def shard_of(gen: dict[str, Any]) -> tuple[int, int]:
+    """(num_shards, shard) validated: shard i of N renders scenes i, i+N, i+2N, ..."""
+    num, shard = _int_key(gen, "num_shards", 1), _int_key(gen, "shard", 0)
+    if num < 1:
+        raise ConfigError(f"generate.num_shards={num}; set it to at least 1")
+    if not 0 <= shard < num:
+        raise ConfigError(f"generate.shard={shard} is outside 0..{num - 1} (generate.num_shards={num})")
+    return num, shard
+
+
+def scene_count(gen: dict[str, Any]) -> int:
+    n = _int_key(gen, "num_scenes", 1)
     if n < 1:
         raise ConfigError(f"generate.num_scenes={n}; set it to at least 1")
+    return n
+
+
+def finished_scenes(scenes_dir: Path) -> set[int]:
+    if not scenes_dir.is_dir():
+        return set()
+    return {int(p.name) for p in scenes_dir.iterdir() if p.is_dir() and p.name.isdigit() and (p / "timings.json").is_file()}
+
+
+def _writer_alive(tmp: Path) -> bool:
+    """Whether the process that names `.tmp-<scene>-<pid>` still runs (on this machine)."""
+    try:
+        pid = int(tmp.name.rsplit("-", 1)[1])
+    except (IndexError, ValueError):
+        return False
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: list[int]) -> float:
+    """Render the scenes `indices` that are not yet in out/scenes; returns the backend's connect time."""
+    gen = cfg["generate"]
+    n = len(indices)
+    workers = int(gen.get("workers", 1))
     if workers < 1:
         raise ConfigError(f"generate.workers={workers}; set it to at least 1")
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    for stale in scenes_dir.glob(".tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    done = {p.name for p in scenes_dir.iterdir() if p.is_dir() and (p / "timings.json").is_file()}
-    todo = [k for k in range(n) if f"{k:05d}" not in done]
-    if done:
+    for tmp in scenes_dir.glob(".tmp-*"):
+        if not _writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
+            shutil.rmtree(tmp, ignore_errors=True)
+    done = finished_scenes(scenes_dir)
+    todo = [k for k in indices if k not in done]
+    if len(todo) < n:
         log.info("generate: resuming, %d of %d scenes already rendered", n - len(todo), n)
     region = build_region(cfg["region"])
     t_open = time.perf_counter()
@@ -305,6 +359,12 @@ def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dic
             for fut in tqdm(cf.as_completed(futures), total=len(futures), desc="generate", unit="scene"):
                 fut.result()
         connect = 0.0
+    return connect
+
+
+def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
+    n = scene_count(cfg["generate"])
+    connect = render_scenes(cfg, grid, out, list(range(n)))
     return write_index(out, cfg, grid, n, connect)
 
 
@@ -352,9 +412,42 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     os.replace(tmp, path)
 
 
+def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
+    """A shard job renders its scenes straight into the entry's resumable work directory (no stage lock:
+    shards write disjoint per-scene directories, each renamed into place when complete). When every
+    scene is there, None: the caller finalises the entry as an unsharded run would."""
+    num, shard = shard_of(ctx.cfg["generate"])
+    key = stage_hash("generate", VERSION, config, {})
+    final = ctx.cache.path("generate", key)
+    if num == 1 or ctx.cache.is_hit("generate", key):
+        return None
+    if "generate" in ctx.force:
+        raise ConfigError("force=[generate] with generate.shard set would discard other shards' scenes; "
+                          "force the unsharded run (no generate.shard/num_shards) instead")
+    if "generate" not in ctx.stages:
+        raise PairedGTAError(f"generate: no cached output for this configuration ({final}); run it first, "
+                             f"e.g. stages=[generate]")
+    n = scene_count(ctx.cfg["generate"])
+    work = ctx.cache.partial_path("generate", key)
+    mine = list(range(shard, n, num))
+    log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
+    render_scenes(ctx.cfg, ctx.grid, work, mine)
+    have = len(finished_scenes(work / "scenes"))
+    if have == n:
+        return None
+    log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
+             "(then run without generate.shard to go on)", have, n)
+    result = GeneratedData("generate", key, work, hit=False)
+    result.complete = False
+    return result
+
+
 def run(ctx: Context) -> GeneratedData:
     cfg = ctx.cfg
     config = hash_config(cfg, ctx.grid)
+    partial = run_shard(ctx, config)
+    if partial is not None:
+        return partial
     result = run_cached(
         ctx, "generate", VERSION, config, {},
         lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True, result_cls=GeneratedData,
