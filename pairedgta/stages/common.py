@@ -72,11 +72,19 @@ def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
     return h.hexdigest()[:16]
 
 
+HASH_ONLY_MODEL_KEYS = ("weights_sha256",)  # identify the weights in a hash; never a model option
+
+
+def model_config_from_hash(hashed: dict[str, Any]) -> dict[str, Any]:
+    """The buildable model config back from the one a stage hashed (runtime keys take their defaults)."""
+    return {k: v for k, v in hashed.items() if k not in HASH_ONLY_MODEL_KEYS}
+
+
 def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     cfg = {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
     fingerprint = _weights_fingerprint(model_cfg)
     if fingerprint:
-        cfg["weights_sha256"] = fingerprint
+        cfg[HASH_ONLY_MODEL_KEYS[0]] = fingerprint
     return cfg
 
 

@@ -38,7 +38,7 @@ from pairedgta.metrics import (
 from pairedgta.models import build_segmenter
 from pairedgta.cache import MANIFEST, canonical_json
 from pairedgta.conditions import ConditionGrid
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.stages.common import Context, StageResult, model_config_from_hash, model_hash_config, run_cached
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
@@ -52,7 +52,8 @@ class EvaluateResult(StageResult):
     FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json")
 
     def model_config(self) -> dict[str, Any]:
-        return dict(self.manifest()["config"]["model"])
+        """The evaluated model's config, buildable (figures re-predict a few groups with it)."""
+        return model_config_from_hash(self.manifest()["config"]["model"])
 
     @property
     def model(self) -> str:
