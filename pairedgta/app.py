@@ -86,6 +86,11 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
                 log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
                 continue
             raise
+        if not result.complete:  # a shard job: its partial sums wait for the other shards
+            if plan.plotting:
+                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
+                                  "shards, then plot without evaluate.shard/num_shards")
+            continue
         p.evaluations.append(result)
         with tracker.run(name, nested=True):
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})

@@ -54,3 +54,46 @@ def test_a_shard_job_with_later_stages_says_what_to_do(tmp_path):
     proc = run_cli(SMALL + base_overrides(tmp_path) + ["generate.num_shards=2", "generate.shard=0"], tmp_path)
     assert proc.returncode == 2
     assert "run the remaining shards" in proc.stderr
+
+
+EVAL_FILES = ("xi.csv", "rho_valid.csv", "pixel_agreement.csv", "frame_counts.csv", "gt_iou.csv", "summary.json")
+
+
+def evaluations(cache: Path) -> dict[str, Path]:
+    return {json.loads((p / "manifest.json").read_text())["config"]["model"]["name"]: p
+            for p in (cache / "evaluate").glob("[!.]*") if (p / "manifest.json").is_file()}
+
+
+def test_sharded_evaluation_merges_to_the_unsharded_result(tmp_path):
+    one, many = tmp_path / "one", tmp_path / "many"
+    one.mkdir(), many.mkdir()
+    data = SMALL + ["stages=[generate,pseudolabel,evaluate]", "metric.bootstrap.resamples=30"]
+    proc = run_cli(data + base_overrides(one) + ["evaluate.num_workers=0"], one)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for shard in range(2):
+        proc = run_cli(data + base_overrides(many) + ["evaluate.num_shards=3", f"evaluate.shard={shard}",
+                                                       "evaluate.num_workers=2"], many)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert not evaluations(many / "cache"), "no entry while a shard is missing"
+    parts = list((many / "cache" / "evaluate").glob(".parts-*/part-*.json"))
+    assert len(parts) == 2 * 2  # two shards x two models
+    # the unsharded run merges the two shards' partial sums and computes the third shard's groups itself
+    proc = run_cli(data + base_overrides(many), many)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "merging" in proc.stdout + proc.stderr
+    a, b = evaluations(one / "cache"), evaluations(many / "cache")
+    assert set(a) == set(b) == {"tiny_segformer", "tiny_mask2former"}
+    for model in a:
+        assert a[model].name == b[model].name  # same hash: shard keys and workers are not in it
+        for name in EVAL_FILES:
+            assert (a[model] / name).read_bytes() == (b[model] / name).read_bytes(), (model, name)
+    assert not list((many / "cache" / "evaluate").glob(".parts-*")), "merged partial sums are removed"
+
+
+def test_a_complete_set_of_shards_finalises_the_entry(tmp_path):
+    data = SMALL + base_overrides(tmp_path) + ["stages=[generate,pseudolabel,evaluate]", "metric.bootstrap.resamples=10",
+                                              "models=[tiny_segformer]"]
+    for shard in range(2):
+        proc = run_cli(data + ["evaluate.num_shards=2", f"evaluate.shard={shard}"], tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    assert set(evaluations(tmp_path / "cache")) == {"tiny_segformer"}

@@ -8,7 +8,7 @@ from typing import Any, Callable
 
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
-from pairedgta.errors import PairedGTAError
+from pairedgta.errors import ConfigError, PairedGTAError
 
 log = logging.getLogger("pairedgta")
 STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
@@ -43,6 +43,26 @@ class Context:
     stages: list[str]
     force: set[str]
     results: dict[str, Any] = field(default_factory=dict)
+
+
+def whole_number(node: dict[str, Any], key: str, default: int, where: str) -> int:
+    value = node.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        try:
+            value = int(str(value))
+        except ValueError:
+            raise ConfigError(f"{where}.{key}={value!r} is not a whole number") from None
+    return value
+
+
+def shard_keys(node: dict[str, Any], where: str) -> tuple[int, int]:
+    """(num_shards, shard) of a stage split over jobs, validated: shard i of N takes items i, i+N, ..."""
+    num, shard = whole_number(node, "num_shards", 1, where), whole_number(node, "shard", 0, where)
+    if num < 1:
+        raise ConfigError(f"{where}.num_shards={num}; set it to at least 1")
+    if not 0 <= shard < num:
+        raise ConfigError(f"{where}.shard={shard} is outside 0..{num - 1} ({where}.num_shards={num})")
+    return num, shard
 
 
 def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:

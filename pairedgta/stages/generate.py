@@ -35,7 +35,7 @@ from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescripto
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region
 from pairedgta.cache import stage_hash
-from pairedgta.stages.common import Context, StageResult, run_cached
+from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
 VERSION = "1"
@@ -265,28 +265,12 @@ def _work(k: int, scenes_dir: str) -> dict[str, Any]:
     return render_scene(k, w["cfg"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
 
 
-def _int_key(gen: dict[str, Any], key: str, default: int) -> int:
-    value = gen.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int):
-        try:
-            value = int(str(value))
-        except ValueError:
-            raise ConfigError(f"generate.{key}={value!r} is not a whole number") from None
-    return value
-
-
 def shard_of(gen: dict[str, Any]) -> tuple[int, int]:
-    """(num_shards, shard) validated: shard i of N renders scenes i, i+N, i+2N, ..."""
-    num, shard = _int_key(gen, "num_shards", 1), _int_key(gen, "shard", 0)
-    if num < 1:
-        raise ConfigError(f"generate.num_shards={num}; set it to at least 1")
-    if not 0 <= shard < num:
-        raise ConfigError(f"generate.shard={shard} is outside 0..{num - 1} (generate.num_shards={num})")
-    return num, shard
+    return shard_keys(gen, "generate")
 
 
 def scene_count(gen: dict[str, Any]) -> int:
-    n = _int_key(gen, "num_scenes", 1)
+    n = whole_number(gen, "num_scenes", 1, "generate")
     if n < 1:
         raise ConfigError(f"generate.num_scenes={n}; set it to at least 1")
     return n
