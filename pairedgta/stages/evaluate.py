@@ -258,6 +258,20 @@ class _GroupInputs(torch.utils.data.Dataset):
         return {"group_id": group.group_id, "present": present, "images": images, "pseudo": pseudo, "own": own}
 
 
+def decode_workers(value: Any, device: str) -> int:
+    """`evaluate.num_workers`: a count, or auto = none on the CPU (the forward already uses every core;
+    measured in experiments/bench_evaluate.py) and up to 4 beside a GPU."""
+    if value in (None, "auto"):
+        return 0 if device == "cpu" else min(4, os.cpu_count() or 1)
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"evaluate.num_workers={value!r}; use a whole number >= 0 or auto") from None
+    if n < 0:
+        raise ConfigError(f"evaluate.num_workers={n}; use a whole number >= 0 or auto")
+    return n
+
+
 def _identity(item: Any) -> Any:
     return item
 
@@ -334,7 +348,7 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabe
     use_gt = s["reference_mode"] in ("ground_truth", "both")
     ecfg = ctx.cfg.get("evaluate") or {}
     batch = int(ecfg.get("batch_size", 4))
-    workers = int(ecfg.get("num_workers", 0) or 0)
+    workers = decode_workers(ecfg.get("num_workers", "auto"), str(ctx.cfg.get("device", "cpu")))
     inputs = _GroupInputs(dataset, groups, order, clean, pseudo_labels, use_gt)
     results = []
     for item in tqdm(_loader(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
