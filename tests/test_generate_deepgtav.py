@@ -8,7 +8,7 @@ import json
 import numpy as np
 from PIL import Image
 
-from pairedgta.render.deepgtav_server import DeepGTAVTestServer
+from pairedgta.testing.deepgtav_server import DeepGTAVTestServer
 from tests.conftest import run_cli
 
 PAPER_COLUMNS = ["location_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",

@@ -1,4 +1,5 @@
-"""GTA V backend: a client of the DeepGTAV plugin (shared/docs/deepgtav-protocol.md).
+"""GTA V backend: a client of the DeepGTAV plugin (its wire protocol is reproduced, for tests
+without the game, by pairedgta/testing/deepgtav_server.py).
 
 Semantic scene construction (`prepare`): start or reconfigure a stationary session at the ego
 pose, TeleportToLocation, SetCameraPositionAndRotation, then CreateVehicle/CreatePed for every
