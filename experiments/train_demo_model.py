@@ -155,7 +155,9 @@ def main(dcfg: DictConfig) -> None:
         "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if present[c]},
         "test_floor_miou": floor, "history": history, "render_seconds": render_s, "train_seconds": train_s,
     }
-    (out / "model_card.json").write_text(json.dumps(card, indent=2))
+    from pairedgta.jsonio import write_json
+
+    write_json(out / "model_card.json", card)
     lines = [
         "# demo_segformer", "",
         "A compact SegFormer (%.2f M parameters) trained by `experiments/train_demo_model.py` only on synthetic"

@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pairedgta.cache import MANIFEST, StageCache, canonical_json
 from pairedgta.conditions import build_condition_grid
+from pairedgta.config_checks import check_run_config
 from pairedgta.datasets import open_dataset
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models import model_config
@@ -183,6 +184,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise ConfigError(f"dataset.root is required for dataset={cfg.dataset.name}; set dataset.root=PATH")
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
+    check_run_config(container)
     check_roots(container)
     stages, force = check_config(container)
     cache = StageCache(container["cache_dir"])

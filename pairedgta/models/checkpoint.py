@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from pairedgta.cityscapes import NUM_CLASSES
-from pairedgta.errors import ConfigError, ModelError
+from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.models.base import Segmenter
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,8 @@ def _numpy_safe_globals() -> list[Any]:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0][:160]}" if text else type(exc).__name__
+    """The whole reason on one line (a refused pickle names the global, e.g. posix.system)."""
+    return reason(exc)
 
 
 def _is_state_dict(obj: Any) -> bool:

@@ -25,6 +25,7 @@ from tqdm import tqdm
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.datasets.cityscapes import CityscapesSplit, open_cityscapes
 from pairedgta.metrics import ConfusionMatrix
+from pairedgta.jsonio import write_json
 from pairedgta.models import build_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
 from pairedgta.tracking import Tracker
@@ -93,7 +94,7 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path) -> d
         "evaluated_pixels": int(cm.mat.sum()),
         "iou": {CLASS_NAMES[k]: (None if math.isnan(iou[k]) else float(iou[k])) for k in range(NUM_CLASSES)},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     np.save(out / "confusion.npy", cm.mat.numpy())  # rows ground truth, columns prediction
     return {"miou": miou}
 

@@ -10,7 +10,6 @@ predictions, so memory does not grow with the image size times the number of ima
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import warnings
@@ -36,7 +35,8 @@ from pairedgta.metrics import (
     spearman,
 )
 from pairedgta.models import build_segmenter
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.jsonio import write_json
+from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
 from pairedgta.stages.pseudolabel import label_path
 
 log = logging.getLogger("pairedgta.evaluate")
@@ -103,10 +103,15 @@ def compute(
     agreement_rows: list[dict[str, Any]] = []
     count_rows: list[dict[str, Any]] = []
     batch = int(ctx.cfg["evaluate"].get("batch_size", 4))
+    groups = {c: 0 for c in conditions}  # groups each condition's numbers average over
+    without_clean = 0
     for group in tqdm(dataset.groups, desc=f"evaluate [{model}]", unit="group"):
         present = [c for c in order if c in group.images]
         if clean not in present:
+            without_clean += 1
             continue
+        for c in present:
+            groups[c] = groups.get(c, 0) + 1
         images = load_group_images(group, present)
         shape = images[clean].shape[:2]
         pl_path = label_path(pseudo_dir, group.group_id)
@@ -169,12 +174,21 @@ def compute(
                         "clean_count": int(masses[clean][k]), "adv_count": int(masses[c][k]),
                     })
         del images, preds
-    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows)
+    coverage = {"groups_per_condition": groups, "groups_without_clean": without_clean}
+    if without_clean or len(set(groups.values())) > 1:
+        log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
+                    "leaves its group out of that condition only; see summary.json groups_per_condition)",
+                    model, ", ".join(f"{c} {n}" for c, n in groups.items()),
+                    f"; {without_clean} group(s) without the clean image {clean} skipped" if without_clean else "")
+    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                         coverage)
 
 
-def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows) -> dict[str, Any]:
+def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                  coverage=None) -> dict[str, Any]:
     summary: dict[str, Any] = {"model": model, "reference_model": reference_model, "dataset": dataset.name,
-                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "gt_miou": {}, "agreement": {}}
+                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "gt_miou": {}, "agreement": {},
+                               **(coverage or {})}
     xi_rows = []
     for (source, cond), a in sorted(acc.items(), key=lambda kv: (kv[0][0], conditions.index(kv[0][1]))):
         xi = a.metric.compute().numpy()
@@ -242,7 +256,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             rows.append({"model": model, "condition": cond, "class_id": -1, "class_name": "mean", "iou": miou})
             summary["gt_miou"][cond] = miou
         pd.DataFrame(rows).to_csv(out / "gt_iou.csv", index=False)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     return {"xi_mean": summary["xi_mean"]}
 
 
@@ -271,10 +285,13 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageRes
     else:
         conditions = list(ctx.grid.names)
     settings = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
-    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions}
+    threads = inference_threads(ctx.cfg)
+    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions, "threads": threads}
     reference_model = ctx.cfg["reference_model"]
-    return run_cached(
-        ctx, "evaluate", VERSION, config, {"dataset": dataset_key, "pseudolabel": pseudo.key},
-        lambda out: compute(ctx, dataset, pseudo.path, model_cfg, conditions, reference_model, out),
-        label=f"[{model_cfg['name']}]",
-    )
+
+    def build(out: Path) -> dict[str, Any]:
+        with torch_threads(threads):
+            return compute(ctx, dataset, pseudo.path, model_cfg, conditions, reference_model, out)
+
+    return run_cached(ctx, "evaluate", VERSION, config, {"dataset": dataset_key, "pseudolabel": pseudo.key}, build,
+                      label=f"[{model_cfg['name']}]")

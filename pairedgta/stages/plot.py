@@ -27,6 +27,8 @@ from pairedgta.conditions import ConditionGrid
 from pairedgta.datasets import PairedDataset
 from pairedgta.errors import ConfigError
 from pairedgta.figures.common import slug
+from pairedgta.cache import require_intact
+from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
@@ -237,7 +239,7 @@ def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, A
                     log.info("cost, %s: %s", t.label, note)
 
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
-    (out / "metrics.json").write_text(json.dumps(clean_metrics, indent=2, sort_keys=True))
+    write_json(out / "metrics.json", clean_metrics, sort_keys=True)
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 
@@ -248,6 +250,8 @@ def _clean_condition(p: PassResult) -> str:
 
 def run(ctx: Context, passes: list[PassResult]) -> StageResult:
     figures = figures_of(ctx.cfg)
+    for e in (e for p in passes for e in p.evaluations):
+        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
     config: dict[str, Any] = {"plot": ctx.cfg["plot"], "reference": [p.grid.reference for p in passes]}
     inputs: dict[str, str] = {}
     for i, p in enumerate(passes):

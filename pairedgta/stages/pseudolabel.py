@@ -17,7 +17,7 @@ from pairedgta.datasets.base import save_png_atomic
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import build_segmenter, model_config
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "1"
@@ -103,8 +103,12 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str) -> StageResult:
         raise ConfigError(f"pseudolabel.tau={tau} must be in [0, 1]")
     name = ctx.cfg["reference_model"]
     model_cfg = model_config(name, device=ctx.cfg.get("device", "cpu"))
-    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference}
-    return run_cached(
-        ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(ctx, dataset, out, model_cfg, tau), label=f"[{name}]",
-    )
+    threads = inference_threads(ctx.cfg)
+    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
+              "threads": threads}
+
+    def build(out: Path) -> dict[str, Any]:
+        with torch_threads(threads):
+            return compute(ctx, dataset, out, model_cfg, tau)
+
+    return run_cached(ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key}, build, label=f"[{name}]")
