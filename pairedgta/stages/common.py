@@ -72,12 +72,12 @@ def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
         files.append(Path(ckpt))
     if not files:
         return None
+    from pairedgta.filehash import default
+
+    memo = default()  # large weights are read once, then only when their size or mtime changes
     h = hashlib.sha256()
     for f in files:
-        h.update(f.name.encode())
-        with open(f, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
+        h.update(f"{f.name}|{memo.sha256(f)}\n".encode())
     return h.hexdigest()[:16]
 
 
