@@ -13,7 +13,6 @@ is printed too, so numbers from a busy machine can be recognised).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -178,7 +177,9 @@ def main() -> None:
         print(f"# {name} by condition: " + ", ".join(f"{k} {v:.2f}" for k, v in res["by_condition"].items()))
     print(f"# load_avg_after={os.getloadavg()[0]:.2f}")
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+        from pairedgta.jsonio import write_json
+
+        write_json(args.json, results)
 
 
 if __name__ == "__main__":

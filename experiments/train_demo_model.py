@@ -267,7 +267,9 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if not np.isnan(iou[c])},
         "test_floor_miou": floor, "history": history, "render_seconds": render_s, "train_seconds": train_s,
     }
-    (out / "model_card.json").write_text(json.dumps(card, indent=2))
+    from pairedgta.jsonio import write_json
+
+    write_json(out / "model_card.json", card)
     lines = [
         "# demo_segformer", "",
         f"A compact SegFormer ({n_params / 1e6:.2f} M parameters) trained by `experiments/train_demo_model.py` only on",

@@ -8,6 +8,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pairedgta.cache import StageCache
+from pairedgta.config_checks import check_run_config
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
 from pairedgta.tracking import Tracker
@@ -19,6 +20,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     """`task_overrides`: the command line's overrides (Hydra's), to know whether `model=` was chosen."""
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
+    check_run_config(container)
     planning.check_roots(container)
     plan = planning.make_plan(container)
     models = planning.run_models(container, planning.model_group_overridden(task_overrides))

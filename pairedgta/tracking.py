@@ -1,14 +1,49 @@
-"""MLflow: one parent run per invocation, a nested run per evaluated model."""
+"""MLflow: one parent run per invocation, a nested run per evaluated model.
+
+Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
+a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
+that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
+"""
 from __future__ import annotations
 
 import contextlib
 import json
 import logging
 import math
+import os
+import socket
 from pathlib import Path
 from typing import Any, Iterator
 
+from pairedgta.errors import Terminated
+from pairedgta.jsonio import dumps
+
 log = logging.getLogger("pairedgta.tracking")
+PID_TAG, HOST_TAG, START_TAG = "pairedgta.pid", "pairedgta.host", "pairedgta.started"
+
+
+def process_start(pid: int) -> str:
+    """Start time of process `pid` in clock ticks since boot (tells a reused pid apart), '' if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def process_alive(pid: int, started: str) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        pass
+    return not started or process_start(pid) in ("", started)
+
+
+def owner_tags() -> dict[str, str]:
+    pid = os.getpid()
+    return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -17,7 +52,7 @@ def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
         for k, v in d.items():
             out.update(flatten(v, f"{prefix}{k}."))
     elif isinstance(d, (list, tuple)):
-        out[prefix.rstrip(".")] = json.dumps(d, default=str)
+        out[prefix.rstrip(".")] = dumps(d)
     else:
         out[prefix.rstrip(".")] = d
     return out
@@ -56,15 +91,48 @@ class Tracker:
             with _store_lock(uri):
                 # parallel jobs would race on creating the sqlite schema and the experiment
                 mlflow.set_experiment(experiment)
-            self.mlflow = mlflow
+                self.mlflow = mlflow
+                self.end_orphans()
 
     @contextlib.contextmanager
     def run(self, name: str, nested: bool = False) -> Iterator[Any]:
         if not self.enabled:
             yield None
             return
-        with self.mlflow.start_run(run_name=name, nested=nested) as run:
+        run = self.mlflow.start_run(run_name=name, nested=nested, tags=owner_tags())
+        status = "FAILED"
+        try:
             yield run
+            status = "FINISHED"
+        except (KeyboardInterrupt, Terminated):
+            status = "KILLED"
+            raise
+        finally:
+            # end this run explicitly: mlflow's own context manager would end whatever run is active
+            self.mlflow.end_run(status)
+
+    def end_orphans(self) -> list[str]:
+        """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
+        client = self.mlflow.tracking.MlflowClient(tracking_uri=self.uri)
+        host = socket.gethostname()
+        ended = []
+        try:
+            experiments = [e.experiment_id for e in client.search_experiments()]
+            runs = client.search_runs(experiments, filter_string="attributes.status = 'RUNNING'", max_results=5000) if experiments else []
+        except Exception as exc:  # pragma: no cover - an unreadable store is reported by the run itself
+            log.warning("MLflow: cannot look for orphaned runs (%s)", exc)
+            return ended
+        for r in runs:
+            tags = r.data.tags
+            if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
+                continue
+            if process_alive(int(tags[PID_TAG]), tags.get(START_TAG, "")):
+                continue
+            client.set_terminated(r.info.run_id, status="KILLED")
+            ended.append(r.info.run_id)
+        if ended:
+            log.warning("MLflow: %d run(s) of a process that died were still RUNNING; marked KILLED", len(ended))
+        return ended
 
     def params(self, params: dict[str, Any]) -> None:
         if not self.enabled:

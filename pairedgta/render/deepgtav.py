@@ -1,4 +1,5 @@
-"""GTA V backend: a client of the DeepGTAV plugin (shared/docs/deepgtav-protocol.md).
+"""GTA V backend: a client of the DeepGTAV plugin (its wire protocol is reproduced, for tests
+without the game, by pairedgta/testing/deepgtav_server.py).
 
 Semantic scene construction (`prepare`): start or reconfigure a stationary session at the ego
 pose, TeleportToLocation, SetCameraPositionAndRotation, then CreateVehicle/CreatePed for every
@@ -704,6 +705,8 @@ class DeepGTAVRenderer(Renderer):
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, ValueError):
             raise _Transient(f"sent a frame whose JSON document is not valid JSON ({raw[:24]!r}...)") from None
+        except RecursionError:  # hostile or broken nesting ([[[[...]]]]): not a state document
+            raise _Transient(f"sent a frame whose JSON document nests too deeply to parse ({raw[:24]!r}...)") from None
         if not isinstance(doc, dict):
             raise _Transient(f"sent a JSON document that is a {type(doc).__name__}, not an object")
         return frame, doc

@@ -41,13 +41,16 @@ from pairedgta.metrics import (
 from pairedgta.models import build_segmenter
 from pairedgta.cache import MANIFEST, canonical_json, stage_hash
 from pairedgta.conditions import ConditionGrid
+from pairedgta.jsonio import write_json
 from pairedgta.stages.common import (
     Context,
     StageResult,
+    inference_threads,
     model_config_from_hash,
     model_hash_config,
     run_cached,
     shard_keys,
+    torch_threads,
 )
 from pairedgta.stages.pseudolabel import PseudoLabels
 
@@ -351,11 +354,13 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabe
     workers = decode_workers(ecfg.get("num_workers", "auto"), str(ctx.cfg.get("device", "cpu")))
     inputs = _GroupInputs(dataset, groups, order, clean, pseudo_labels, use_gt)
     results = []
-    for item in tqdm(_loader(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
-        if "error" in item:
-            raise DataError(item["error"])
-        if item["present"]:
-            results.append(group_counts(item, segmenter, s, dataset.reference, use_pl, batch, segmenter.name, dataset.name))
+    with torch_threads(inference_threads(ctx.cfg)):
+        for item in tqdm(_loader(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
+            if "error" in item:
+                raise DataError(item["error"])
+            if item["present"]:
+                results.append(group_counts(item, segmenter, s, dataset.reference, use_pl, batch, segmenter.name,
+                                            dataset.name))
     return results
 
 
@@ -390,7 +395,26 @@ def compute(
             agreement_rows.append({**row, "agreement_reference": row["agree_reference_pixels"] / n if n else math.nan,
                                    "agreement_clean": row["agree_clean_pixels"] / n if n else math.nan})
         count_rows += r["counts"]
-    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows)
+    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                         coverage(dataset, conditions, s["clean"], model))
+
+
+def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str) -> dict[str, Any]:
+    """How many groups each condition's numbers average over; a warning when they differ."""
+    groups = {c: 0 for c in conditions}
+    without_clean = 0
+    for g in dataset.groups:
+        if clean not in g.images:
+            without_clean += 1
+            continue
+        for c in conditions:
+            groups[c] += c in g.images
+    if without_clean or len(set(groups.values())) > 1:
+        log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
+                    "leaves its group out of that condition only; see summary.json groups_per_condition)",
+                    model, ", ".join(f"{c} {n}" for c, n in groups.items()),
+                    f"; {without_clean} group(s) without the clean image {clean} skipped" if without_clean else "")
+    return {"groups_per_condition": groups, "groups_without_clean": without_clean}
 
 
 # -- shards: partial sums of evaluate.shard i of evaluate.num_shards, merged by the unsharded run --------
@@ -426,9 +450,11 @@ def _jsonable(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows) -> dict[str, Any]:
+def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                  coverage=None) -> dict[str, Any]:
     summary: dict[str, Any] = {"model": model, "reference_model": reference_model, "dataset": dataset.name,
-                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "gt_miou": {}, "agreement": {}}
+                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "gt_miou": {}, "agreement": {},
+                               **(coverage or {})}
     xi_rows = []
     for (source, cond), a in sorted(acc.items(), key=lambda kv: (kv[0][0], conditions.index(kv[0][1]))):
         xi = a.metric.compute().numpy()
@@ -496,7 +522,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             rows.append({"model": model, "condition": cond, "class_id": -1, "class_name": "mean", "iou": miou})
             summary["gt_miou"][cond] = miou
         pd.DataFrame(rows).to_csv(out / "gt_iou.csv", index=False)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     return {"xi_mean": summary["xi_mean"]}
 
 
@@ -520,7 +546,8 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
     grid = dataset.grid or ctx.grid
     conditions = conditions_for(ctx.cfg, grid)
     settings = metric_settings(ctx.cfg, grid.names, dataset.reference)
-    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions}
+    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions,
+              "threads": inference_threads(ctx.cfg)}
     inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
     reference_model = pseudo.reference_model()
     key = stage_hash("evaluate", VERSION, config, inputs)

@@ -30,6 +30,7 @@ from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, scene_files
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError
+from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
@@ -44,6 +45,8 @@ TIMING_COLUMNS = [
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
 ]
 EXECUTION_KEYS = ("workers", "endpoints", "num_shards", "shard")  # where scenes run, not what they are
+# how to reach and retry the renderer, not what it renders: left out of the dataset hash
+RENDERER_EXECUTION_KEYS = ("host", "port", "timeout_s", "retries", "backoff_s")
 
 
 class GeneratedData(StageResult):
@@ -128,7 +131,7 @@ def hash_config(cfg: dict[str, Any], grid: ConditionGrid) -> dict[str, Any]:
     gen.pop("pairing", None)
     if not is_perfect(pairing):  # perfect pairing hashes as before the hook existed
         gen["pairing"] = pairing
-    renderer = {k: v for k, v in cfg["renderer"].items() if k not in ("host", "port", "timeout_s", "retries")}
+    renderer = {k: v for k, v in cfg["renderer"].items() if k not in RENDERER_EXECUTION_KEYS}
     return {
         "generate": gen, "renderer": renderer, "region": cfg["region"],
         "conditions": [c.to_dict() for c in grid], "reference": grid.reference,
@@ -213,8 +216,8 @@ def render_scene(
             "condition_wise_rendering_time": rendering, "pipeline_time": max(wall - overhead, 0.0),
             "overhead_time": overhead, "total_time": wall, "retries": int(getattr(renderer, "retries_used", 0)),
         }
-        (tmp / "timings.json").write_text(json.dumps(row, indent=2))
-        (tmp / "validation.json").write_text(json.dumps(validation, indent=2))
+        write_json(tmp / "timings.json", row)
+        write_json(tmp / "validation.json", validation)
         if final.exists():
             shutil.rmtree(final)
         os.rename(tmp, final)
@@ -383,7 +386,7 @@ def write_index(out: Path, cfg: dict[str, Any], grid: ConditionGrid, n: int, con
         "width": cfg["renderer"].get("width"), "height": cfg["renderer"].get("height"),
         "scenes": scenes, "dropped_invalid": dropped,
     }
-    (out / INDEX).write_text(json.dumps(index, indent=2))
+    write_json(out / INDEX, index)
     return {"num_scenes": len(scenes), "dropped_invalid": dropped}
 
 
