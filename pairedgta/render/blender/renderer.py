@@ -156,6 +156,11 @@ class BlenderRenderer(Renderer):
         self._tmp = self._tmp or tempfile.mkdtemp(prefix="pairedgta_blender_")
         self._setup_scene()
 
+    def _restart_cycles_session(self) -> None:
+        render = self._bpy.context.scene.render
+        render.use_persistent_data = False  # frees the kept render engine and its synced scene
+        render.use_persistent_data = True
+
     def _free_persistent_data(self) -> None:
         for scene in self._bpy.data.scenes:
             if scene.render.use_persistent_data:
@@ -364,6 +369,10 @@ class BlenderRenderer(Renderer):
                 "same town parameters as renderer.town"
             )
         t1 = time.perf_counter()
+        # a new scene starts from a full sync, as in a fresh process: Cycles' persistent data, updated
+        # incrementally from the previous scene's objects, gives slightly different images (a resumed
+        # run would then differ from an uninterrupted one). Conditions of one scene still share it.
+        self._restart_cycles_session()
         self._clear_scene_objects()
         cam_pos = self._place_camera(descriptor)
         if town.obstacle_at(*cam_pos):
