@@ -260,3 +260,26 @@ def test_bad_scenes_are_one_line_renderer_errors():
         # a good scene still renders after the errors
         res = r.render(_descriptor(), GRID["Day-EXTRASUNNY"])
         assert res.image.shape == (16, 32, 3)
+
+
+def test_a_scene_renders_the_same_first_in_a_fresh_renderer_or_after_another_scene():
+    """Resume safety (issue 16): a scene rendered right after a different scene (other objects,
+    other place) matches the same scene rendered first by a fresh renderer, byte for byte."""
+    k = _descriptor()
+    loc = ProceduralTownRegion(**TOWN).sample_location(np.random.default_rng(7))
+    j = _descriptor(scene_id="j", location=loc, objects=(
+        DynamicObject("truck", "mule", forward=15.0, right=0.0, color=(20, 120, 40)),
+        DynamicObject("bus", "bus", forward=28.0, right=0.0, heading=180.0),
+        DynamicObject("rider", "a_m_y_motox_01", forward=8.0, right=1.0),
+    ))
+    conditions = [GRID["Day-EXTRASUNNY"], GRID["Night-RAIN"], GRID["Sunset-FOGGY"]]
+    opts = {"width": 128, "height": 64, "samples": 1, "town": TOWN}
+    with BlenderRenderer(**opts) as r:
+        r.render(j, conditions[0])
+        after = [r.render(k, c) for c in conditions]
+    with BlenderRenderer(**opts) as r:
+        alone = [r.render(k, c) for c in conditions]
+    for c, a, b in zip(conditions, after, alone):
+        assert a.image.tobytes() == b.image.tobytes(), (
+            c.name, float(np.abs(a.image.astype(int) - b.image).mean()))
+        np.testing.assert_array_equal(a.labels, b.labels)
