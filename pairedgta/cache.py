@@ -38,6 +38,8 @@ from pairedgta.jsonio import dumps, write_json
 log = logging.getLogger(__name__)
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 2  # 2: the manifest lists every file with size and sha256
+# a resumable work directory that several jobs fill at once (generate shards): never swept as a leftover
+SHARED_WORK = ".shared-by-shards"
 _LEFTOVER = re.compile(r"^\.(tmp|old|trash|partial)-([0-9a-f]{16})(?:-.*)?$")
 
 
@@ -240,6 +242,8 @@ class StageCache:
                 m = _LEFTOVER.match(p.name)
                 if not m or not p.is_dir() or (m.group(1) == "partial" and not partials):
                     continue
+                if m.group(1) == "partial" and (p / SHARED_WORK).exists():
+                    continue  # other shard jobs may still be writing into it
                 key = m.group(2)
                 if (stage_dir.name, key) in keep:
                     continue

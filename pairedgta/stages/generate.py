@@ -35,7 +35,7 @@ from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region
-from pairedgta.cache import stage_hash
+from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
@@ -352,6 +352,7 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
 def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
     n = scene_count(cfg["generate"])
     connect = render_scenes(cfg, grid, out, list(range(n)))
+    (out / SHARED_WORK).unlink(missing_ok=True)  # complete: no shard writes here any more
     return write_index(out, cfg, grid, n, connect)
 
 
@@ -417,6 +418,8 @@ def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
     n = scene_count(ctx.cfg["generate"])
     work = ctx.cache.partial_path("generate", key)
     mine = list(range(shard, n, num))
+    work.mkdir(parents=True, exist_ok=True)
+    (work / SHARED_WORK).touch()
     log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
     render_scenes(ctx.cfg, ctx.grid, work, mine)
     have = len(finished_scenes(work / "scenes"))
