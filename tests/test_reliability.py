@@ -506,7 +506,7 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     for ambient in (1, 2):
         torch.set_num_threads(ambient)
         base = fast(tmp_path / str(ambient), "models=[demo_segformer]", "reference_model=demo_segformer",
-                    "stages=[generate,pseudolabel,evaluate]")
+                    "stages=[generate,pseudolabel,evaluate]", "threads=1")
         s = run(compose_cfg(base))
         d = Path(s["evaluate"]["demo_segformer"])
         outputs.append({n: (d / n).read_bytes() for n in ("xi.csv", "pixel_agreement.csv", "frame_counts.csv")})
@@ -515,5 +515,5 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     assert seen and set(seen) == {1}  # inference ran on the configured `threads`, not the ambient count
     torch.set_num_threads(2)
     keyed = run(compose_cfg(fast(tmp_path / "1", "models=[demo_segformer]", "reference_model=demo_segformer",
-                                 "stages=[generate,pseudolabel,evaluate]", "threads=2")))
+                                 "stages=[generate,pseudolabel,evaluate]", "threads=3")))
     assert not hits(keyed)[("evaluate", "[demo_segformer]")]  # the thread count is part of the hash
