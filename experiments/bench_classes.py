@@ -113,7 +113,8 @@ def main() -> None:
         f"person >= {100 * TARGETS['person_share']:.1f} % of pixels": ours[person] >= TARGETS["person_share"],
         "every class but train present" + (f" (missing: {', '.join(missing)})" if missing else ""): not missing,
         f"car in >= {100 * TARGETS['car_scenes']:.0f} % of scenes": scene_share[car] >= TARGETS["car_scenes"],
-        f"person in >= {100 * TARGETS['person_scenes']:.0f} % of scenes": scene_share[person] >= TARGETS["person_scenes"],
+        f"person in >= {100 * TARGETS['person_scenes']:.0f} % of scenes":
+            scene_share[person] >= TARGETS["person_scenes"],
     }
     for what, ok in checks.items():
         print(f"# target {what}: {'met' if ok else 'NOT met'}")
