@@ -23,6 +23,7 @@ TOWN_MATERIAL = {
 OBJECT_MATERIAL = {
     "paint": "paint", "glass": "glass", "rubber": "rubber", "trim": "metal", "metal": "metal",
     "matte": "matte", "headlight": "headlight", "taillight": "taillight",
+    "headlight_off": "lens_clear", "taillight_off": "lens_red",  # parked vehicles: lights off
 }
 
 
@@ -97,16 +98,24 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
 
 
 def mesh_arrays(parts: list[tuple[str, np.ndarray, int]]):
-    """Primitive rows -> (verts (V,3), loop vertex indices, loop starts, face material slots,
+    """Primitive rows (11 columns, or 12 with a pitch in degrees about the local x axis) -> (verts (V,3), loop vertex indices, loop starts, face material slots,
     vertex colours (V,4) linear RGB + the free scalar)."""
     verts, loops, starts, mats, cols = [], [], [], [], []
     v_off = l_off = 0
     for shape, rows, slot in parts:
-        rows = np.asarray(rows, dtype=np.float64).reshape(-1, 11)
+        rows = np.asarray(rows, dtype=np.float64)
+        rows = rows.reshape(-1, rows.shape[-1] if rows.ndim == 2 else 11)
         if not len(rows):
             continue
+        if rows.shape[1] == 11:  # no pitch column
+            rows = np.c_[rows, np.zeros(len(rows))]
         tv, tf = TEMPLATES[shape]
         local = tv[None, :, :] * rows[:, None, 3:6]
+        pitch = np.radians(rows[:, 11])[:, None]  # about local x through the base centre, before yaw
+        if pitch.any():
+            ly, lz = local[..., 1].copy(), local[..., 2].copy()
+            local[..., 1] = ly * np.cos(pitch) - lz * np.sin(pitch)
+            local[..., 2] = ly * np.sin(pitch) + lz * np.cos(pitch)
         yaw = np.radians(rows[:, 6])[:, None]
         cos, sin = np.cos(yaw), np.sin(yaw)
         x = local[..., 0] * cos - local[..., 1] * sin + rows[:, None, 0]

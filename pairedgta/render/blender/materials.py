@@ -280,6 +280,8 @@ class Shading:
                          emission_strength=lambda nt: self._knob(nt, "headlight_emit", 0.0))
         self._principled("taillight", (0.45, 0.02, 0.02), 0.2, emission=(1.0, 0.04, 0.02),
                          emission_strength=lambda nt: self._knob(nt, "taillight_emit", 0.0))
+        self._principled("lens_clear", (0.75, 0.75, 0.72), 0.1, specular=0.9)
+        self._principled("lens_red", (0.4, 0.02, 0.02), 0.15, specular=0.8)
         # bounded fog: a volume-only box (its surface is a transparent boundary)
         mat = bpy.data.materials.new("fog")
         nt = mat.node_tree

@@ -20,6 +20,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
@@ -72,14 +73,15 @@ class BlenderRenderer(Renderer):
                  fog_height: float = 45.0, rain_haze: float = 0.006, volume_step_rate: float = 4.0,
                  view_transform: str = "AgX", look: str = "None", filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
-                 max_lamps: int = 48, max_headlights: int = 24, **unknown: Any) -> None:
+                 max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
+                 **unknown: Any) -> None:
         if unknown:
             raise ConfigError(
                 f"renderer.{min(unknown)} is not a blender renderer option; remove it "
                 "(options: width, height, samples, device, denoise, denoiser_quality, max_bounces, fast_gi, "
                 "town, seed, exposure, exposure_bias, threads, fog_max_density, fog_extent, fog_height, "
                 "rain_haze, volume_step_rate, view_transform, look, filter_width, labels_per_condition, light_tree, "
-                "lamp_radius, max_lamps, max_headlights)"
+                "lamp_radius, max_lamps, max_headlights, headlight_radius)"
             )
         super().__init__(width, height)
         checks = (
@@ -123,6 +125,7 @@ class BlenderRenderer(Renderer):
         self.lamp_radius = float(lamp_radius)
         self.max_lamps = int(max_lamps)
         self.max_headlights = int(max_headlights)
+        self.headlight_radius = float(headlight_radius)
         self.timings: dict[str, float] = {}
         self._bpy: Any = None
         self._tmp: str | None = None
@@ -278,6 +281,33 @@ class BlenderRenderer(Renderer):
     def _mesh_object(self, name: str, parts, materials: list[Any], pass_index: int, collection) -> Any:
         return mesh_object(self._bpy, name, parts, materials, pass_index, collection)
 
+    def _add_entity(self, name: str, instance: int, parts, spots, xy, z: float, yaw: float) -> list[tuple]:
+        """Mesh objects of one entity (one per label, all with its instance id) placed at (xy, z)
+        facing `yaw`; returns its head-light spots in world coordinates."""
+        c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        by_label: dict[str, list[tuple[str, str, tuple]]] = {}
+        for label, shape, material, row in parts:
+            by_label.setdefault(label, []).append((shape, material, row))
+        for label, items in by_label.items():
+            slots = sorted({OBJECT_MATERIAL[m] for _, m, _ in items})
+            grouped: dict[tuple[str, int], list[tuple]] = {}
+            for shape, material, row in items:
+                grouped.setdefault((shape, slots.index(OBJECT_MATERIAL[material])), []).append(row)
+            mesh_parts = []
+            for (shape, slot), rows in grouped.items():
+                arr = np.array(rows, dtype=np.float64)
+                lx, ly = arr[:, 0].copy(), arr[:, 1].copy()
+                arr[:, 0] = xy[0] + lx * c - ly * s
+                arr[:, 1] = xy[1] + lx * s + ly * c
+                arr[:, 2] += z
+                arr[:, 6] += yaw
+                mesh_parts.append((shape, arr, slot))
+            obj = self._mesh_object(f"{name}_{label}", mesh_parts, [self._shading.materials[m] for m in slots],
+                                    label_code(label, instance), self._coll_scene)
+            self._scene_meshes.append(obj.data)
+        return [((xy[0] + sx * c - sy * s, xy[1] + sx * s + sy * c, z + sz), (math.radians(84.0), 0.0, math.radians(yaw)))
+                for sx, sy, sz in spots]
+
     def _resolve_town(self, descriptor: SceneDescriptor) -> dict[str, Any]:
         extra = dict(descriptor.extra)
         params = dict(self.town_cfg)
@@ -381,10 +411,11 @@ class BlenderRenderer(Renderer):
                 f"({cam_pos[0]:.1f}, {cam_pos[1]:.1f}, {cam_pos[2]:.1f}) is inside "
                 "a building; move the ego onto a lane (region.sample_location) or reduce camera offsets"
             )
-        if len(descriptor.objects) > MAX_INSTANCES:
+        if len(descriptor.objects) + len(descriptor.ambient) > MAX_INSTANCES:
             raise RendererError(
-                f"scene {descriptor.scene_id}: {len(descriptor.objects)} objects; "
-                f"at most {MAX_INSTANCES} are supported; lower generate.objects.max")
+                f"scene {descriptor.scene_id}: {len(descriptor.objects)} objects + {len(descriptor.ambient)} ambient "
+                f"entities; at most {MAX_INSTANCES} are supported; lower generate.objects.max or "
+                "region.population.max_entities")
         h = math.radians(loc.heading)
         fwd = np.array([-math.sin(h), math.cos(h)])
         right = np.array([math.cos(h), math.sin(h)])
@@ -392,37 +423,29 @@ class BlenderRenderer(Renderer):
         placed = []
         heads: list[tuple[tuple, tuple]] = []
         for k, ob in enumerate(descriptor.objects, start=1):
-            parts, spots = model_parts(ob.category, ob.model, ob.color, ob.secondary_color)
             xy = np.array([loc.x, loc.y]) + fwd * ob.forward + right * ob.right
             z = loc.z + ob.up + town.ground_height(*xy) - ground_ego
             yaw = loc.heading + ob.heading
-            c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
-            by_label: dict[str, list[tuple[str, str, tuple]]] = {}
-            for label, shape, material, row in parts:
-                by_label.setdefault(label, []).append((shape, material, row))
-            for label, items in by_label.items():
-                slots = sorted({OBJECT_MATERIAL[m] for _, m, _ in items})
-                grouped: dict[tuple[str, int], list[tuple]] = {}
-                for shape, material, row in items:
-                    grouped.setdefault((shape, slots.index(OBJECT_MATERIAL[material])), []).append(row)
-                mesh_parts = []
-                for (shape, slot), rows in grouped.items():
-                    arr = np.array(rows, dtype=np.float64)
-                    lx, ly = arr[:, 0].copy(), arr[:, 1].copy()
-                    arr[:, 0] = xy[0] + lx * c - ly * s
-                    arr[:, 1] = xy[1] + lx * s + ly * c
-                    arr[:, 2] += z
-                    arr[:, 6] += yaw
-                    mesh_parts.append((shape, arr, slot))
-                obj = self._mesh_object(f"obj{k}_{label}", mesh_parts, [self._shading.materials[m] for m in slots],
-                                        label_code(label, k), self._coll_scene)
-                self._scene_meshes.append(obj.data)
-            for sx, sy, sz in spots:
-                if len(heads) < self.max_headlights:  # beyond the pool, further vehicles stay unlit
-                    heads.append(((xy[0] + sx * c - sy * s, xy[1] + sx * s + sy * c, z + sz),
-                                  (math.radians(84.0), 0.0, math.radians(yaw))))
+            parts, spots = model_parts(ob.category, ob.model, ob.color, ob.secondary_color)
+            heads += self._add_entity(f"obj{k}", k, parts, spots, xy, z, yaw)
             placed.append({"instance": k, "category": ob.category, "x": round(float(xy[0]), 3),
                            "y": round(float(xy[1]), 3), "z": round(float(z), 3), "heading": round(yaw % 360.0, 3)})
+        # the ambient population (descriptor.ambient): instance ids after the dynamic objects;
+        # moving traffic near the camera gets the remaining head-light spots, nearest first
+        lit_ambient: list[tuple[float, int, list]] = []
+        first = len(descriptor.objects) + 1
+        for j, e in enumerate(descriptor.ambient):
+            xy = np.array([e.x, e.y])
+            parts, spots = model_parts(e.category, e.model, e.color, e.secondary_color, scale=e.scale, pose=e.pose,
+                                       lit=e.role != "parked")
+            world_spots = self._add_entity(f"amb{j:03d}", first + j, parts, spots, xy, town.ground_height(*xy),
+                                           e.heading)
+            if world_spots:
+                lit_ambient.append((float(np.hypot(*(xy - cam_pos[:2]))), j, world_spots))
+        for dist, _, spots in sorted(lit_ambient, key=lambda t: (t[0], t[1])):
+            if dist < self.headlight_radius:
+                heads += spots
+        heads = heads[: self.max_headlights]  # beyond the pool, further vehicles stay unlit
         # street-lamp lights near the camera only: farther lamps light nothing that is visible
         # (their glowing heads stay, as geometry), and each light costs time at every shading point
         lamps = town.layout().lamps
@@ -436,6 +459,7 @@ class BlenderRenderer(Renderer):
         self._lamps_used, self._heads_used = len(chosen), len(heads)
         self._scene_state = {
             "camera": [round(float(v), 3) for v in cam_pos], "objects": placed,
+            "ambient": dict(sorted(Counter(e.category for e in descriptor.ambient).items())),
             "town": town.params(), "surface": surface,
         }
         self.timings["scene_build"] = time.perf_counter() - t1
