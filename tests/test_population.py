@@ -15,7 +15,7 @@ from pairedgta.scene.descriptor import SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.population import CAR_MODELS, footprint
 from pairedgta.scene.town import ProceduralTownRegion
-from tests.conftest import CONF
+from pairedgta.testing.cli import CONF
 
 REGION = OmegaConf.to_container(OmegaConf.load(CONF / "region" / "procedural_town.yaml"))
 REGION.pop("type")

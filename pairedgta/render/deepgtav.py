@@ -471,13 +471,8 @@ class DeepGTAVRenderer(Renderer):
         check_state: bool = True,
         clock_tolerance_min: int = 10,
         ego_tolerance_m: float = 5.0,
-        **unknown: Any,
     ) -> None:
         given = dict(locals())
-        if unknown:
-            raise ConfigError(
-                f"renderer.{min(unknown)} is not a deepgtav option; use one of {', '.join(sorted(self._options()))}"
-            )
 
         def need(key: str, ok: bool, fix: str) -> None:
             if not ok:
@@ -526,13 +521,6 @@ class DeepGTAVRenderer(Renderer):
         # (already part of the prepare/render wall time), and the number of retries
         self.overhead_s = 0.0
         self.retries_used = 0
-
-    @staticmethod
-    def _options() -> list[str]:
-        import inspect
-
-        sig = inspect.signature(DeepGTAVRenderer.__init__)
-        return [p for p in sig.parameters if p not in ("self", "unknown")]
 
     @property
     def address(self) -> str:

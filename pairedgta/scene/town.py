@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -96,44 +97,29 @@ def _jitter(rng: np.random.Generator, color, amount=0.06):
 class ProceduralTownRegion:
     """Region interface over a procedural town: lane sampling, surface queries and the layout."""
 
-    _DEFAULTS: ClassVar[dict[str, Any]] = {
-        "kerb_height": 0.15,
-        "floor_height": 3.2,
-        "min_floors": 2,
-        "max_floors": 9,
-        "park_fraction": 0.15,
-        "lamp_spacing": 28.0,
-        "street_tree_fraction": 0.6,
-        "lit_window_fraction": 0.45,
-        "countryside_trees": 60,
-        "population": None,  # ambient traffic and pedestrians (pairedgta/scene/population.py); None = none
-    }
-
     def __init__(self, name: str = "procedural_town", town_seed: int = 0, blocks: int = 4,
                  block_size: float = 60.0, road_width: float = 7.0, sidewalk_width: float = 3.0,
-                 **kw: Any) -> None:
-        unknown = sorted(set(kw) - set(self._DEFAULTS))
-        if unknown:
-            raise ConfigError(
-                f"region procedural_town: unknown keys {unknown}; allowed extra keys: {sorted(self._DEFAULTS)}"
-            )
+                 kerb_height: float = 0.15, floor_height: float = 3.2, min_floors: int = 2, max_floors: int = 9,
+                 park_fraction: float = 0.15, lamp_spacing: float = 28.0, street_tree_fraction: float = 0.6,
+                 lit_window_fraction: float = 0.45, countryside_trees: int = 60,
+                 population: Mapping[str, Any] | None = None) -> None:
+        # population: ambient traffic and pedestrians (pairedgta/scene/population.py); None = none
         self.name = str(name)
         self.town_seed = int(town_seed)
         self.blocks = int(blocks)
         self.block_size = float(block_size)
         self.road_width = float(road_width)
         self.sidewalk_width = float(sidewalk_width)
-        opts = {**self._DEFAULTS, **kw}
-        self.kerb_height = float(opts["kerb_height"])
-        self.floor_height = float(opts["floor_height"])
-        self.min_floors = int(opts["min_floors"])
-        self.max_floors = int(opts["max_floors"])
-        self.park_fraction = float(opts["park_fraction"])
-        self.lamp_spacing = float(opts["lamp_spacing"])
-        self.street_tree_fraction = float(opts["street_tree_fraction"])
-        self.lit_window_fraction = float(opts["lit_window_fraction"])
-        self.countryside_trees = int(opts["countryside_trees"])
-        self.population = PopulationConfig.from_cfg(opts["population"])
+        self.kerb_height = float(kerb_height)
+        self.floor_height = float(floor_height)
+        self.min_floors = int(min_floors)
+        self.max_floors = int(max_floors)
+        self.park_fraction = float(park_fraction)
+        self.lamp_spacing = float(lamp_spacing)
+        self.street_tree_fraction = float(street_tree_fraction)
+        self.lit_window_fraction = float(lit_window_fraction)
+        self.countryside_trees = int(countryside_trees)
+        self.population = PopulationConfig.from_cfg(population)
         checks = (
             ("blocks", self.blocks >= 1, "an integer >= 1"),
             ("block_size", self.block_size >= 30.0, ">= 30 (metres)"),

@@ -73,16 +73,7 @@ class BlenderRenderer(Renderer):
                  fog_height: float = 45.0, rain_haze: float = 0.006, volume_step_rate: float = 4.0,
                  view_transform: str = "AgX", look: str = "None", filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
-                 max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
-                 **unknown: Any) -> None:
-        if unknown:
-            raise ConfigError(
-                f"renderer.{min(unknown)} is not a blender renderer option; remove it "
-                "(options: width, height, samples, device, denoise, denoiser_quality, max_bounces, fast_gi, "
-                "town, seed, exposure, exposure_bias, threads, fog_max_density, fog_extent, fog_height, "
-                "rain_haze, volume_step_rate, view_transform, look, filter_width, labels_per_condition, light_tree, "
-                "lamp_radius, max_lamps, max_headlights, headlight_radius)"
-            )
+                 max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0) -> None:
         super().__init__(width, height)
         checks = (
             ("width", self.width >= 8, ">= 8"), ("height", self.height >= 8, ">= 8"),
