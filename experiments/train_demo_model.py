@@ -22,7 +22,6 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
 
 import hydra
 import numpy as np

@@ -8,7 +8,6 @@ and the error names the variant's key."""
 from __future__ import annotations
 
 import math
-import os
 import tempfile
 from pathlib import Path
 from typing import Any, Callable

@@ -7,7 +7,6 @@ that died without unwinding (kill -9, power loss) is ended as KILLED by the next
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import os

@@ -9,7 +9,6 @@ predictions, so memory does not grow with the image size times the number of ima
 """
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math

@@ -59,7 +59,7 @@ class GeneratedData(StageResult):
     def timings_csv(self) -> Path:
         return self.path / "timings.csv"
 
-    def validation(self) -> "pd.DataFrame | None":
+    def validation(self) -> Any:  # pandas.DataFrame | None (pandas imported on use)
         import pandas as pd
 
         path = self.path / "validation.csv"
