@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from pairedgta.conditions import Condition
 from pairedgta.render.deepgtav import DeepGTAVRenderer
-from pairedgta.render.deepgtav_server import DeepGTAVTestServer
+from pairedgta.testing.deepgtav_server import DeepGTAVTestServer
 from pairedgta.scene.descriptor import DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.validation import validate_group
 

@@ -10,6 +10,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pairedgta.cache import StageCache
+from pairedgta.config_checks import check_run_config
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
@@ -22,6 +23,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     """`task_overrides`: the command line's overrides (Hydra's), to know whether `model=` was chosen."""
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
+    check_run_config(container)
     planning.check_roots(container)
     plan = planning.make_plan(container)
     models = planning.run_models(container, planning.model_group_overridden(task_overrides))
@@ -65,6 +67,8 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
             log.info("dataset %s%s: %d groups, reference %s", p.dataset.name, f" ({label})" if len(configs) > 1 else "",
                      len(p.dataset), p.dataset.reference)
             summary["dataset"] = summary["dataset"] or str(p.dataset.root)
+    if "generate" in results:
+        summary["generate"] = str(results["generate"].path)
     if not (plan.run_pseudo or plan.plotting):
         return summary
     datasets = [dataset_label(p.dataset.name, p.dataset_key) for _, p in passes if p.dataset is not None]
@@ -118,6 +122,11 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
                 log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
                 continue
             raise
+        if not result.complete:  # a shard job: its partial sums wait for the other shards
+            if plan.plotting:
+                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
+                                  "shards, then plot without evaluate.shard/num_shards")
+            continue
         p.evaluations.append(result)
         with tracker.run(run_name(experiment, [model_cfg["name"]], [dataset_label(p.dataset.name, p.dataset_key)]), nested=True):
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})

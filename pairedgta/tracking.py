@@ -4,16 +4,25 @@ Runs are named `<experiment> · <model(s)> · <dataset>@<hash>`. A stage's files
 stage hash: a cache-hit rerun whose files an earlier run already holds tags itself with that run (and
 links it in its description) instead of uploading them again. With a sqlite store the artifacts live
 next to the database (`<db dir>/mlartifacts`), not in the working directory's ./mlruns. Nothing here
-imports mlflow when tracking is disabled."""
+imports mlflow when tracking is disabled.
+
+Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
+a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
+that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
+"""
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
+import os
 import re
+import socket
 from pathlib import Path
 from typing import Any, Iterator
+
+from pairedgta.errors import Terminated
+from pairedgta.jsonio import dumps
 
 log = logging.getLogger("pairedgta.tracking")
 TAG = "pairedgta."
@@ -52,6 +61,31 @@ def xi_table(xi: Any) -> Any:
 def dataset_label(name: str, key: str | None) -> str:
     """A dataset as runs name it: its name and the first 8 characters of its hash (generate or content)."""
     return f"{name}@{str(key).split(':', 1)[-1][:8]}" if key else name
+PID_TAG, HOST_TAG, START_TAG = "pairedgta.pid", "pairedgta.host", "pairedgta.started"
+
+
+def process_start(pid: int) -> str:
+    """Start time of process `pid` in clock ticks since boot (tells a reused pid apart), '' if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def process_alive(pid: int, started: str) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        pass
+    return not started or process_start(pid) in ("", started)
+
+
+def owner_tags() -> dict[str, str]:
+    pid = os.getpid()
+    return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -60,7 +94,7 @@ def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
         for k, v in d.items():
             out.update(flatten(v, f"{prefix}{k}."))
     elif isinstance(d, (list, tuple)):
-        out[prefix.rstrip(".")] = json.dumps(d, default=str)
+        out[prefix.rstrip(".")] = dumps(d)
     else:
         out[prefix.rstrip(".")] = d
     return out
@@ -105,7 +139,8 @@ class Tracker:
                         if mlflow.get_experiment_by_name(experiment) is None:
                             raise
                 self.experiment_id = mlflow.set_experiment(experiment).experiment_id
-            self.mlflow = mlflow
+                self.mlflow = mlflow
+                self.end_orphans()
 
     @contextlib.contextmanager
     def run(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Iterator[Any]:
@@ -113,8 +148,41 @@ class Tracker:
         if not self.enabled:
             yield None
             return
-        with self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested) as run:
+        run = self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
+                                    tags=None if run_id else owner_tags())
+        status = "FAILED"
+        try:
             yield run
+            status = "FINISHED"
+        except (KeyboardInterrupt, Terminated):
+            status = "KILLED"
+            raise
+        finally:
+            # end this run explicitly: mlflow's own context manager would end whatever run is active
+            self.mlflow.end_run(status)
+
+    def end_orphans(self) -> list[str]:
+        """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
+        client = self.mlflow.tracking.MlflowClient(tracking_uri=self.uri)
+        host = socket.gethostname()
+        ended = []
+        try:
+            experiments = [e.experiment_id for e in client.search_experiments()]
+            runs = client.search_runs(experiments, filter_string="attributes.status = 'RUNNING'", max_results=5000) if experiments else []
+        except Exception as exc:  # pragma: no cover - an unreadable store is reported by the run itself
+            log.warning("MLflow: cannot look for orphaned runs (%s)", exc)
+            return ended
+        for r in runs:
+            tags = r.data.tags
+            if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
+                continue
+            if process_alive(int(tags[PID_TAG]), tags.get(START_TAG, "")):
+                continue
+            client.set_terminated(r.info.run_id, status="KILLED")
+            ended.append(r.info.run_id)
+        if ended:
+            log.warning("MLflow: %d run(s) of a process that died were still RUNNING; marked KILLED", len(ended))
+        return ended
 
     def params(self, params: dict[str, Any]) -> None:
         if not self.enabled:

@@ -117,3 +117,91 @@ def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
     if case in ("corrupt_png", "size_mismatch"):
         # the failure comes while evaluating: no evaluate entry may appear
         assert not (cache / "evaluate").exists() or not list((cache / "evaluate").glob("[!.]*"))
+
+
+def _read_only_dir(path: Path) -> None:
+    """A directory nobody may write into, even root: immutable where chattr works, else mode 555."""
+    import os
+    import subprocess
+
+    path.mkdir()
+    if os.geteuid() == 0:
+        subprocess.run(["chattr", "+i", str(path)], check=True, capture_output=True)
+    else:
+        path.chmod(0o555)
+
+
+def _writable_again(path: Path) -> None:
+    import os
+    import subprocess
+
+    if path.exists():
+        if os.geteuid() == 0:
+            subprocess.run(["chattr", "-i", str(path)], capture_output=True)
+        path.chmod(0o755)
+
+
+BAD_CONFIG = {
+    # case: (overrides, text the one error line must hold)
+    "cache_dir_is_a_file": (["cache_dir={tmp}/afile"], "is a file, not a directory"),
+    "cache_dir_under_a_file": (["cache_dir={tmp}/afile/cache"], "is a file, not a directory"),
+    "cache_dir_under_proc": (["cache_dir=/proc/pairedgta-cache"], "cache_dir=/proc/pairedgta-cache is under /proc"),
+    "cache_dir_read_only": (["cache_dir={tmp}/ro/cache"], "is not writable"),
+    "width_zero": (["renderer.width=0"], "renderer.width=0 is out of range"),
+    "height_negative": (["renderer.height=-3"], "renderer.height=-3 is out of range"),
+    "num_scenes_not_a_number": (["generate.num_scenes=abc"], "generate.num_scenes='abc' is not a number"),
+    "num_scenes_zero": (["generate.num_scenes=0"], "generate.num_scenes=0 is out of range"),
+    "dpi_zero": (["plot.dpi=0"], "plot.dpi=0 is out of range"),
+    "unknown_format": (["plot.formats=[bmpx]"], "plot.formats=['bmpx']: unknown format(s) ['bmpx']"),
+    "confidence_above_one": (["metric.bootstrap.confidence=1.5"], "metric.bootstrap.confidence=1.5 is out of range"),
+    "negative_resamples": (["metric.bootstrap.resamples=-5"], "metric.bootstrap.resamples=-5 is out of range"),
+    "batch_size_zero": (["evaluate.batch_size=0"], "evaluate.batch_size=0 is out of range"),
+    "tau_above_one": (["pseudolabel.tau=1.5"], "pseudolabel.tau=1.5 is out of range"),
+    "unknown_reference_model": (["reference_model=segformer_b9"], "reference_model: unknown model 'segformer_b9'"),
+    "unknown_qualitative_condition": (["plot.qualitative_conditions=[Night-HAIL]"],
+                                      "plot.qualitative_conditions: unknown condition(s) ['Night-HAIL']"),
+    "unknown_ranking_condition": (["plot.ranking.condition=Dusk-RAIN"], "plot.ranking.condition='Dusk-RAIN' is not a condition"),
+    "zero_threads": (["threads=0"], "threads=0 is out of range"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIG))
+def test_bad_config_value_is_one_line_before_any_stage(tmp_path, case):
+    """Each bad value stops the run before generation (nothing is computed first), with one line that
+    names the key and the value."""
+    from pairedgta.testing.cli import fast_overrides
+
+    overrides, expect = BAD_CONFIG[case]
+    overrides = [o.format(tmp=tmp_path) for o in overrides]
+    keys = {o.split("=", 1)[0] for o in overrides}
+    args = [o for o in fast_overrides(tmp_path) if o.split("=", 1)[0] not in keys] + overrides
+    (tmp_path / "afile").write_text("not a directory")
+    ro = tmp_path / "ro"
+    _read_only_dir(ro)
+    try:
+        proc = run_cli(args, tmp_path)
+    finally:
+        _writable_again(ro)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and expect in errors[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    cache = Path(next(o for o in args if o.startswith("cache_dir=")).split("=", 1)[1])
+    assert not (cache / "generate").exists() if cache.is_dir() else True  # no stage ran
+
+
+def test_corrupt_hf_weights_from_the_cli_are_one_line(tmp_path):
+    from pairedgta.testing.cli import fast_overrides
+
+    weights = tmp_path / "weights"
+    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    st = weights / "model.safetensors"
+    st.write_bytes(st.read_bytes()[: st.stat().st_size // 2])  # truncated download
+    args = [o for o in fast_overrides(tmp_path) if not o.startswith("model=")] + [
+        "models=null", "model=segformer_b0", f"model.path={weights}"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and f"model.path={weights}" in errors[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert not list((tmp_path / "cache" / "evaluate").glob("[!.]*")) if (tmp_path / "cache" / "evaluate").exists() else True

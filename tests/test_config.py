@@ -28,6 +28,7 @@ def _options(group):
 REGISTRIES = [
     ("region", "pairedgta.scene.sampling:REGIONS", "type", ()),
     ("dataset", "pairedgta.datasets:DATASETS", "kind", ("grid",)),
+    ("renderer", "pairedgta.render:RENDERERS", "backend", ()),
 ]
 
 

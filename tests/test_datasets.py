@@ -1,7 +1,6 @@
 """Readers of the released PairedGTA layout and of the project's own layout."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image

@@ -97,3 +97,17 @@ def test_model_overrides_must_be_mappings():
     cfg["model_overrides"] = {"tiny_mask2former": 3}
     with pytest.raises(ConfigError, match="model_overrides.tiny_mask2former must be a mapping"):
         run_models(cfg)
+
+
+def test_an_evaluation_gives_back_a_buildable_model_config(tmp_path):
+    """Local weights enter the hash as a content fingerprint; the config read back must still build."""
+    from pairedgta.models import check_model_config, model_config
+    from pairedgta.stages.common import model_hash_config
+    from pairedgta.stages.evaluate import EvaluateResult
+
+    hashed = model_hash_config(model_config("demo_segformer"))
+    assert "weights_sha256" in hashed
+    (tmp_path / "manifest.json").write_text(json.dumps({"config": {"model": hashed}}))
+    cfg = EvaluateResult("evaluate", "k", tmp_path, hit=True).model_config()
+    check_model_config(cfg)
+    assert cfg["path"] == model_config("demo_segformer")["path"]

@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 import re
 import shutil
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 

@@ -42,15 +42,19 @@ class PairedDataset:
         return len(self.groups)
 
     def fingerprint(self) -> str:
-        """Identity of an external dataset for the cache: relative paths and sizes of every used file."""
+        """Identity of an external dataset for the cache: relative path, size and sha256 of every used
+        file (content hashes memoised on path, size and mtime under the cache dir, as DVC does), so a
+        file replaced by another of the same size is not taken for the old one."""
+        from pairedgta.filehash import default
+
+        memo = default()
         h = hashlib.sha256()
         for g in self.groups:
-            for cond in sorted(g.images):
-                p = g.images[cond]
-                h.update(f"{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
-            for cond in sorted(g.labels):
-                p = g.labels[cond]
-                h.update(f"L|{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
+            for kind, files in (("", g.images), ("L|", g.labels)):
+                for cond in sorted(files):
+                    p = files[cond]
+                    st = p.stat()
+                    h.update(f"{kind}{g.group_id}|{cond}|{p.relative_to(self.root)}|{st.st_size}|{memo.sha256(p, st)}\n".encode())
         return h.hexdigest()[:16]
 
 

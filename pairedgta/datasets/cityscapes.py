@@ -52,11 +52,16 @@ class CityscapesSplit:
         return len(self.samples)
 
     def fingerprint(self) -> str:
-        """Identity for the cache: relative paths and sizes of every used file (not where root lives)."""
+        """Identity for the cache: relative path, size and sha256 (memoised on path, size and mtime) of
+        every used file, not where root lives."""
+        from pairedgta.filehash import default
+
+        memo = default()
         h = hashlib.sha256()
         for s in self.samples:
             for p in (s.image, s.label):
-                h.update(f"{p.relative_to(self.root).as_posix()}|{p.stat().st_size}\n".encode())
+                st = p.stat()
+                h.update(f"{p.relative_to(self.root).as_posix()}|{st.st_size}|{memo.sha256(p, st)}\n".encode())
         return h.hexdigest()[:16]
 
     def label_kinds(self) -> dict[str, int]:

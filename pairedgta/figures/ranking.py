@@ -77,16 +77,21 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     top.axis("off")
                     bottom.axis("off")
                     continue
+                r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
+                vals = {row.selection: row.rho for row in r.itertuples()}
+                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
+                if not parts:
+                    # no rho_valid (too few frames with the class, or constant counts): say so in words
+                    # rather than draw an all-black heatmap
+                    _no_rho_panel(top, bottom, g, f"{inp.label} \u00b7 {model_display(model)}\n{cls}: \u03c1_valid n/a")
+                    continue
                 heat = np.vstack([g["clean_count"].to_numpy(), g["adv_count"].to_numpy()]).astype(float)
                 cax = top.inset_axes([1.02, 0.0, 0.035, 1.0])  # outside, so heat and difference align
                 sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
                             vmin=0, vmax=max(1.0, float(heat.max())))
                 cax.tick_params(labelsize=5, length=2)
-                r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
-                vals = {row.selection: row.rho for row in r.itertuples()}
-                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
                 top.set_title(f"{inp.label} \u00b7 {model_display(model)}\n{cls}: "
-                              f"\u03c1_valid {', '.join(parts) if parts else 'n/a'}", fontsize=6)
+                              f"\u03c1_valid {', '.join(parts)}", fontsize=6)
                 top.tick_params(length=0, labelsize=5)
                 diff = g["clean_count"].to_numpy() - g["adv_count"].to_numpy()
                 x = np.arange(len(diff))
@@ -103,6 +108,22 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     if i == 0:
                         bottom.legend(fontsize=5, frameon=False)
         return save(fig, out, stem, formats, dpi)
+
+
+def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
+    """Both axes of a (model, class) column without rho_valid: the title and a sentence with the
+    frame counts that explain why."""
+    n = len(g)
+    clean = int((g["clean_count"] > 0).sum())
+    adverse = int((g["adv_count"] > 0).sum())
+    top.set_title(title, fontsize=6)
+    top.axis("off")
+    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class is predicted in {clean} of {n} clean\n"
+             f"and {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
+             transform=top.transAxes, wrap=True)
+    bottom.axis("off")
+    bottom.text(0.5, 0.6, "needs \u2265 2 frames with differing\nclean counts (more scenes that show it)",
+                ha="center", va="center", fontsize=5, color="0.35", transform=bottom.transAxes)
 
 
 def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: str = "rho_valid") -> list[Path]:

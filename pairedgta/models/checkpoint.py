@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pairedgta.errors import ConfigError, ModelError
+from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.models.base import Segmenter
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -47,8 +47,8 @@ def _numpy_safe_globals() -> list[Any]:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0][:160]}" if text else type(exc).__name__
+    """The whole reason on one line (a refused pickle names the global, e.g. posix.system)."""
+    return reason(exc)
 
 
 def _is_state_dict(obj: Any) -> bool:

@@ -27,6 +27,7 @@ from pairedgta.datasets import open_dataset
 from pairedgta.datasets.cityscapes import CityscapesSplit
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
+from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
 from pairedgta.tracking import Tracker, bundle, dataset_label, run_name
@@ -95,7 +96,7 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, devi
         "evaluated_pixels": int(cm.mat.sum()),
         "iou": {CLASS_NAMES[k]: (None if math.isnan(iou[k]) else float(iou[k])) for k in range(NUM_CLASSES)},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     np.save(out / "confusion.npy", cm.mat.numpy())  # rows ground truth, columns prediction
     return {"miou": miou}
 

@@ -211,6 +211,13 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
             return PassResult(label, cfg, grid)  # e.g. the cost figure from a given CSV
         gen = generate.run(ctx)
         results["generate"] = gen
+        if not gen.complete:  # a shard job: other shards still have scenes to render
+            if {"pseudolabel", "evaluate"} & (plan.needs | set(plan.stages)) or plan.plotting:
+                raise ConfigError(
+                    "generate.shard is set and other shards' scenes are still missing: run the remaining shards, "
+                    "then the later stages without generate.shard/num_shards"
+                )
+            return PassResult(label, cfg, grid)
         dataset = open_dataset(dcfg, grid, root=gen.path)
         return PassResult(label, cfg, dataset.grid or grid, dataset, f"generate:{gen.key}", generate=gen)
     if "generate" in plan.stages:

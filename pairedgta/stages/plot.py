@@ -17,7 +17,9 @@ from typing import Any
 
 from tqdm import tqdm
 
+from pairedgta.cache import require_intact
 from pairedgta.figures import FIGURES, FigureOptions, lookup
+from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
@@ -87,13 +89,15 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
         files += drawn
         metrics.update(numbers)
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
-    (out / "metrics.json").write_text(json.dumps(clean_metrics, indent=2, sort_keys=True))
-    (out / "owners.json").write_text(json.dumps(opts.owners, indent=2, sort_keys=True))
+    write_json(out / "metrics.json", clean_metrics, sort_keys=True)
+    write_json(out / "owners.json", opts.owners, sort_keys=True)
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 
 def run(ctx: Context, passes: list[Any]) -> Figures:
     figures = figures_of(ctx.cfg)
+    for e in (e for p in passes for e in p.evaluations):
+        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
     config: dict[str, Any] = {"plot": ctx.cfg["plot"], "reference": [p.grid.reference for p in passes],
                               "pairing": [p.pairing for p in passes]}
     inputs: dict[str, str] = {}

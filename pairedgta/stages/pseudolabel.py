@@ -18,7 +18,7 @@ from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "1"
@@ -128,10 +128,15 @@ def check_tau(cfg: dict[str, Any]) -> float:
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
     """`model_cfg`: the reference model's composed config (the run's `reference_model`)."""
     tau = check_tau(ctx.cfg)
-    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference}
-    result = run_cached(
-        ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(ctx, dataset, out, model_cfg, tau), label=f"[{model_cfg['name']}]", result_cls=PseudoLabels,
-    )
+    threads = inference_threads(ctx.cfg)
+    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
+              "threads": threads}
+
+    def build(out: Path) -> dict[str, Any]:
+        with torch_threads(threads):
+            return compute(ctx, dataset, out, model_cfg, tau)
+
+    result = run_cached(ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key}, build,
+                        label=f"[{model_cfg['name']}]", result_cls=PseudoLabels)
     assert isinstance(result, PseudoLabels)
     return result

@@ -6,7 +6,7 @@ after ``start``: padded BGR bytes of a deterministic synthetic street view plus 
 reporting the state. The picture depends on the scene (ego pose, camera, entities) and its
 brightness/tint/haze on clock and weather, so conditions differ and repeats are identical.
 
-Plugin behaviour it reproduces (see shared/docs/deepgtav-protocol.md):
+Plugin behaviour it reproduces (the client side is described in pairedgta/render/deepgtav.py):
 * transports: ``zmq`` (PAIR socket bound by the server; a frame is two messages, raw bytes then
   JSON) and ``tcp`` (4-byte little-endian length prefix on every message and frame part);
 * one top-level key per message, checked in the plugin's order; fields are read with typed
@@ -29,7 +29,7 @@ row padding and one row short).
 
 Run by hand::
 
-    python -m pairedgta.render.deepgtav_server --transport zmq --port 8000
+    python -m pairedgta.testing.deepgtav_server --transport zmq --port 8000
 """
 from __future__ import annotations
 
