@@ -111,8 +111,10 @@ def test_light_model_is_continuous_and_ordered():
 
 
 def test_bad_options_are_config_errors():
-    with pytest.raises(ConfigError, match="renderer.sampels"):
-        BlenderRenderer(width=64, height=32, sampels=4)
+    from pairedgta.render import build_renderer
+
+    with pytest.raises(ConfigError, match=r"renderer: unknown key\(s\) sampels; known keys: .*samples"):
+        build_renderer({"backend": "blender", "width": 64, "height": 32, "sampels": 4})
     with pytest.raises(ConfigError, match="renderer.device"):
         BlenderRenderer(width=64, height=32, device="TPU")
 
