@@ -97,7 +97,10 @@ def bench(renderer_cfg: dict, scenes: list[SceneDescriptor], grid, cores: int) -
     prep_wall = [row["prepare"]["wall"] for row in rows]
     label = [row["prepare"].get("label_pass", 0.0) for row in rows]
     n = len(grid)
+    # CPU seconds of one whole scene (construction, label pass, every condition): what a core-hour buys
+    scene_cpu = statistics.mean(cores * (row["prepare"]["cpu"] + sum(i["cpu"] for i in row["images"])) for row in rows)
     return {
+        "scene_cpu_s": scene_cpu, "scenes_per_core_hour": 3600.0 / scene_cpu,
         "open_s": open_s,
         "image_wall_median": statistics.median(per_image), "image_wall_mean": statistics.mean(per_image),
         "image_cpu_mean": statistics.mean(per_image_cpu),
@@ -179,6 +182,9 @@ def main() -> None:
               f"| {res['image_incl_labels_mean']:.2f} | "
               f"{res['label_pass_mean']:.2f} | {res['construction_first']:.2f} / {res['construction_next']:.2f} | "
               f"{res['scene_wall_mean']:.2f} |", flush=True)
+    for name, res in results.items():
+        print(f"# {name}: {res['scene_cpu_s']:.1f} CPU-s per scene of {len(grid)} conditions = "
+              f"{res['scenes_per_core_hour']:.0f} scenes per core-hour")
     for name, res in results.items():
         print(f"# {name} by condition: " + ", ".join(f"{k} {v:.2f}" for k, v in res["by_condition"].items()))
     print(f"# load_avg_after={os.getloadavg()[0]:.2f}")

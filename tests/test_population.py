@@ -211,3 +211,23 @@ def test_cars_come_in_sizes_and_light_up_only_when_driving():
         assert none == [] and not {"headlight", "taillight"} & {p[2] for p in parked}
     assert sizes["blista"] < sizes["baller"] < sizes["speedo"]
     assert sizes["speedo"] == pytest.approx(CAR_MODELS["speedo"][2], abs=0.05)
+
+
+def test_the_generate_stage_populates_every_scene():
+    """The main job's scenes carry the population (not only the benches'), and it replays from the descriptor."""
+    from omegaconf import OmegaConf as OC
+
+    from pairedgta.scene.sampling import build_region
+    from pairedgta.stages.generate import build_descriptor
+    from pairedgta.testing.cli import compose_cfg
+
+    cfg = OC.to_container(compose_cfg(["region=procedural_town"]), resolve=True)
+    region = build_region(cfg["region"])
+    descriptors = [build_descriptor(k, cfg, region)[0] for k in range(4)]
+    kinds = {e.category for d in descriptors for e in d.ambient}
+    assert {"car", "person"} <= kinds, kinds
+    assert all(len(d.ambient) >= 10 for d in descriptors)
+    again = build_descriptor(2, cfg, build_region(cfg["region"]))[0]
+    assert again.ambient == descriptors[2].ambient
+    cfg["region"]["population"] = None
+    assert build_descriptor(0, cfg, build_region(cfg["region"]))[0].ambient == ()

@@ -39,7 +39,7 @@ from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
-VERSION = "1"
+VERSION = "2"  # 2: descriptors carry the region's ambient population
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
@@ -158,6 +158,8 @@ def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDes
         # regions with a generated layout store it, so the descriptor alone replays the scene
         extra=(("town", region.params()),) if hasattr(region, "params") else (),
     )
+    if hasattr(region, "populate"):  # the region's ambient traffic and pedestrians, kept clear of the objects
+        descriptor = region.populate(descriptor)
     if len(objects) < requested:
         log.info("scene %s: placed %d of %d objects (region R_k too small for d_min)", descriptor.scene_id, len(objects), requested)
     return descriptor, {"scene_sampling_time": t1 - t0, "descriptor_time": time.perf_counter() - t1}
