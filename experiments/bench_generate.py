@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from pairedgta.conditions import Condition
 from pairedgta.render.deepgtav import DeepGTAVRenderer
-from pairedgta.render.deepgtav_server import DeepGTAVTestServer
+from pairedgta.testing.deepgtav_server import DeepGTAVTestServer
 from pairedgta.scene.descriptor import DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.validation import validate_group
 
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
 
     rng = np.random.default_rng(args.seed)
-    sample = region_sampler(ROOT / "conf" / "region" / "los_santos.yaml")
+    sample = region_sampler(ROOT / "pairedgta" / "conf" / "region" / "los_santos.yaml")
     grid = conditions()
     rows = []
     t_session = time.perf_counter()

@@ -5,15 +5,15 @@ condition-wise rendering.
     python experiments/bench_render.py --sizes 512x256 --scenes 3 samples=8 denoise=false
     python experiments/bench_render.py --sweep              # a few quality/speed settings at 512x256
     python experiments/bench_render.py --contact /tmp/blender_contact.png   # 9 conditions + labels of scene 0
+    python experiments/bench_render.py --sizes 512x256 --no-population     # without the ambient population
 
-Trailing key=value pairs override conf/renderer/blender.yaml. Wall time is what a user waits; CPU
+Trailing key=value pairs override pairedgta/conf/renderer/blender.yaml. Wall time is what a user waits; CPU
 seconds / cores is printed beside it because a shared machine inflates wall time (the load average
 is printed too, so numbers from a busy machine can be recognised).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -49,8 +49,8 @@ def _value(text: str):
 
 
 def load_cfg(overrides: list[str]) -> tuple[dict, dict]:
-    renderer = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "renderer" / "blender.yaml"))
-    region = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "region" / "procedural_town.yaml"))
+    renderer = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "renderer" / "blender.yaml"))
+    region = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "region" / "procedural_town.yaml"))
     renderer.pop("backend")
     renderer["town"] = region
     for item in overrides:
@@ -59,15 +59,18 @@ def load_cfg(overrides: list[str]) -> tuple[dict, dict]:
     return renderer, region
 
 
-def descriptors(region_cfg: dict, n: int, seed: int) -> list[SceneDescriptor]:
+def descriptors(region_cfg: dict, n: int, seed: int, population: bool = True) -> list[SceneDescriptor]:
+    """n scenes with 3-6 dynamic objects each and, unless `population` is off, the region's ambient
+    population (as the generate stage adds it)."""
     region = ProceduralTownRegion(**{k: v for k, v in region_cfg.items() if k != "type"})
     out = []
     for k in range(n):
         rng = np.random.default_rng(seed + k)
         loc = region.sample_location(rng)
         objects, requested = place_objects(rng, loc, region, PlacementConfig(min=3, max=6))
-        out.append(SceneDescriptor(scene_id=f"{k:05d}", seed=seed + k, location=loc, objects=objects,
-                                   region=region.name, requested_objects=requested))
+        d = SceneDescriptor(scene_id=f"{k:05d}", seed=seed + k, location=loc, objects=objects,
+                            region=region.name, requested_objects=requested)
+        out.append(region.populate(d) if population else d)
     return out
 
 
@@ -94,7 +97,10 @@ def bench(renderer_cfg: dict, scenes: list[SceneDescriptor], grid, cores: int) -
     prep_wall = [row["prepare"]["wall"] for row in rows]
     label = [row["prepare"].get("label_pass", 0.0) for row in rows]
     n = len(grid)
+    # CPU seconds of one whole scene (construction, label pass, every condition): what a core-hour buys
+    scene_cpu = statistics.mean(cores * (row["prepare"]["cpu"] + sum(i["cpu"] for i in row["images"])) for row in rows)
     return {
+        "scene_cpu_s": scene_cpu, "scenes_per_core_hour": 3600.0 / scene_cpu,
         "open_s": open_s,
         "image_wall_median": statistics.median(per_image), "image_wall_mean": statistics.mean(per_image),
         "image_cpu_mean": statistics.mean(per_image_cpu),
@@ -143,17 +149,19 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true", help="compare the SWEEP settings at the first size")
     ap.add_argument("--json", type=Path, default=None, help="write all numbers here")
     ap.add_argument("--contact", type=Path, default=None, help="only save a contact sheet of scene 0 here")
+    ap.add_argument("--no-population", action="store_true", help="scenes without the ambient population")
     ap.add_argument("overrides", nargs="*", help="renderer key=value")
     args = ap.parse_args()
     renderer_cfg, region_cfg = load_cfg(args.overrides)
-    grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "conditions" / "paper.yaml")))
-    scenes = descriptors(region_cfg, args.scenes, args.seed)
+    grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "conditions" / "paper.yaml")))
+    scenes = descriptors(region_cfg, args.scenes, args.seed, population=not args.no_population)
     cores = os.cpu_count() or 1
     if args.contact:
         w, h = (int(v) for v in args.sizes[0].split("x"))
         contact_sheet({**renderer_cfg, "width": w, "height": h}, scenes[0], grid, args.contact)
         return
-    print(f"# cores={cores} load_avg_before={os.getloadavg()[0]:.2f} scenes={len(scenes)} conditions={len(grid)}")
+    print(f"# cores={cores} load_avg_before={os.getloadavg()[0]:.2f} scenes={len(scenes)} conditions={len(grid)} "
+          f"ambient entities/scene={statistics.mean(len(d.ambient) for d in scenes):.1f}")
     results = {}
     runs = []
     if args.sweep:
@@ -175,10 +183,15 @@ def main() -> None:
               f"{res['label_pass_mean']:.2f} | {res['construction_first']:.2f} / {res['construction_next']:.2f} | "
               f"{res['scene_wall_mean']:.2f} |", flush=True)
     for name, res in results.items():
+        print(f"# {name}: {res['scene_cpu_s']:.1f} CPU-s per scene of {len(grid)} conditions = "
+              f"{res['scenes_per_core_hour']:.0f} scenes per core-hour")
+    for name, res in results.items():
         print(f"# {name} by condition: " + ", ".join(f"{k} {v:.2f}" for k, v in res["by_condition"].items()))
     print(f"# load_avg_after={os.getloadavg()[0]:.2f}")
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+        from pairedgta.jsonio import write_json
+
+        write_json(args.json, results)
 
 
 if __name__ == "__main__":

@@ -1,17 +1,25 @@
-"""Train the shipped demo model: a compact SegFormer on the embedded renderer's daytime scenes.
+"""Train the shipped demo model the way real Cityscapes models are trained, on daytime scenes only.
 
-    python experiments/train_demo_model.py [train.steps=1500 data.train_scenes=64 ...]
+    python experiments/train_demo_model.py                      # render (cached) + train, resumable
+    python experiments/train_demo_model.py train.steps=500 data.train_towns=4   # a quick try
 
-It renders Day-EXTRASUNNY scenes with exact labels through the generate stage (cached, seeds disjoint
-from evaluation), trains with geometric augmentation only (so the evaluated photometric shifts stay
-unseen), and writes safetensors weights, the config, a preprocessor config and a model card.
+Data: Day-EXTRASUNNY scenes of the embedded renderer over many towns (one `town_seed` per group of
+scenes), rendered once through the cached generate stage; validation on held-out town seeds. The
+model never sees rain, fog, sunset or night. Recipe: random resize 0.5-2.0, random crop (with the
+category-ratio re-draw), horizontal flip, photometric distortion as MMSegmentation's
+PhotoMetricDistortion (brightness, contrast, saturation, hue), AdamW with warm-up and poly decay.
+Every `checkpoint_every` steps the full training state goes to outputs/train_demo/<hash>/checkpoint.pt,
+and a rerun with the same settings continues from it. Progress is a tqdm bar; MLflow records params,
+loss, learning rate and validation IoU. The result: safetensors weights, config, preprocessor config,
+model card (per-class IoU, wall times) and README in pairedgta/models/weights/demo_segformer.
 """
 from __future__ import annotations
 
-import dataclasses
+import hashlib
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -20,8 +28,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
 
-from pairedgta.cache import StageCache
+from pairedgta.cache import StageCache, canonical_json
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.conditions import build_condition_grid
 from pairedgta.datasets import load_image, load_label, open_dataset
@@ -35,45 +44,85 @@ MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
 STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
 
 
-def render_split(cfg: dict, grid, num: int, seed: int):
-    """Day-only scenes through the generate stage (cached like any other run)."""
-    gcfg = json.loads(json.dumps(cfg))
-    gcfg["generate"] = {
-        "num_scenes": num, "seed": seed, "workers": 1, "endpoints": [], "drop_invalid": False,
-        "validation": {"enabled": False}, "objects": cfg["data"]["objects"], "camera": cfg["data"]["camera"],
-    }
-    ctx = Context(cfg=gcfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
-    result = generate.run(ctx)
-    ds = open_dataset({"kind": "generated", "name": "train_demo"}, grid, root=result.path)
-    images = np.stack([load_image(g.images[grid.reference]) for g in ds.groups])
-    labels = np.stack([load_label(g.labels[grid.reference]) for g in ds.groups])
-    return images, labels
+# -- data ---------------------------------------------------------------------------------------------
+def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Day-only scenes of each town through the generate stage (one cached entry per town)."""
+    images, labels = [], []
+    for town in tqdm(towns, desc="render towns", unit="town"):
+        gcfg = json.loads(json.dumps(cfg))
+        gcfg["region"] = {**cfg["region"], "town_seed": int(town)}
+        gcfg["renderer"] = {**cfg["renderer"], "town": gcfg["region"]}
+        gcfg["generate"] = {
+            "num_scenes": scenes_per_town, "seed": scene_seed + int(town), "workers": cfg["data"]["workers"],
+            "endpoints": [], "drop_invalid": False, "validation": {"enabled": False},
+            "objects": cfg["data"]["objects"], "camera": cfg["data"]["camera"],
+        }
+        ctx = Context(cfg=gcfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
+        result = generate.run(ctx)
+        ds = open_dataset({"kind": "generated", "name": "train_demo"}, grid, root=result.path)
+        images += [load_image(g.images[grid.reference]) for g in ds.groups]
+        labels += [load_label(g.labels[grid.reference]) for g in ds.groups]
+    return np.stack(images), np.stack(labels)
 
 
-def batch(images, labels, rng, cfg):
-    """Random scale + crop + horizontal flip: geometry only."""
-    h, w = cfg["crop"]
-    xs, ys = [], []
-    for _ in range(cfg["batch_size"]):
-        i = int(rng.integers(len(images)))
-        img = torch.from_numpy(images[i]).permute(2, 0, 1).float().div(255)[None]
-        lab = torch.from_numpy(labels[i].astype(np.int64))[None, None].float()
-        s = float(rng.uniform(*cfg["scale_range"]))
-        H, W = img.shape[-2:]
-        nh, nw = max(h, round(H * s)), max(w, round(W * s))
-        img = F.interpolate(img, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
-        lab = F.interpolate(lab, size=(nh, nw), mode="nearest")
-        y0, x0 = int(rng.integers(nh - h + 1)), int(rng.integers(nw - w + 1))
-        img, lab = img[..., y0 : y0 + h, x0 : x0 + w], lab[..., y0 : y0 + h, x0 : x0 + w]
+def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.Tensor:
+    """MMSegmentation's PhotoMetricDistortion on a 3 x H x W image in [0, 1]: additive brightness,
+    contrast (before or after the colour steps, at random), saturation and hue in HSV; each step with
+    probability 0.5."""
+    from torchvision.transforms.v2 import functional as TF
+
+    def contrast(x: torch.Tensor) -> torch.Tensor:
         if rng.random() < 0.5:
-            img, lab = img.flip(-1), lab.flip(-1)
-        xs.append(img)
-        ys.append(lab.long()[:, 0])
-    return torch.cat(xs), torch.cat(ys)
+            x = (x * float(rng.uniform(*p["contrast_range"]))).clamp(0, 1)
+        return x
+
+    if rng.random() < 0.5:
+        img = (img + float(rng.uniform(-p["brightness_delta"], p["brightness_delta"])) / 255.0).clamp(0, 1)
+    contrast_first = rng.random() < 0.5
+    if contrast_first:
+        img = contrast(img)
+    if rng.random() < 0.5:
+        img = TF.adjust_saturation(img, float(rng.uniform(*p["saturation_range"])))
+    if rng.random() < 0.5:
+        img = TF.adjust_hue(img, float(rng.uniform(-p["hue_delta"], p["hue_delta"])) / 360.0)
+    if not contrast_first:
+        img = contrast(img)
+    return img
+
+
+def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random resize, crop (re-drawn while one class dominates), flip, photometric distortion."""
+    h, w = a["crop"]
+    img = torch.tensor(image).permute(2, 0, 1).float().div(255)[None]
+    lab = torch.tensor(label.astype(np.int64))[None, None].float()
+    s = float(rng.uniform(*a["scale_range"]))
+    H, W = img.shape[-2:]
+    nh, nw = max(1, round(H * s)), max(1, round(W * s))
+    img = F.interpolate(img, size=(nh, nw), mode="bilinear", align_corners=False, antialias=s < 1)
+    lab = F.interpolate(lab, size=(nh, nw), mode="nearest")
+    if nh < h or nw < w:  # pad: image with 0, labels with ignore
+        img = F.pad(img, (0, max(0, w - nw), 0, max(0, h - nh)), value=0.0)
+        lab = F.pad(lab, (0, max(0, w - nw), 0, max(0, h - nh)), value=float(IGNORE_INDEX))
+        nh, nw = img.shape[-2:]
+    for _ in range(10):
+        y0, x0 = int(rng.integers(nh - h + 1)), int(rng.integers(nw - w + 1))
+        crop = lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
+        counts = torch.bincount(crop[crop != IGNORE_INDEX].flatten(), minlength=NUM_CLASSES)
+        if counts.sum() == 0 or counts.max() / counts.sum() < a["cat_max_ratio"]:
+            break
+    img, lab = img[0, :, y0 : y0 + h, x0 : x0 + w], lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
+    if rng.random() < a["flip"]:
+        img, lab = img.flip(-1), lab.flip(-1)
+    return photometric(img, rng, a["photometric"]), lab
+
+
+def batch(images, labels, rng, a: dict, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    pairs = [sample(images[i], labels[i], rng, a) for i in rng.integers(len(images), size=size)]
+    return torch.stack([x for x, _ in pairs]), torch.stack([y for _, y in pairs])
 
 
 @torch.inference_mode()
-def evaluate(model, images, labels) -> ConfusionMatrix:
+def validate(model, images, labels) -> ConfusionMatrix:
     model.eval()
     cm = ConfusionMatrix(NUM_CLASSES)
     for img, lab in zip(images, labels):
@@ -85,38 +134,90 @@ def evaluate(model, images, labels) -> ConfusionMatrix:
     return cm
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train_demo")
+def miou(cm: ConfusionMatrix) -> float:
+    """Cityscapes convention: the mean over classes with TP + FP + FN > 0."""
+    iou = cm.iou().numpy()
+    return float(np.nanmean(iou)) if not np.isnan(iou).all() else math.nan
+
+
+# -- training -----------------------------------------------------------------------------------------
+def lr_factor(step: int, t: dict) -> float:
+    warm = min(1.0, (step + 1) / max(1, t["warmup"]))
+    return warm * (1 - min(step, t["steps"]) / (t["steps"] + 1)) ** t["poly_power"]
+
+
+def state_key(cfg: dict) -> str:
+    """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
+    keep = {k: cfg[k] for k in ("data", "arch", "augment", "seed", "renderer", "region")}
+    keep["train"] = {k: v for k, v in cfg["train"].items() if k not in ("steps", "threads", "eval_every", "checkpoint_every")}
+    return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:12]
+
+
+def save_checkpoint(path: Path, model, opt, sched, step: int, rng: np.random.Generator, history: list, elapsed: float) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
+                "rng": json.dumps(rng.bit_generator.state), "torch_rng": torch.get_rng_state(),
+                "history": json.dumps(history), "elapsed": elapsed}, tmp)
+    os.replace(tmp, path)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="train_demo")
 def main(dcfg: DictConfig) -> None:
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 
     cfg = OmegaConf.to_container(dcfg, resolve=True)
+    assert isinstance(cfg, dict)
     torch.set_num_threads(int(cfg["train"]["threads"]))
     grid = build_condition_grid({**cfg["conditions"], "only": [cfg["condition"]]})
+    d, t, a = cfg["data"], cfg["train"], cfg["augment"]
     t0 = time.perf_counter()
-    train_x, train_y = render_split(cfg, grid, cfg["data"]["train_scenes"], cfg["data"]["train_seed"])
-    val_x, val_y = render_split(cfg, grid, cfg["data"]["val_scenes"], cfg["data"]["val_seed"])
+    train_x, train_y = render_towns(cfg, grid, range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"]),
+                                    d["train_scenes_per_town"], d["scene_seed"])
+    val_x, val_y = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
+                                d["val_scenes_per_town"], d["scene_seed"] + 100_000)
     render_s = time.perf_counter() - t0
-    log.info("data: %d train / %d val images (%.0f s)", len(train_x), len(val_x), render_s)
+    log.info("data: %d train / %d held-out-town val images (%.0f s)", len(train_x), len(val_x), render_s)
 
     torch.manual_seed(cfg["seed"])
     config = SegformerConfig(num_labels=NUM_CLASSES, id2label=dict(enumerate(CLASS_NAMES)),
                              label2id={n: i for i, n in enumerate(CLASS_NAMES)}, **cfg["arch"])
     model = SegformerForSemanticSegmentation(config)
-    if tcfg_init := cfg["train"].get("init_from"):
-        # continue from earlier weights (e.g. the shipped model) instead of a random init
-        model = SegformerForSemanticSegmentation.from_pretrained(str(ROOT / tcfg_init))
+    if t.get("init_from"):
+        model = SegformerForSemanticSegmentation.from_pretrained(str(ROOT / t["init_from"]))
     n_params = sum(p.numel() for p in model.parameters())
     if n_params > 4_000_000:
         raise SystemExit(f"arch has {n_params} parameters; the demo model must stay <= 4 M")
-    tcfg = cfg["train"]
-    opt = torch.optim.AdamW(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / tcfg["warmup"]) * 0.5 * (1 + math.cos(math.pi * min(s, tcfg["steps"]) / tcfg["steps"])))
+    opt = torch.optim.AdamW(model.parameters(), lr=t["lr"], weight_decay=t["weight_decay"])
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, t))
     rng = np.random.default_rng(cfg["seed"])
+    work = ROOT / "outputs" / "train_demo" / state_key(cfg)
+    work.mkdir(parents=True, exist_ok=True)
+    ckpt = work / "checkpoint.pt"
+    start, history, elapsed = 0, [], 0.0
+    if ckpt.is_file():
+        state = torch.load(ckpt, map_location="cpu", weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        rng.bit_generator.state = json.loads(state["rng"])
+        torch.set_rng_state(state["torch_rng"])
+        start, history, elapsed = int(state["step"]), json.loads(state["history"]), float(state["elapsed"])
+        log.info("resuming from %s at step %d", ckpt, start)
+
+    import mlflow
+
+    tracking = cfg.get("tracking") or {}
+    if tracking.get("enabled", True):
+        mlflow.set_tracking_uri(tracking.get("uri"))
+        mlflow.set_experiment("train_demo")
+        mlflow.start_run(run_name=f"demo_segformer-{state_key(cfg)}")
+        mlflow.log_params({"n_params": n_params, "train_images": len(train_x), "val_images": len(val_x),
+                           **{f"train.{k}": v for k, v in t.items()}, **{f"augment.{k}": str(v) for k, v in a.items()}})
     model.train()
-    history = []
-    t1 = time.perf_counter()
-    for step in range(1, tcfg["steps"] + 1):
-        x, y = batch(train_x, train_y, rng, tcfg)
+    t1 = time.perf_counter() - elapsed
+    bar = tqdm(range(start + 1, t["steps"] + 1), initial=start, total=t["steps"], desc="train", unit="step")
+    for step in bar:
+        x, y = batch(train_x, train_y, rng, a, t["batch_size"])
         logits = model(pixel_values=(x - MEAN) / STD).logits
         logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
         loss = F.cross_entropy(logits, y, ignore_index=IGNORE_INDEX)
@@ -124,55 +225,67 @@ def main(dcfg: DictConfig) -> None:
         loss.backward()
         opt.step()
         sched.step()
-        if step % 50 == 0:
-            log.info("step %d loss %.3f (%.2f s/step)", step, loss.item(), (time.perf_counter() - t1) / step)
-        if step % tcfg["eval_every"] == 0 or step == tcfg["steps"]:
-            cm = evaluate(model, val_x, val_y)
-            history.append({"step": step, "loss": float(loss), "val_miou": cm.miou()})
-            log.info("step %d val mIoU %.3f", step, cm.miou())
+        bar.set_postfix(loss=f"{loss.item():.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
+        if tracking.get("enabled", True) and step % 20 == 0:
+            mlflow.log_metrics({"loss": loss.item(), "lr": sched.get_last_lr()[0]}, step=step)
+        if step % t["eval_every"] == 0 or step == t["steps"]:
+            m = miou(validate(model, val_x, val_y))
+            history.append({"step": step, "loss": loss.item(), "val_miou": m})
+            log.info("step %d val mIoU %.3f (%.2f s/step)", step, m, (time.perf_counter() - t1) / max(1, step))
+            if tracking.get("enabled", True):
+                mlflow.log_metric("val_miou", m, step=step)
+        if step % t["checkpoint_every"] == 0 or step == t["steps"]:
+            save_checkpoint(ckpt, model, opt, sched, step, rng, history, time.perf_counter() - t1)
     train_s = time.perf_counter() - t1
-    cm = evaluate(model, val_x, val_y)
-    iou = cm.iou().numpy()
-    present = cm.mat.sum(1).numpy() > 0
-    out = ROOT / cfg["out_dir"]
-    out.mkdir(parents=True, exist_ok=True)
-    previous = None
-    if cfg["train"].get("init_from") and (ROOT / cfg["train"]["init_from"] / "model_card.json").is_file():
-        old = json.loads((ROOT / cfg["train"]["init_from"] / "model_card.json").read_text())
-        previous = {k: old.get(k) for k in ("train", "val_miou", "train_seconds", "previous_card")}
-    model.save_pretrained(out, safe_serialization=True)
+    write_model(cfg, model, n_params, validate(model, val_x, val_y), history, render_s, train_s, len(train_x), len(val_x))
+    if tracking.get("enabled", True):
+        mlflow.log_artifact(str(ROOT / cfg["out_dir"] / "model_card.json"))
+        mlflow.end_run()
+
+
+def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: list, render_s: float, train_s: float,
+                n_train: int, n_val: int) -> None:
     from transformers import SegformerImageProcessor
 
+    d, t = cfg["data"], cfg["train"]
+    iou = cm.iou().numpy()
+    m = miou(cm)
+    out = ROOT / cfg["out_dir"]
+    out.mkdir(parents=True, exist_ok=True)
+    model.save_pretrained(out, safe_serialization=True)
     SegformerImageProcessor(do_resize=False, image_mean=MEAN.flatten().tolist(), image_std=STD.flatten().tolist()).save_pretrained(out)
-    floor = max(0.0, cm.miou() - cfg["miou_floor_margin"])
+    floor = max(0.0, m - cfg["miou_floor_margin"])
     card = {
         "model": "demo_segformer", "parameters": n_params, "arch": cfg["arch"],
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
-                 "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]],
-                 "train_scenes": cfg["data"]["train_scenes"], "train_seed": cfg["data"]["train_seed"],
-                 "val_scenes": cfg["data"]["val_scenes"], "val_seed": cfg["data"]["val_seed"]},
-        "train": tcfg, "seed": cfg["seed"], "previous_card": previous, "val_miou": cm.miou(), "val_pixel_accuracy": cm.accuracy(),
-        "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if present[c]},
+                 "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]], "train_images": n_train,
+                 "val_images": n_val, **{k: v for k, v in d.items() if k not in ("objects", "camera", "workers")}},
+        "augment": cfg["augment"], "train": t, "seed": cfg["seed"],
+        "val_miou": m, "val_miou_convention": "mean over classes with TP+FP+FN > 0 (cityscapesScripts)",
+        "val_pixel_accuracy": cm.accuracy(),
+        "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if not np.isnan(iou[c])},
         "test_floor_miou": floor, "history": history, "render_seconds": render_s, "train_seconds": train_s,
     }
-    (out / "model_card.json").write_text(json.dumps(card, indent=2))
+    from pairedgta.jsonio import write_json
+
+    write_json(out / "model_card.json", card)
     lines = [
         "# demo_segformer", "",
-        "A compact SegFormer (%.2f M parameters) trained by `experiments/train_demo_model.py` only on synthetic"
-        % (n_params / 1e6),
-        "daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels and geometric",
-        "augmentation only. It exists to demonstrate the method offline; it is not a Cityscapes model.", "",
-        f"- data: {cfg['data']['train_scenes']} train scenes (seed {cfg['data']['train_seed']}+), "
-        f"{cfg['data']['val_scenes']} validation scenes (seed {cfg['data']['val_seed']}+), "
-        f"{cfg['renderer']['width']}x{cfg['renderer']['height']}",
-        f"- training: {tcfg['steps']} steps, batch {tcfg['batch_size']}, crops {tcfg['crop']}, AdamW lr {tcfg['lr']}",
-        f"- validation mIoU (held-out Day-EXTRASUNNY scenes): {cm.miou():.3f}; test floor {floor:.3f}",
-        f"- time: {render_s:.0f} s rendering, {train_s:.0f} s training on {tcfg['threads']} CPU threads", "",
+        f"A compact SegFormer ({n_params / 1e6:.2f} M parameters) trained by `experiments/train_demo_model.py` only on",
+        "synthetic daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels and the",
+        "standard Cityscapes augmentation (resize 0.5-2.0, crop, flip, photometric distortion). It never saw rain,",
+        "fog, sunset or night. It demonstrates the method offline; it is not a Cityscapes model.", "",
+        f"- data: {n_train} training scenes from {d['train_towns']} towns, {n_val} validation scenes from "
+        f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
+        f"- training: {t['steps']} steps, batch {t['batch_size']}, crops {cfg['augment']['crop']}, AdamW lr {t['lr']}, "
+        f"poly decay",
+        f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
+        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU threads", "",
         "| class | IoU |", "|---|---|",
-        *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if present[c]],
+        *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],
     ]
     (out / "README.md").write_text("\n".join(lines) + "\n")
-    print(f"demo model: val mIoU {cm.miou():.3f}, {n_params} parameters -> {out}")
+    print(f"demo model: val mIoU {m:.3f}, {n_params} parameters -> {out}")
 
 
 if __name__ == "__main__":

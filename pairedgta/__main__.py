@@ -2,35 +2,90 @@
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import sys
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from pairedgta.errors import PairedGTAError
+from pairedgta.errors import PairedGTAError, Terminated
 
 log = logging.getLogger("pairedgta")
 
+# run folders carry the pid: two runs started in the same second never share one
+if not OmegaConf.has_resolver("pid"):
+    OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated(f"stopped by {signal.Signals(signum).name}")
+
+
+@hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     from pairedgta.app import run
+    from pairedgta.cache import StageCache, release_all
 
     # PDF font subsetting logs every table at INFO; keep the run log about the run
     logging.getLogger("fontTools").setLevel(logging.WARNING)
+    # SIGTERM (kill, a scheduler's cancel) unwinds like Ctrl-C: temp folders go, MLflow marks KILLED
+    previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
+
+    from hydra.core.hydra_config import HydraConfig
 
     try:
-        summary = run(cfg)
+        summary = run(cfg, task_overrides=list(HydraConfig.get().overrides.task))
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix
         print(f"error: {exc}", file=sys.stderr)
         log.error("%s", exc)
         sys.exit(2)
-    where = summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
-    print(f"results: {where}")
-    for name, path in summary.get("evaluate", {}).items():
-        print(f"  evaluate [{name}]: {path}")
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"error: interrupted ({exc or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
+        sys.exit(130 if isinstance(exc, KeyboardInterrupt) else 143)
+    finally:
+        release_all()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    # a successful run also clears resumable work crashed runs left and nobody resumed
+    StageCache(str(cfg.cache_dir)).sweep(partials=True)
+    where = (summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
+             or summary.get("generate"))
+    lines = [f"results: {where}"] + [f"  evaluate [{name}]: {path}" for name, path in summary.get("evaluate", {}).items()]
+    print("\n".join(lines))
+    _to_log_files(lines)
+
+
+def _to_log_files(lines: list[str]) -> None:
+    """The `results:` lines go to stdout bare (to copy a path) and into the job's log file(s), so the log
+    of a run says where its results are; logging them would print them twice on the console."""
+    handlers = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+    for line in lines:
+        record = log.makeRecord(log.name, logging.INFO, __file__, 0, line, None, None)
+        for h in handlers:
+            h.handle(record)
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+OPEN_MAPPINGS = ("model_overrides.",)
+
+
+def _open_mapping_overrides(argv: list[str]) -> list[str]:
+    """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in pairedgta/conf/config.yaml, which
+    Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`."""
+    return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
+
+
+def cli() -> None:
+    sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
+    main()
 
 
 if __name__ == "__main__":
-    main()
+    cli()

@@ -101,6 +101,16 @@ def condition_name(time: str, weather: str) -> str:
     return f"{time}-{weather}"
 
 
+# The one mapping between the grid's names (GTA V weathers: files, CSVs, metric keys, MLflow) and the
+# paper's wording (every figure, table caption and contact sheet title): Day-EXTRASUNNY <-> Day-Sunny.
+WEATHER_DISPLAY = {"EXTRASUNNY": "Sunny", "RAIN": "Rain", "FOGGY": "Foggy", "CLEAR": "Clear"}
+
+
+def condition_display(name: str) -> str:
+    """Day-EXTRASUNNY -> Day-Sunny; names outside the mapping (a fog sweep's `fog_0.5`) stay as they are."""
+    return "-".join(WEATHER_DISPLAY.get(part, part) for part in str(name).split("-"))
+
+
 def build_condition_grid(cfg: Mapping[str, Any]) -> ConditionGrid:
     """Build the grid from a `conditions` config node (times x weathers + extra)."""
     cfg = dict(cfg)

@@ -19,3 +19,25 @@ class ModelError(PairedGTAError):
 
 class RendererError(PairedGTAError):
     pass
+
+
+# boilerplate lines libraries put around the actual cause (torch's weights-only refusal)
+_BOILERPLATE = (
+    "Weights only load failed",
+    "Check the documentation of torch.load",
+    "Please file an issue with the following",
+)
+
+
+def reason(exc: BaseException) -> str:
+    """The whole cause of `exc` on one line: type, then every informative line of its message (a refused
+    pickle says which global it refused, e.g. ``GLOBAL posix.system``), never cut mid-reason."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    kept = [ln for ln in lines if not ln.startswith(_BOILERPLATE)] or lines
+    text = " ".join(kept)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+class Terminated(BaseException):
+    """SIGTERM turned into an exception, so cleanup runs as for Ctrl-C (not an Exception: nothing
+    swallows it by accident)."""

@@ -1,14 +1,91 @@
-"""MLflow: one parent run per invocation, a nested run per evaluated model."""
+"""MLflow: one parent run per invocation, a nested run per evaluated model.
+
+Runs are named `<experiment> · <model(s)> · <dataset>@<hash>`. A stage's files are uploaded once per
+stage hash: a cache-hit rerun whose files an earlier run already holds tags itself with that run (and
+links it in its description) instead of uploading them again. With a sqlite store the artifacts live
+next to the database (`<db dir>/mlartifacts`), not in the working directory's ./mlruns. Nothing here
+imports mlflow when tracking is disabled.
+
+Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
+a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
+that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
+"""
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
+import os
+import re
+import socket
 from pathlib import Path
 from typing import Any, Iterator
 
+from pairedgta.errors import Terminated
+from pairedgta.jsonio import dumps
+
 log = logging.getLogger("pairedgta.tracking")
+TAG = "pairedgta."
+
+
+def artifact_location(uri: str, experiment: str) -> str | None:
+    """Where a new experiment stores artifacts: `<dir of the sqlite db>/mlartifacts/<experiment>`; other
+    stores (a tracking server, a file store) keep their own default."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    folder = re.sub(r"[^A-Za-z0-9_.\-]+", "_", experiment).strip("._") or "experiment"
+    return (Path(uri[len("sqlite:///"):]).resolve().parent / "mlartifacts" / folder).as_uri()
+
+
+def run_name(experiment: str, models: list[str], datasets: list[str]) -> str:
+    """`smoke · tiny_segformer, tiny_mask2former · generated@1a2b3c4d`: what ran, with what, on what."""
+    return " \u00b7 ".join([experiment, ", ".join(models) or "-", ", ".join(datasets) or "-"])[:240]
+
+
+def bundle(stage: str, key: str, *parts: str) -> str:
+    """The name of one upload of a stage's files (`evaluate.<hash>`, `plot.<hash>.<pass>.<model>`), as
+    MLflow tag keys allow it."""
+    return ".".join([stage, key, *(re.sub(r"[^A-Za-z0-9_\-]+", "_", str(x)) for x in parts)])
+
+
+def xi_table(xi: Any) -> Any:
+    """An evaluation's xi.csv as the MLflow table the UI lines up across runs: model, reference, condition
+    (the grid's name), class, xi and its bootstrap interval."""
+    if xi.empty:
+        return xi
+    cols = {"model": "model", "reference_model": "reference", "condition": "condition", "class_name": "class",
+            "xi": "xi", "ci_low": "ci_low", "ci_high": "ci_high"}
+    return xi[list(cols)].rename(columns=cols).reset_index(drop=True)
+
+
+def dataset_label(name: str, key: str | None) -> str:
+    """A dataset as runs name it: its name and the first 8 characters of its hash (generate or content)."""
+    return f"{name}@{str(key).split(':', 1)[-1][:8]}" if key else name
+PID_TAG, HOST_TAG, START_TAG = "pairedgta.pid", "pairedgta.host", "pairedgta.started"
+
+
+def process_start(pid: int) -> str:
+    """Start time of process `pid` in clock ticks since boot (tells a reused pid apart), '' if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def process_alive(pid: int, started: str) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        pass
+    return not started or process_start(pid) in ("", started)
+
+
+def owner_tags() -> dict[str, str]:
+    pid = os.getpid()
+    return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -17,7 +94,7 @@ def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
         for k, v in d.items():
             out.update(flatten(v, f"{prefix}{k}."))
     elif isinstance(d, (list, tuple)):
-        out[prefix.rstrip(".")] = json.dumps(d, default=str)
+        out[prefix.rstrip(".")] = dumps(d)
     else:
         out[prefix.rstrip(".")] = d
     return out
@@ -55,16 +132,57 @@ class Tracker:
             mlflow.set_tracking_uri(uri)
             with _store_lock(uri):
                 # parallel jobs would race on creating the sqlite schema and the experiment
-                mlflow.set_experiment(experiment)
-            self.mlflow = mlflow
+                if mlflow.get_experiment_by_name(experiment) is None:
+                    try:
+                        mlflow.create_experiment(experiment, artifact_location=artifact_location(uri, experiment))
+                    except mlflow.exceptions.MlflowException:  # another job (another host) created it first
+                        if mlflow.get_experiment_by_name(experiment) is None:
+                            raise
+                self.experiment_id = mlflow.set_experiment(experiment).experiment_id
+                self.mlflow = mlflow
+                self.end_orphans()
 
     @contextlib.contextmanager
-    def run(self, name: str, nested: bool = False) -> Iterator[Any]:
+    def run(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Iterator[Any]:
+        """A new run, or (`run_id`) one this invocation opened before, e.g. to add a model's figures."""
         if not self.enabled:
             yield None
             return
-        with self.mlflow.start_run(run_name=name, nested=nested) as run:
+        run = self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
+                                    tags=None if run_id else owner_tags())
+        status = "FAILED"
+        try:
             yield run
+            status = "FINISHED"
+        except (KeyboardInterrupt, Terminated):
+            status = "KILLED"
+            raise
+        finally:
+            # end this run explicitly: mlflow's own context manager would end whatever run is active
+            self.mlflow.end_run(status)
+
+    def end_orphans(self) -> list[str]:
+        """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
+        client = self.mlflow.tracking.MlflowClient(tracking_uri=self.uri)
+        host = socket.gethostname()
+        ended = []
+        try:
+            experiments = [e.experiment_id for e in client.search_experiments()]
+            runs = client.search_runs(experiments, filter_string="attributes.status = 'RUNNING'", max_results=5000) if experiments else []
+        except Exception as exc:  # pragma: no cover - an unreadable store is reported by the run itself
+            log.warning("MLflow: cannot look for orphaned runs (%s)", exc)
+            return ended
+        for r in runs:
+            tags = r.data.tags
+            if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
+                continue
+            if process_alive(int(tags[PID_TAG]), tags.get(START_TAG, "")):
+                continue
+            client.set_terminated(r.info.run_id, status="KILLED")
+            ended.append(r.info.run_id)
+        if ended:
+            log.warning("MLflow: %d run(s) of a process that died were still RUNNING; marked KILLED", len(ended))
+        return ended
 
     def params(self, params: dict[str, Any]) -> None:
         if not self.enabled:
@@ -92,29 +210,74 @@ class Tracker:
         if self.enabled:
             self.mlflow.set_tags(tags)
 
+    # -- richer records: stage files once per hash, tables, datasets, configs ------------------------------
+    def run_id(self) -> str | None:
+        if not self.enabled:
+            return None
+        active = self.mlflow.active_run()
+        return active.info.run_id if active else None
 
-def evaluation_metrics(eval_dir: Path) -> dict[str, float]:
-    """The MLflow view of one evaluate output: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<sel>/<class>."""
-    import pandas as pd
+    def _uploaded_by(self, bundle: str) -> Any:
+        """The earliest run (any experiment of this store) that uploaded `bundle`, or None."""
+        runs = self.mlflow.search_runs(search_all_experiments=True, filter_string=f"tags.`{TAG}uploaded.{bundle}` = 'true'",
+                                       order_by=["attributes.start_time ASC"], max_results=1, output_format="list")
+        return runs[0] if runs else None
 
-    metrics: dict[str, float] = {}
-    xi = pd.read_csv(eval_dir / "xi.csv")
-    for row in xi.itertuples():
-        prefix = "xi" if row.reference_model != "ground_truth" else "xi_gt"
-        if row.class_name == "mean":
-            metrics[f"{prefix}_mean/{row.condition}"] = row.xi
-        else:
-            metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
-    rho = pd.read_csv(eval_dir / "rho_valid.csv")
-    summary = json.loads((eval_dir / "summary.json").read_text())
-    conds = list(dict.fromkeys(rho["condition"]))
-    main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
-    for row in rho.itertuples():
-        metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
-        if row.condition == main:
-            metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
-    for cond, v in summary.get("gt_miou", {}).items():
-        metrics[f"gt_miou/{cond}"] = v
-    for cond, v in summary.get("agreement", {}).items():
-        metrics[f"agreement/{cond}"] = v
-    return metrics
+    def stage_files(self, bundle: str, hit: bool, paths: list[Path], artifact_path: str | None = None,
+                    tables: dict[str, Any] | None = None) -> str | None:
+        """Upload one stage result's files (`bundle` = `<stage>.<hash>[.<part>]`) and MLflow tables
+        (`{artifact_file: DataFrame}`), unless this is a cache hit and an earlier run holds them: then tag
+        and link that run and upload nothing. Returns the id of the run that holds the files."""
+        if not self.enabled:
+            return None
+        earlier = self._uploaded_by(bundle) if hit else None
+        if earlier is not None and earlier.info.run_id != self.run_id():
+            rid, eid = earlier.info.run_id, earlier.info.experiment_id
+            link = f"#/experiments/{eid}/runs/{rid}"
+            if self.uri.startswith(("http://", "https://")):
+                link = self.uri.rstrip("/") + "/" + link
+            self.mlflow.set_tags({f"{TAG}reused.{bundle}": rid, f"{TAG}reused_run": rid, f"{TAG}reused_link": link,
+                                  f"{TAG}cache_hit": "true"})
+            self._note(f"Cache hit: `{bundle}` was uploaded by [{earlier.info.run_name or rid}]({link}).")
+            log.info("tracking: %s reused from run %s (not uploaded again)", bundle, rid)
+            return rid
+        self.artifacts(paths, artifact_path)
+        for artifact_file, frame in (tables or {}).items():
+            self.mlflow.log_table(frame, artifact_file=artifact_file)
+        self.mlflow.set_tags({f"{TAG}uploaded.{bundle}": "true"})
+        return self.run_id()
+
+    def _note(self, line: str) -> None:
+        """Append a line to the run's description (markdown, shown on the run page)."""
+        run = self.mlflow.get_run(self.run_id())
+        old = run.data.tags.get("mlflow.note.content", "")
+        if line not in old:
+            self.mlflow.set_tag("mlflow.note.content", (old + "\n\n" if old else "") + line)
+
+    def dataset(self, name: str, source: Path | str, digest: str, tags: dict[str, str] | None = None) -> None:
+        """`log_input` of the data a run read: name, where it lies, and its hash as the digest."""
+        if not self.enabled:
+            return
+        from mlflow.data.meta_dataset import MetaDataset
+        from mlflow.data.sources import LocalArtifactDatasetSource
+
+        data = MetaDataset(LocalArtifactDatasetSource(str(source)), name=name, digest=digest)
+        self.mlflow.log_input(data, context="evaluation", tags={k: str(v) for k, v in (tags or {}).items()})
+
+    def config(self, config: dict[str, Any], artifact_file: str = "config.yaml") -> None:
+        if self.enabled:
+            self.mlflow.log_dict(config, artifact_file)
+
+    def hydra_config(self) -> None:
+        """The Hydra files of this job (`.hydra/config.yaml`, `hydra.yaml`, `overrides.yaml`) under `hydra/`,
+        and the command-line overrides as a tag; nothing outside a Hydra app."""
+        if not self.enabled:
+            return
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return
+        hc = HydraConfig.get()
+        if hc.output_subdir is not None:
+            self.artifacts(sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")), "hydra")
+        self.tags({f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)})

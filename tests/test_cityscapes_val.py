@@ -15,7 +15,7 @@ from PIL import Image
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError
 from pairedgta.models import build_segmenter
-from tests.conftest import run_cli
+from pairedgta.testing.cli import run_cli
 
 # (city, seq, frame, which ground-truth files exist)
 FRAMES = [
@@ -149,7 +149,8 @@ def test_check_matches_numpy_logs_to_mlflow_and_caches(tree, bad_runs, tmp_path)
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("cityscapes_val_check")
     nested = [r for r in client.search_runs([exp.experiment_id]) if r.data.tags.get("mlflow.parentRunId")]
-    assert [r.info.run_name for r in nested] == ["tiny_segformer"]
+    assert [r.data.tags["model"] for r in nested] == ["tiny_segformer"]
+    assert nested[0].info.run_name.startswith("cityscapes_val_check \u00b7 tiny_segformer \u00b7 cityscapes")
     metrics = nested[0].data.metrics
     assert metrics["cityscapes_val/miou"] == pytest.approx(miou)
     for k, name in enumerate(CLASS_NAMES):  # NaN classes (absent from labels and predictions) are not logged
@@ -187,15 +188,15 @@ def test_scale_options_and_preprocessing_warning(tree):
     from pairedgta.stages.cityscapes_val import preprocessing_warning
 
     root, truth = tree
-    ds = open_cityscapes({"root": str(root), "split": "val", "max_images": 2, "scale": 0.5})
+    ds = open_cityscapes(root=str(root), split="val", max_images=2, scale=0.5)
     assert [s.frame_id for s in ds.samples] == ["frankfurt_000000_000294", "frankfurt_000001_007973"]
     image, label = ds.load(ds.samples[1])
     assert image.shape == (16, 32, 3) and label.shape == (16, 32)
     assert set(np.unique(label)) <= set(np.unique(truth[1][1]))  # nearest: no invented label values
-    full = open_cityscapes({"root": str(root)})
+    full = open_cityscapes(root=str(root))
     np.testing.assert_array_equal(full.load(full.samples[2])[1], truth[2][1])  # labelIds -> train ids
     for bad in ({"scale": 2.0}, {"scale": 0}, {"max_images": 0}, {"split": "../val"}):
         with pytest.raises(ConfigError):
-            open_cityscapes({"root": str(root), **bad})
+            open_cityscapes(root=str(root), **bad)
     assert "check preprocessing" in preprocessing_warning("segformer_b0", 0.2)
     assert preprocessing_warning("segformer_b0", 0.5) is None and preprocessing_warning("tiny_segformer", 0.0) is None

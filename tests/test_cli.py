@@ -12,8 +12,8 @@ from PIL import Image
 
 from pairedgta.metrics import ReferenceConsistency, prediction_mass, rho_valid
 from pairedgta.models import build_segmenter
-from tests.conftest import run_cli
-from tests.test_datasets import write_release
+from pairedgta.testing.cli import run_cli
+from pairedgta.testing.datasets import write_release
 
 
 def stage_dirs(cache: Path) -> set[str]:
@@ -33,7 +33,7 @@ def test_smoke_experiment_end_to_end(tmp_path):
     for name in ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv"):
         assert (evals["tiny_mask2former"] / name).is_file()
     plots = [p for p in (cache / "plot").iterdir() if not p.name.startswith(".")]
-    assert {"xi_table.png", "xi_table.pdf", "ranking.png"} <= {p.name for p in plots[0].iterdir()}
+    assert {"xi_table_tiny_segformer.png", "xi_table_tiny_mask2former.pdf", "ranking.png"} <= {p.name for p in plots[0].iterdir()}
 
     # recompute the numbers independently from the cached dataset, pseudo-labels and the model
     gen = next(p for p in (cache / "generate").iterdir() if not p.name.startswith("."))
@@ -58,14 +58,21 @@ def test_smoke_experiment_end_to_end(tmp_path):
     r = rho[(rho.condition == "Night-EXTRASUNNY") & (rho.class_name == "car") & (rho.selection == "top_m")].rho.item()
     np.testing.assert_equal(r, rho_valid(clean_mass, adv_mass, m=25))
 
-    # MLflow: one parent run, a nested run per model holding the same numbers
+    # MLflow: one parent run (with the job's Hydra config), a nested run per model holding the same numbers
     import mlflow
 
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
     exp = client.get_experiment_by_name("smoke")
     runs = client.search_runs([exp.experiment_id])
-    nested = {r.info.run_name: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
+    nested = {r.data.tags["model"]: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
     assert len(runs) == 3 and set(nested) == {"tiny_segformer", "tiny_mask2former"}
+    dataset = f"generated@{gen.name[:8]}"
+    assert nested["tiny_mask2former"].info.run_name == f"smoke \u00b7 tiny_mask2former \u00b7 {dataset}"
+    (parent,) = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    assert parent.info.run_name == f"smoke \u00b7 tiny_segformer, tiny_mask2former \u00b7 {dataset}"
+    hydra_files = {a.path for a in client.list_artifacts(parent.info.run_id, "hydra")}
+    assert {"hydra/config.yaml", "hydra/overrides.yaml", "hydra/hydra.yaml"} <= hydra_files
+    assert "+experiment=smoke" in parent.data.tags["pairedgta.overrides"]
     logged = nested["tiny_mask2former"].data.metrics
     mean = night.xi.mean()
     assert logged["xi_mean/Night-EXTRASUNNY"] == pytest.approx(mean)
@@ -108,4 +115,93 @@ def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
     for d in stage_dirs(cache):
         assert (cache / d / "manifest.json").is_file()
     if case in ("corrupt_png", "size_mismatch"):
-        assert not list((cache / "evaluate").glob("[!.]*")) if (cache / "evaluate").exists() else True
+        # the failure comes while evaluating: no evaluate entry may appear
+        assert not (cache / "evaluate").exists() or not list((cache / "evaluate").glob("[!.]*"))
+
+
+def _read_only_dir(path: Path) -> None:
+    """A directory nobody may write into, even root: immutable where chattr works, else mode 555."""
+    import os
+    import subprocess
+
+    path.mkdir()
+    if os.geteuid() == 0:
+        subprocess.run(["chattr", "+i", str(path)], check=True, capture_output=True)
+    else:
+        path.chmod(0o555)
+
+
+def _writable_again(path: Path) -> None:
+    import os
+    import subprocess
+
+    if path.exists():
+        if os.geteuid() == 0:
+            subprocess.run(["chattr", "-i", str(path)], capture_output=True)
+        path.chmod(0o755)
+
+
+BAD_CONFIG = {
+    # case: (overrides, text the one error line must hold)
+    "cache_dir_is_a_file": (["cache_dir={tmp}/afile"], "is a file, not a directory"),
+    "cache_dir_under_a_file": (["cache_dir={tmp}/afile/cache"], "is a file, not a directory"),
+    "cache_dir_under_proc": (["cache_dir=/proc/pairedgta-cache"], "cache_dir=/proc/pairedgta-cache is under /proc"),
+    "cache_dir_read_only": (["cache_dir={tmp}/ro/cache"], "is not writable"),
+    "width_zero": (["renderer.width=0"], "renderer.width=0 is out of range"),
+    "height_negative": (["renderer.height=-3"], "renderer.height=-3 is out of range"),
+    "num_scenes_not_a_number": (["generate.num_scenes=abc"], "generate.num_scenes='abc' is not a number"),
+    "num_scenes_zero": (["generate.num_scenes=0"], "generate.num_scenes=0 is out of range"),
+    "dpi_zero": (["plot.dpi=0"], "plot.dpi=0 is out of range"),
+    "unknown_format": (["plot.formats=[bmpx]"], "plot.formats=['bmpx']: unknown format(s) ['bmpx']"),
+    "confidence_above_one": (["metric.bootstrap.confidence=1.5"], "metric.bootstrap.confidence=1.5 is out of range"),
+    "negative_resamples": (["metric.bootstrap.resamples=-5"], "metric.bootstrap.resamples=-5 is out of range"),
+    "batch_size_zero": (["evaluate.batch_size=0"], "evaluate.batch_size=0 is out of range"),
+    "tau_above_one": (["pseudolabel.tau=1.5"], "pseudolabel.tau=1.5 is out of range"),
+    "unknown_reference_model": (["reference_model=segformer_b9"], "reference_model: unknown model 'segformer_b9'"),
+    "unknown_qualitative_condition": (["plot.qualitative_conditions=[Night-HAIL]"],
+                                      "plot.qualitative_conditions: unknown condition(s) ['Night-HAIL']"),
+    "unknown_ranking_condition": (["plot.ranking.condition=Dusk-RAIN"], "plot.ranking.condition='Dusk-RAIN' is not a condition"),
+    "zero_threads": (["threads=0"], "threads=0 is out of range"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIG))
+def test_bad_config_value_is_one_line_before_any_stage(tmp_path, case):
+    """Each bad value stops the run before generation (nothing is computed first), with one line that
+    names the key and the value."""
+    from pairedgta.testing.cli import fast_overrides
+
+    overrides, expect = BAD_CONFIG[case]
+    overrides = [o.format(tmp=tmp_path) for o in overrides]
+    keys = {o.split("=", 1)[0] for o in overrides}
+    args = [o for o in fast_overrides(tmp_path) if o.split("=", 1)[0] not in keys] + overrides
+    (tmp_path / "afile").write_text("not a directory")
+    ro = tmp_path / "ro"
+    _read_only_dir(ro)
+    try:
+        proc = run_cli(args, tmp_path)
+    finally:
+        _writable_again(ro)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and expect in errors[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    cache = Path(next(o for o in args if o.startswith("cache_dir=")).split("=", 1)[1])
+    assert not (cache / "generate").exists() if cache.is_dir() else True  # no stage ran
+
+
+def test_corrupt_hf_weights_from_the_cli_are_one_line(tmp_path):
+    from pairedgta.testing.cli import fast_overrides
+
+    weights = tmp_path / "weights"
+    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    st = weights / "model.safetensors"
+    st.write_bytes(st.read_bytes()[: st.stat().st_size // 2])  # truncated download
+    args = [o for o in fast_overrides(tmp_path) if not o.startswith("model=")] + [
+        "models=null", "model=segformer_b0", f"model.path={weights}"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and f"model.path={weights}" in errors[0], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert not list((tmp_path / "cache" / "evaluate").glob("[!.]*")) if (tmp_path / "cache" / "evaluate").exists() else True

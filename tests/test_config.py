@@ -6,7 +6,7 @@ from omegaconf import OmegaConf
 
 from pairedgta.conditions import Condition, ConditionGrid, build_condition_grid
 from pairedgta.errors import ConfigError
-from tests.conftest import CONF, compose_cfg
+from pairedgta.testing.cli import CONF, compose_cfg
 
 GROUPS = ["conditions", "region", "renderer", "model", "metric", "dataset"]
 
@@ -16,7 +16,71 @@ def test_every_option_of_every_group_composes(group):
     for path in sorted((CONF / group).glob("*.yaml")):
         cfg = compose_cfg([f"{group}={path.stem}"])
         # resolve everything but mandatory-missing values (dataset.root of release datasets)
-        OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+        node = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)[group]
+        assert set(node) == set(OmegaConf.load(path)) - {"defaults"}, path
+
+
+def _options(group):
+    return [(p.stem, OmegaConf.to_container(OmegaConf.load(p))) for p in sorted((CONF / group).glob("*.yaml"))]
+
+
+# (group, registry, the key that picks the target, keys given at run time rather than by the YAML)
+REGISTRIES = [
+    ("region", "pairedgta.scene.sampling:REGIONS", "type", ()),
+    ("dataset", "pairedgta.datasets:DATASETS", "kind", ("grid",)),
+    ("renderer", "pairedgta.render:RENDERERS", "backend", ()),
+]
+
+
+@pytest.mark.parametrize("group,registry,choice,runtime", REGISTRIES)
+def test_config_keys_are_exactly_what_the_code_reads(group, registry, choice, runtime):
+    """None defined and never read (the target rejects unknown keys), none read and never defined (every
+    keyword the target takes is in the YAML)."""
+    import importlib
+
+    from pairedgta.registry import accepted_keys
+
+    module, attr = registry.split(":")
+    reg = getattr(importlib.import_module(module), attr)
+    for name, cfg in _options(group):
+        target = reg.resolve(cfg[choice])
+        keys = accepted_keys(target)
+        assert keys is not None, f"{target} takes **kwargs: its keys cannot be checked"
+        assert set(cfg) - {choice} == keys - set(runtime), f"{group}/{name}"
+
+
+def test_model_keys_are_exactly_what_the_families_read():
+    from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config
+    from pairedgta.registry import accepted_keys
+
+    by_family: dict[str, set[str]] = {}
+    for name, cfg in _options("model"):
+        check_model_config(cfg)  # no key a family does not read
+        assert not set(cfg) & set(RUNTIME_KEYS), f"model/{name} sets a runtime key"
+        by_family.setdefault(cfg["family"], set()).update(cfg)
+    for family, defined in by_family.items():
+        read = accepted_keys(FAMILIES.resolve(family)) - set(RUNTIME_KEYS)
+        assert read == defined, f"{family}: read but never defined {sorted(read - defined)}"
+
+
+def test_unknown_keys_are_rejected_the_same_way_everywhere():
+    from pairedgta.datasets import open_dataset
+    from pairedgta.models import build_segmenter
+    from pairedgta.render import build_renderer
+    from pairedgta.scene.sampling import build_region
+
+    cases = [
+        (lambda: build_renderer({"backend": "synthetic", "width": 8, "height": 8, "colour": 1}), "renderer: unknown key(s) colour"),
+        (lambda: build_region({"type": "rectangle", "name": "r", "x_range": [0, 1], "y_range": [0, 1], "hight": 2}),
+         "region: unknown key(s) hight"),
+        (lambda: open_dataset({"kind": "paired_gta", "root": "/x", "spilt": "val"}), "dataset: unknown key(s) spilt"),
+        (lambda: build_segmenter("tiny_segformer", widht=3), "model (tiny_segformer): unknown key(s) widht"),
+    ]
+    for make, message in cases:
+        with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            make()
+    with pytest.raises(ConfigError, match="renderer.backend='povray' is unknown; choose one of: blender, deepgtav, synthetic"):
+        build_renderer({"backend": "povray"})
 
 
 @pytest.mark.parametrize("experiment", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))

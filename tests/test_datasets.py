@@ -1,7 +1,6 @@
 """Readers of the released PairedGTA layout and of the project's own layout."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
@@ -9,19 +8,9 @@ from PIL import Image
 from pairedgta.conditions import build_condition_grid
 from pairedgta.datasets import load_group_images, load_image, open_dataset
 from pairedgta.errors import DataError
-from tests.conftest import compose_cfg
+from pairedgta.testing.cli import compose_cfg
+from pairedgta.testing.datasets import write_release
 
-
-def write_release(root, locs, size=(64, 32), missing=()):
-    for loc in locs:
-        for time in ("Day", "Sunset", "Night"):
-            for weather in ("EXTRASUNNY", "RAIN", "FOGGY"):
-                if (loc, f"{time}-{weather}") in missing:
-                    continue
-                d = root / time
-                d.mkdir(parents=True, exist_ok=True)
-                arr = np.random.default_rng(loc).integers(0, 255, size=(size[1], size[0], 3), dtype=np.uint8)
-                Image.fromarray(arr).save(d / f"{loc}_{time}_{weather}.png")
 
 
 @pytest.fixture

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from pairedgta.conditions import Condition
+from pairedgta.configs import CONFIG_DIR
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render import build_renderer
 from pairedgta.render.deepgtav import (
@@ -25,7 +26,7 @@ from pairedgta.render.deepgtav import (
     row_stride,
     validate_message,
 )
-from pairedgta.render.deepgtav_server import DeepGTAVTestServer, SyntheticView, encode_bgr_padded
+from pairedgta.testing.deepgtav_server import DeepGTAVTestServer, SyntheticView, encode_bgr_padded
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.validation import joaat, object_world_xy, validate_group
 
@@ -142,11 +143,11 @@ def test_render_builds_scene_and_switches_with_config(server):
 
 
 def test_build_renderer_from_conf():
-    cfg = yaml.safe_load((ROOT / "conf" / "renderer" / "deepgtav.yaml").read_text())
+    cfg = yaml.safe_load((CONFIG_DIR / "renderer" / "deepgtav.yaml").read_text())
     r = build_renderer(cfg)
     assert isinstance(r, DeepGTAVRenderer)
     assert (r.width, r.height, r.transport, r.settle_s) == (1280, 720, "zmq", 1.0)
-    with pytest.raises(ConfigError, match=r"renderer\.timeout is not a deepgtav option"):
+    with pytest.raises(ConfigError, match=r"renderer: unknown key\(s\) timeout; known keys: .*timeout_s"):
         build_renderer({**cfg, "timeout": 5})
     with pytest.raises(ConfigError, match=r"renderer\.transport"):
         build_renderer({**cfg, "transport": "udp"})
@@ -239,8 +240,15 @@ def test_bad_descriptor_or_condition_raises_before_sending(server):
         r.prepare(bad_object)
     with pytest.raises(MessageError, match=r"SetWeather\.weather='Sunny'"):
         r.render(DESCRIPTOR, Condition("Day-Sunny", "Day", "Sunny"))
-    time.sleep(0.02)
-    assert server.received == [] and server.dropped == []  # nothing reached the server
+    # nothing reached the server: a valid scene sent afterwards on the same renderer is the first
+    # thing the server sees (messages arrive in order, so earlier ones would come before it)
+    r.prepare(DESCRIPTOR)
+    assert wait_for(lambda: "CreatePed" in server.received)
+    assert server.received[:7] == [
+        "stop", "start", "TeleportToLocation", "SetCameraPositionAndRotation", "CreateVehicle",
+        "CreateVehicle", "CreatePed",
+    ]
+    assert server.dropped == []
     r.close()
 
 
@@ -319,10 +327,9 @@ def test_server_can_hang_up_on_a_bad_message_like_a_crashing_plugin():
 def test_silent_server_times_out_retries_and_fails_with_one_clear_line(transport):
     with DeepGTAVTestServer(transport, fault="silent") as srv:
         r = make_renderer(srv, timeout_s=0.2, retries=2)
-        t0 = time.monotonic()
         with pytest.raises(RendererError) as info:
             r.prepare(DESCRIPTOR)
-        elapsed = time.monotonic() - t0
+        assert r.retries_used == 2  # gave up after exactly retries + 1 attempts, no more
         r.close()
         # each attempt starts a session on a fresh connection (a PAIR server may still be holding
         # the previous peer when the last one arrives, hence >= 2)
@@ -332,14 +339,13 @@ def test_silent_server_times_out_retries_and_fails_with_one_clear_line(transport
     assert f"127.0.0.1:{srv.port}" in msg and "timed out" in msg
     assert "renderer.timeout_s (now 0.2)" in msg and "renderer.retries (now 2)" in msg
     assert "3 attempts" in msg
-    assert elapsed < 2.0
 
 
 def test_transient_silence_is_cured_by_a_retry(transport):
     with DeepGTAVTestServer(transport, fault="silent", fault_sessions=1) as srv:
         with make_renderer(srv, timeout_s=0.2, retries=2) as r:
             r.prepare(DESCRIPTOR)
-            assert r.retries_used == 1 and r.overhead_s >= 0.2  # the failed attempt waited timeout_s
+            assert r.retries_used == 1 and r.overhead_s > 0  # the failed attempt is booked as overhead
             res = r.render(DESCRIPTOR, CONDITIONS[2])
         assert srv.sessions == 2
     assert res.state["weather"] == "RAIN" and res.image.shape == (36, 64, 3)
@@ -396,7 +402,7 @@ def test_garbage_length_prefix_on_tcp():
 def test_nobody_listening_tcp():
     r = DeepGTAVRenderer(width=32, height=8, port=free_port(), transport="tcp", timeout_s=0.2, retries=1,
                          backoff_s=0.01, rate=100.0)
-    t0 = time.monotonic()
-    with pytest.raises(RendererError, match=r"cannot connect.*renderer\.timeout_s"):
+    with pytest.raises(RendererError, match=r"cannot connect.*2 attempts.*renderer\.timeout_s") as info:
         r.open()
-    assert time.monotonic() - t0 < 1.5
+    assert "\n" not in str(info.value)
+    assert r.retries_used == 1

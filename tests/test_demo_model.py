@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 from omegaconf import OmegaConf
 
@@ -17,7 +16,7 @@ from pairedgta.render import build_renderer
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.descriptor import SceneDescriptor
 from pairedgta.scene.sampling import build_region
-from tests.conftest import compose_cfg
+from pairedgta.testing.cli import compose_cfg
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights" / "demo_segformer"
 

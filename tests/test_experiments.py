@@ -19,7 +19,7 @@ from pairedgta.datasets.acdc import REFERENCE, open_acdc, write_standin
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.metrics import prediction_mass, rho_valid
 from pairedgta.models import build_segmenter
-from tests.conftest import compose_cfg, fast_overrides, run_cli
+from pairedgta.testing.cli import compose_cfg, fast_overrides, run_cli
 
 TINY = ["models=[tiny_segformer,tiny_mask2former]", "reference_model=tiny_segformer"]
 
@@ -103,7 +103,8 @@ def test_paper_table_one_run_qualitative_and_multirun_aggregate(work):
     s = run(compose_cfg(base(work) + TINY + ["+experiment=paper_table"]))
     plot_dir = Path(s["plot"])
     evals = {m: Path(p) for m, p in s["evaluate"].items()}
-    assert {"xi_table.png", "table1_xi.md", "table1_xi.tex", "table1_xi.csv"} <= {p.name for p in plot_dir.iterdir()}
+    assert {"table1_xi.md", "table1_xi.tex", "table1_xi.csv"} <= {p.name for p in plot_dir.iterdir()}
+    assert {f"xi_table_{m}.png" for m in evals} <= {p.name for p in plot_dir.iterdir()}  # a heatmap per model
     check_table(plot_dir, evals)
 
     # qualitative grids: the worst and the best group per condition by the cached per-image agreement,
@@ -146,8 +147,9 @@ def test_pseudo_label_distribution(work):
     void = 1 - sum((l != IGNORE_INDEX).sum() for l in labels.values()) / sum(l.size for l in labels.values())
     assert metrics["pseudo_label/generated/void_share"] == pytest.approx(void)
     from pairedgta.figures.distribution import example_group
+    from pairedgta.stages.pseudolabel import PseudoLabels
 
-    assert example_group(pseudo, None) == best
+    assert example_group(PseudoLabels("pseudolabel", pseudo.name, pseudo, hit=True), None) == best
 
 
 # -- ACDC and night_vs_acdc ----------------------------------------------------------------------
@@ -167,7 +169,8 @@ def acdc_root(work) -> Path:
 
 
 def test_acdc_reader_layout_missing_reference_and_bad_root(acdc_root, tmp_path, caplog):
-    ds, grid = open_acdc({"condition": "night", "splits": ["train", "val"], "name": "acdc"}, root=acdc_root)
+    ds = open_acdc(condition="night", splits=["train", "val"], name="acdc", root=acdc_root)
+    grid = ds.grid
     assert grid.names == [REFERENCE, "ACDC-night"] and grid.reference == REFERENCE
     assert len(ds) == 5 and ds.skipped_without_reference == 1 and "without their reference" in caplog.text
     assert [g.group_id.split("_")[0] for g in ds.groups] == ["train"] * 3 + ["val"] * 2
@@ -176,13 +179,13 @@ def test_acdc_reader_layout_missing_reference_and_bad_root(acdc_root, tmp_path, 
     # ground truth belongs to the adverse frame only
     assert all(set(g.labels) <= {"ACDC-night"} for g in ds.groups)
     assert sum(bool(g.labels) for g in ds.groups) == 4
-    val_only, _ = open_acdc({"condition": "night", "splits": "val"}, root=acdc_root)
+    val_only = open_acdc(condition="night", splits="val", root=acdc_root)
     assert len(val_only) == 2
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match=r"rgb_anon/night/train.*missing; expected .*_frame_<n>_rgb_anon\.png"):
-        open_acdc({"condition": "night"}, root=tmp_path / "empty")
+        open_acdc(condition="night", root=tmp_path / "empty")
     with pytest.raises(ConfigError, match="fog, night, rain, snow"):
-        open_acdc({"condition": "hail"}, root=acdc_root)
+        open_acdc(condition="hail", root=acdc_root)
 
 
 def test_night_vs_acdc(work, acdc_root):
@@ -196,7 +199,7 @@ def test_night_vs_acdc(work, acdc_root):
     assert set(table.class_name) == {"person", "car"} and set(table.selection) == {"top_m", "nonzero"}
 
     # phi and rho_valid on ACDC recomputed from the images with the metric functions
-    ds, _ = open_acdc({"condition": "night", "splits": ["train", "val"]}, root=acdc_root)
+    ds = open_acdc(condition="night", splits=["train", "val"], root=acdc_root)
     model = build_segmenter("tiny_segformer")
     clean, adverse = {"person": [], "car": []}, {"person": [], "car": []}
     inter, union = np.zeros(19), np.zeros(19)

@@ -8,8 +8,8 @@ import json
 import numpy as np
 from PIL import Image
 
-from pairedgta.render.deepgtav_server import DeepGTAVTestServer
-from tests.conftest import run_cli
+from pairedgta.testing.cli import run_cli
+from pairedgta.testing.deepgtav_server import DeepGTAVTestServer
 
 PAPER_COLUMNS = ["location_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
                  "condition_wise_rendering_time", "pipeline_time", "overhead_time"]

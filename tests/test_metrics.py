@@ -233,7 +233,7 @@ def test_bootstrap_follows_the_absent_convention():
 
 
 def test_convention_configs_parse_and_bad_values_name_the_key():
-    from tests.conftest import compose_cfg
+    from pairedgta.testing.cli import compose_cfg
     from omegaconf import OmegaConf
 
     paper = convention_from_config(OmegaConf.to_container(compose_cfg(["metric=paper"]).metric, resolve=True))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,8 @@ import yaml
 
 from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ModelError
-from pairedgta.models import CONF_DIR, build_segmenter, model_config
+from pairedgta.configs import CONFIG_DIR
+from pairedgta.models import build_segmenter, model_config
 from pairedgta.models import ddrnet, deeplabv3plus, pidnet
 
 # names/shapes of the official training graphs (a copy of the shared reference, kept with the tests)
@@ -379,9 +379,10 @@ def test_tiny_models_are_seeded_and_leave_global_rng_alone(family):
 def test_model_configs_have_the_shared_layout():
     for family, (_, full, tiny, _) in FAMILIES.items():
         for name in (full, tiny):
-            raw = yaml.safe_load((CONF_DIR / f"{name}.yaml").read_text())
+            raw = yaml.safe_load((CONFIG_DIR / "model" / f"{name}.yaml").read_text())
             assert raw["name"] == name and raw["family"] == family
-            assert raw["device"] == "cpu" and raw["batch_size"] == 4 and raw["amp"] is None
+            assert "device" not in raw  # the run's top-level device, never a model's own key
+            assert raw["batch_size"] == 4 and raw["amp"] is None
             assert raw["channels_last"] is False and raw["compile"] is False
             assert "checkpoint_path" in raw and raw["checkpoint_path"] is None
             assert raw["random_init"] is (name == tiny)

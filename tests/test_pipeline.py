@@ -10,7 +10,7 @@ import pytest
 from pairedgta.app import run
 from pairedgta.errors import PairedGTAError
 from pairedgta.stages import generate as generate_stage
-from tests.conftest import compose_cfg, fast_overrides
+from pairedgta.testing.cli import compose_cfg, fast_overrides
 
 
 def hits(summary):

@@ -1,4 +1,4 @@
-"""conf/region/los_santos.yaml holds every location the paper sampled."""
+"""pairedgta/conf/region/los_santos.yaml holds every location the paper sampled."""
 from __future__ import annotations
 
 import csv
@@ -9,8 +9,10 @@ import pytest
 import yaml
 from matplotlib.path import Path as PolygonPath
 
+from pairedgta.configs import CONFIG_DIR
+
 ROOT = Path(__file__).resolve().parents[1]
-REGION = ROOT / "conf" / "region" / "los_santos.yaml"
+REGION = CONFIG_DIR / "region" / "los_santos.yaml"
 PAPER_TIMES = ROOT / "pairedgta" / "data" / "paper_generation_times.csv"  # the paper's sampled locations
 
 

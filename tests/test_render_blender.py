@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.conditions import Condition, build_condition_grid
 from pairedgta.errors import ConfigError, RendererError
-from pairedgta.render import BACKENDS, build_renderer
+from pairedgta.render import RENDERERS, build_renderer
 from pairedgta.render.blender import (
     TEMPLATES,
     BlenderRenderer,
@@ -27,7 +27,7 @@ from pairedgta.render.blender import (
 )
 from pairedgta.scene.descriptor import CATEGORIES, CameraPose, DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.town import ProceduralTownRegion
-from tests.conftest import CONF, compose_cfg
+from pairedgta.testing.cli import CONF, compose_cfg
 
 TOWN = {"town_seed": 1, "blocks": 2, "countryside_trees": 10}
 ROAD, BUILDING, SKY, PERSON, CAR = (CLASS_NAMES.index(c) for c in ("road", "building", "sky", "person", "car"))
@@ -51,7 +51,7 @@ def _descriptor(**changes) -> SceneDescriptor:
 # ---- no bpy needed -------------------------------------------------------------------------
 
 def test_backend_is_registered_and_module_imports_without_bpy():
-    assert BACKENDS["blender"] == "pairedgta.render.blender:BlenderRenderer"
+    assert RENDERERS.resolve("blender").__name__ == "BlenderRenderer"
     code = "import sys; import pairedgta.render.blender; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -111,8 +111,10 @@ def test_light_model_is_continuous_and_ordered():
 
 
 def test_bad_options_are_config_errors():
-    with pytest.raises(ConfigError, match="renderer.sampels"):
-        BlenderRenderer(width=64, height=32, sampels=4)
+    from pairedgta.render import build_renderer
+
+    with pytest.raises(ConfigError, match=r"renderer: unknown key\(s\) sampels; known keys: .*samples"):
+        build_renderer({"backend": "blender", "width": 64, "height": 32, "sampels": 4})
     with pytest.raises(ConfigError, match="renderer.device"):
         BlenderRenderer(width=64, height=32, device="TPU")
 
@@ -260,3 +262,95 @@ def test_bad_scenes_are_one_line_renderer_errors():
         # a good scene still renders after the errors
         res = r.render(_descriptor(), GRID["Day-EXTRASUNNY"])
         assert res.image.shape == (16, 32, 3)
+
+
+def test_a_scene_renders_the_same_first_in_a_fresh_renderer_or_after_another_scene():
+    """Resume safety (issue 16): a scene rendered right after a different scene (other objects,
+    other place) matches the same scene rendered first by a fresh renderer, byte for byte."""
+    k = _descriptor()
+    loc = ProceduralTownRegion(**TOWN).sample_location(np.random.default_rng(7))
+    j = _descriptor(scene_id="j", location=loc, objects=(
+        DynamicObject("truck", "mule", forward=15.0, right=0.0, color=(20, 120, 40)),
+        DynamicObject("bus", "bus", forward=28.0, right=0.0, heading=180.0),
+        DynamicObject("rider", "a_m_y_motox_01", forward=8.0, right=1.0),
+    ))
+    conditions = [GRID["Day-EXTRASUNNY"], GRID["Night-RAIN"], GRID["Sunset-FOGGY"]]
+    opts = {"width": 128, "height": 64, "samples": 1, "town": TOWN}
+    with BlenderRenderer(**opts) as r:
+        r.render(j, conditions[0])
+        after = [r.render(k, c) for c in conditions]
+    with BlenderRenderer(**opts) as r:
+        alone = [r.render(k, c) for c in conditions]
+    for c, a, b in zip(conditions, after, alone):
+        assert a.image.tobytes() == b.image.tobytes(), (
+            c.name, float(np.abs(a.image.astype(int) - b.image).mean()))
+        np.testing.assert_array_equal(a.labels, b.labels)
+
+
+# ---- the populated world ------------------------------------------------------------------
+
+POPULATION = {"parked_cars_per_100m": 12.0, "lane_vehicles_per_100m": 4.0, "heavy_share": 0.1,
+              "pedestrians_per_100m": 14.0, "crossing_pedestrians": 1.5, "cyclists_per_100m": 1.0,
+              "motorcyclists_per_100m": 1.0, "parked_two_wheelers_per_100m": 1.0, "radius": 60.0}
+POP_TOWN = {**TOWN, "population": POPULATION}
+
+
+def _populated(seed: int = 2) -> SceneDescriptor:
+    region = ProceduralTownRegion(**POP_TOWN)
+    d = _descriptor(location=region.sample_location(np.random.default_rng(seed)), extra=(("town", POP_TOWN),))
+    return region.populate(d)
+
+
+@pytest.fixture(scope="module")
+def populated():
+    d = _populated()
+    with BlenderRenderer(width=128, height=64, samples=1, denoise=False, town=POP_TOWN,
+                         labels_per_condition=True) as r:
+        results = [r.render(d, c) for c in GRID]
+    return d, results
+
+
+def test_population_labels_are_exact_and_identical_under_all_nine_conditions(populated):
+    d, results = populated
+    assert len(d.ambient) >= 15
+    for res in results[1:]:
+        np.testing.assert_array_equal(res.labels, results[0].labels)
+        np.testing.assert_array_equal(res.instances, results[0].instances)
+    assert len({res.image.tobytes() for res in results}) == 9
+    labels, inst = results[0].labels, results[0].instances
+    first = len(d.objects) + 1
+    seen = set(np.unique(inst).tolist()) - {0}
+    ambient_seen = {i for i in seen if i >= first}
+    assert len(ambient_seen) >= 5, seen
+    # every instance carries the class of its entity (riders: rider + their vehicle)
+    want = {"car": {CAR}, "person": {PERSON}, "truck": {CLASS_NAMES.index("truck")},
+            "bus": {CLASS_NAMES.index("bus")}, "bicycle": {CLASS_NAMES.index("bicycle")},
+            "motorcycle": {CLASS_NAMES.index("motorcycle")},
+            "rider": {CLASS_NAMES.index(c) for c in ("rider", "bicycle", "motorcycle")}}
+    for i in ambient_seen:
+        e = d.ambient[i - first]
+        assert set(np.unique(labels[inst == i]).tolist()) <= want[e.category], (i, e)
+    assert {CAR, PERSON} <= set(np.unique(labels).tolist())
+
+
+def test_a_saved_populated_descriptor_replays_to_the_same_images(populated, tmp_path):
+    d, results = populated
+    d.save(tmp_path / "descriptor.json")
+    back = SceneDescriptor.load(tmp_path / "descriptor.json")
+    with BlenderRenderer(width=128, height=64, samples=1, denoise=False, town=TOWN) as r:
+        conditions = list(GRID)
+        for k in (0, len(conditions) - 2):
+            res = r.render(back, conditions[k])
+            assert res.image.tobytes() == results[k].image.tobytes()
+            np.testing.assert_array_equal(res.labels, results[k].labels)
+
+
+def test_the_motox_rider_rides_a_motorcycle():
+    loc = ProceduralTownRegion(**TOWN).sample_location(np.random.default_rng(2))
+    d = _descriptor(location=loc, objects=(DynamicObject("rider", "a_m_y_motox_01", forward=8.0, right=0.0,
+                                                         heading=90.0, color=(200, 30, 30)),))
+    with BlenderRenderer(width=96, height=48, samples=1, denoise=False, town=TOWN) as r:
+        res = r.render(d, GRID["Day-EXTRASUNNY"])
+    classes = set(np.unique(res.labels[res.instances == 1]).tolist())
+    assert CLASS_NAMES.index("motorcycle") in classes and CLASS_NAMES.index("rider") in classes
+    assert CLASS_NAMES.index("bicycle") not in classes

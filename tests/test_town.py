@@ -90,8 +90,10 @@ def test_buildings_stand_on_lots_only(town):
 
 
 def test_bad_parameters_are_one_line_config_errors():
-    with pytest.raises(ConfigError, match="unknown keys"):
-        ProceduralTownRegion(town_seed=0, lanes=3)
+    from pairedgta.scene.sampling import build_region
+
+    with pytest.raises(ConfigError, match=r"region: unknown key\(s\) lanes; known keys: .*road_width"):
+        build_region({"type": "procedural_town", "town_seed": 0, "lanes": 3})
     with pytest.raises(ConfigError, match="road_width"):
         ProceduralTownRegion(road_width=2.0)
     with pytest.raises(ConfigError, match="blocks"):
@@ -102,7 +104,7 @@ def test_region_dispatch_builds_the_town_from_its_config():
     from pairedgta.scene import sampling
     from omegaconf import OmegaConf
 
-    from tests.conftest import CONF
+    from pairedgta.testing.cli import CONF
 
     cfg = OmegaConf.to_container(OmegaConf.load(CONF / "region" / "procedural_town.yaml"))
     region = sampling.build_region(cfg)

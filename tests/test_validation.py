@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from pairedgta.render.deepgtav_server import GameState, SyntheticView
+from pairedgta.testing.deepgtav_server import GameState, SyntheticView
 from pairedgta.scene.descriptor import DynamicObject, Location, SceneDescriptor
 from pairedgta.scene.validation import (
     DEFAULT_THRESHOLD,

@@ -1,32 +1,39 @@
-"""Dataset readers, one module per layout; `open_dataset` picks one by `dataset.kind`."""
+"""Dataset readers, one module per layout, built through one registry from the `dataset` config.
+
+Every reader is called as `open_<kind>(root=..., grid=..., **dataset keys)`; a paired reader returns a
+`PairedDataset` that carries the condition grid it is evaluated over."""
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any, Mapping
 
 from pairedgta.conditions import ConditionGrid
-from pairedgta.datasets.base import Group, PairedDataset, load_group_images, load_image, load_label
-from pairedgta.errors import ConfigError
+from pairedgta.datasets.base import Group, LabelMaps, PairedDataset, load_group_images, load_image, load_label
+from pairedgta.registry import Registry
+
+DATASETS = Registry("dataset", "dataset.kind")
+DATASETS.register("generated", "pairedgta.datasets.generated:open_generated", paired=True)
+DATASETS.register("paired_gta", "pairedgta.datasets.paired_gta:open_paired_gta", paired=True)
+DATASETS.register("acdc", "pairedgta.datasets.acdc:open_acdc", paired=True)
+DATASETS.register("cityscapes", "pairedgta.datasets.cityscapes:open_cityscapes", paired=False)
 
 
-def open_dataset(cfg: Mapping[str, Any], grid: ConditionGrid, root: str | Path | None = None) -> PairedDataset:
+def open_dataset(cfg: Mapping[str, Any], grid: ConditionGrid | None = None, root: str | Path | None = None,
+                 where: str = "dataset") -> Any:
+    cfg = dict(cfg)
+    kind = cfg.pop("kind", None)
+    if root is not None:
+        cfg["root"] = root
+    return DATASETS.build(kind, cfg, where=where, grid=grid)
+
+
+def missing_root_message(cfg: Mapping[str, Any], key: str) -> str:
+    """What to do when `key` (the dataset's root) is unset: the reader module's ROOT_HINT, if it has one."""
     kind = cfg.get("kind")
-    root = root if root is not None else cfg.get("root")
-    if root is None:
-        raise ConfigError(f"dataset '{cfg.get('name')}' has no root; set dataset.root=PATH")
-    if kind == "generated":
-        from pairedgta.datasets.generated import open_generated
-
-        return open_generated(root, grid, cfg.get("name", "generated"))
-    if kind == "paired_gta":
-        from pairedgta.datasets.paired_gta import open_paired_gta
-
-        return open_paired_gta(root, grid, cfg.get("name", "paired_gta"))
-    if kind == "acdc":
-        from pairedgta.datasets.acdc import open_acdc
-
-        return open_acdc(cfg, root)[0]
-    raise ConfigError(f"dataset.kind={kind!r} is unknown; use generated, paired_gta or acdc")
+    hint = getattr(inspect.getmodule(DATASETS.resolve(kind)), "ROOT_HINT", None) if kind in DATASETS else None
+    return hint.format(key=key) if hint else f"{key} is required for dataset={cfg.get('name')}; set {key}=PATH"
 
 
-__all__ = ["Group", "PairedDataset", "open_dataset", "load_image", "load_label", "load_group_images"]
+__all__ = ["DATASETS", "Group", "LabelMaps", "PairedDataset", "open_dataset", "missing_root_message",
+           "load_image", "load_label", "load_group_images"]

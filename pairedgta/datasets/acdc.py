@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 import re
 import shutil
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -68,11 +67,10 @@ def label_path(root: Path, cond: str, split: str, seq: str, n: str) -> Path:
     return root / "gt" / cond / split / seq / f"{seq}_frame_{n}_gt_labelTrainIds.png"
 
 
-def missing_root_message(key: str = "dataset.root") -> str:
-    return (
-        f"ACDC is not available: register and download it (rgb_anon + gt) from {URL}, "
-        f"then set {key}=/path/to/ACDC (the folder that holds rgb_anon/ and gt/)"
-    )
+ROOT_HINT = (
+    f"ACDC is not available: register and download it (rgb_anon + gt) from {URL}, "
+    "then set {key}=/path/to/ACDC (the folder that holds rgb_anon/ and gt/)"
+)
 
 
 def _as_list(value: Any) -> list[str]:
@@ -83,20 +81,24 @@ def _as_list(value: Any) -> list[str]:
     return [str(v) for v in value]
 
 
-def open_acdc(cfg: Mapping[str, Any], root: str | Path | None = None) -> tuple[PairedDataset, ConditionGrid]:
-    """Pairs of `dataset.condition` over `dataset.splits`; returns the dataset and its own grid.
+def open_acdc(
+    *, root: str | Path, grid: ConditionGrid | None = None, name: str = "acdc", condition: str = "night",
+    splits: Any = ("train", "val"), max_pairs: int | None = None,
+) -> PairedDataset:
+    """Pairs of `dataset.condition` over `dataset.splits`, on the dataset's own two-condition grid (the run's
+    `conditions` do not apply: ACDC has one reference and one adverse image per frame).
 
     A frame whose reference image is missing is skipped, counted in `skipped_without_reference` and
     reported; a root without the expected tree is a DataError naming the paths it looked for."""
-    cond = str(cfg.get("condition", "night"))
+    cond = str(condition)
     grid = acdc_grid(cond)
-    splits = _as_list(cfg.get("splits"))
+    splits = _as_list(splits)
     bad = [s for s in splits if s not in SPLITS]
     if bad:
         raise ConfigError(f"dataset.splits: unknown {bad}; ACDC splits are {', '.join(SPLITS)}")
-    root = Path(root if root is not None else cfg.get("root"))
+    root = Path(root)
     if not root.is_dir():
-        raise DataError(f"dataset.root={root} does not exist; {missing_root_message()}")
+        raise DataError(f"dataset.root={root} does not exist; {ROOT_HINT.format(key='dataset.root')}")
     expected = [root / "rgb_anon" / cond / s for s in splits]
     missing_dirs = [p for p in expected if not p.is_dir()]
     if missing_dirs:
@@ -107,7 +109,6 @@ def open_acdc(cfg: Mapping[str, Any], root: str | Path | None = None) -> tuple[P
             f"expected {example} and {ref}"
         )
     adverse = condition_label(cond)
-    max_pairs = cfg.get("max_pairs")
     groups: list[Group] = []
     skipped: list[Path] = []
     labelled = 0
@@ -142,8 +143,7 @@ def open_acdc(cfg: Mapping[str, Any], root: str | Path | None = None) -> tuple[P
         )
     log.info("ACDC %s %s: %d pairs, %d with ground truth of the adverse image, %d without reference",
              cond, "+".join(splits), len(groups), labelled, len(skipped))
-    ds = PairedDataset(str(cfg.get("name", "acdc")), root, REFERENCE, grid.names, groups, len(skipped))
-    return ds, grid
+    return PairedDataset(str(name), root, REFERENCE, grid.names, groups, len(skipped), grid=grid)
 
 
 def write_standin(

@@ -11,6 +11,7 @@ from typing import Iterable, Sequence
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -35,20 +36,25 @@ class PairedDataset:
     conditions: list[str]
     groups: list[Group]
     skipped_without_reference: int = 0
+    grid: ConditionGrid | None = None  # the conditions it is evaluated over (ACDC brings its own)
 
     def __len__(self) -> int:
         return len(self.groups)
 
     def fingerprint(self) -> str:
-        """Identity of an external dataset for the cache: relative paths and sizes of every used file."""
+        """Identity of an external dataset for the cache: relative path, size and sha256 of every used
+        file (content hashes memoised on path, size and mtime under the cache dir, as DVC does), so a
+        file replaced by another of the same size is not taken for the old one."""
+        from pairedgta.filehash import default
+
+        memo = default()
         h = hashlib.sha256()
         for g in self.groups:
-            for cond in sorted(g.images):
-                p = g.images[cond]
-                h.update(f"{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
-            for cond in sorted(g.labels):
-                p = g.labels[cond]
-                h.update(f"L|{g.group_id}|{cond}|{p.relative_to(self.root)}|{p.stat().st_size}\n".encode())
+            for kind, files in (("", g.images), ("L|", g.labels)):
+                for cond in sorted(files):
+                    p = files[cond]
+                    st = p.stat()
+                    h.update(f"{kind}{g.group_id}|{cond}|{p.relative_to(self.root)}|{st.st_size}|{memo.sha256(p, st)}\n".encode())
         return h.hexdigest()[:16]
 
 
@@ -95,6 +101,26 @@ def load_group_images(group: Group, conditions: Sequence[str]) -> dict[str, np.n
         detail = ", ".join(f"{group.images[c].name}={s[1]}x{s[0]}" for c, s in shapes.items())
         raise DataError(f"group {group.group_id}: images differ in size ({detail}); re-render or remove the group")
     return images
+
+
+@dataclass(frozen=True)
+class LabelMaps:
+    """A per-group layer of label maps that a stage derives from a dataset (the pseudo-labels): one
+    single-channel PNG of train ids per group under `<root>/labels/`. The layout lives here, with the
+    datasets, so the stage that writes it and every reader agree without naming files themselves."""
+
+    root: Path
+
+    def path(self, group_id: str) -> Path:
+        return Path(self.root) / "labels" / f"{group_id}.png"
+
+    def load(self, group_id: str) -> np.ndarray:
+        return load_label(self.path(group_id))
+
+    def save(self, group_id: str, labels: np.ndarray) -> None:
+        path = self.path(group_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_png_atomic(labels, path)
 
 
 def save_png_atomic(array: np.ndarray, path: Path) -> None:

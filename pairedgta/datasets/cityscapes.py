@@ -52,11 +52,16 @@ class CityscapesSplit:
         return len(self.samples)
 
     def fingerprint(self) -> str:
-        """Identity for the cache: relative paths and sizes of every used file (not where root lives)."""
+        """Identity for the cache: relative path, size and sha256 (memoised on path, size and mtime) of
+        every used file, not where root lives."""
+        from pairedgta.filehash import default
+
+        memo = default()
         h = hashlib.sha256()
         for s in self.samples:
             for p in (s.image, s.label):
-                h.update(f"{p.relative_to(self.root).as_posix()}|{p.stat().st_size}\n".encode())
+                st = p.stat()
+                h.update(f"{p.relative_to(self.root).as_posix()}|{st.st_size}|{memo.sha256(p, st)}\n".encode())
         return h.hexdigest()[:16]
 
     def label_kinds(self) -> dict[str, int]:
@@ -133,11 +138,15 @@ def _ground_truth(gt_dir: Path, frame_id: str) -> tuple[Path, str] | None:
     return None
 
 
-def open_cityscapes(cfg: Mapping[str, Any], root: str | Path | None = None) -> CityscapesSplit:
-    """The images of one split (sorted by city, then frame; the first `max_images` of them) with their labels."""
-    split, max_images, scale = check_options(cfg)
-    root = Path(root if root is not None else cfg["root"])
-    name = str(cfg.get("name") or "cityscapes")
+def open_cityscapes(
+    *, root: str | Path, grid: Any = None, name: str = "cityscapes", split: str = "val",
+    max_images: int | None = None, scale: float | None = None,
+) -> CityscapesSplit:
+    """The images of one split (sorted by city, then frame; the first `max_images` of them) with their labels.
+    Not a paired dataset (`grid` is unused): it feeds the cityscapes_val model check only."""
+    split, max_images, scale = check_options({"split": split, "max_images": max_images, "scale": scale})
+    root = Path(root)
+    name = str(name or "cityscapes")
     if not root.is_dir():
         raise DataError(
             f"dataset.root={root} does not exist; "

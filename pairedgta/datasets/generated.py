@@ -25,7 +25,7 @@ def scene_files(scene_dir: Path, condition: str) -> tuple[Path, Path, Path]:
     return scene_dir / f"{condition}.png", scene_dir / f"{condition}_labels.png", scene_dir / f"{condition}_instances.png"
 
 
-def open_generated(root: str | Path, grid: ConditionGrid, name: str = "generated") -> PairedDataset:
+def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "generated") -> PairedDataset:
     root = Path(root)
     index_path = root / INDEX
     if not root.is_dir():
@@ -55,4 +55,4 @@ def open_generated(root: str | Path, grid: ConditionGrid, name: str = "generated
         log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
     if not groups:
         raise DataError(f"{index_path}: the dataset has no group with the reference {grid.reference}; regenerate it")
-    return PairedDataset(name, root, grid.reference, grid.names, groups, skipped)
+    return PairedDataset(name, root, grid.reference, grid.names, groups, skipped, grid=grid)

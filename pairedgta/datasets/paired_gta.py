@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 PATTERN = re.compile(r"^(?P<loc>\d+)_(?P<time>[A-Za-z]+)_(?P<weather>[A-Za-z]+)$")
 
 
-def open_paired_gta(root: str | Path, grid: ConditionGrid, name: str = "paired_gta") -> PairedDataset:
+def open_paired_gta(*, root: str | Path, grid: ConditionGrid, name: str = "paired_gta") -> PairedDataset:
     root = Path(root)
     if not root.is_dir():
         raise DataError(f"dataset.root={root} does not exist; set dataset.root to the released PairedGTA folder")
@@ -49,4 +49,4 @@ def open_paired_gta(root: str | Path, grid: ConditionGrid, name: str = "paired_g
         log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
     if not groups:
         raise DataError(f"dataset.root={root}: no group has the reference condition {grid.reference}")
-    return PairedDataset(name, root, grid.reference, grid.names, groups, skipped)
+    return PairedDataset(name, root, grid.reference, grid.names, groups, skipped, grid=grid)

@@ -11,8 +11,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
+    concat_tables,
     condition_display,
     markdown_table,
     model_color,
@@ -105,3 +107,26 @@ def ablation_table(frame: pd.DataFrame, classes: list[str], selection: str, out:
         f"# Pairing ablation: mean \u03be, \u03c1_valid ({selection}) and pair structure agreement per pairing level\n\n"
         + markdown_table(header, rows, ["l"] * 1 + ["r"] * 4 + ["l", "l"] + ["r"] * (len(header) - 7)))
     return [out / f"{stem}.csv", out / f"{stem}.md"]
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Mean xi, rho_valid and structure agreement per pairing level (one evaluated pass per level)."""
+    evaluated = [p for p in passes if p.evaluations]
+    if not evaluated:
+        return [], {}
+    classes = list((opts.plot.get("ranking") or {}).get("classes") or ["person", "car"])
+    selections = list((opts.cfg.get("metric") or {}).get("rho", {}).get("selections") or ["top_m"])
+    selection = str((opts.plot.get("ablation") or {}).get("selection") or selections[0])
+    levels = [Level(p.label, p.pairing, concat_tables(p.evaluations, "xi"), concat_tables(p.evaluations, "rho"),
+                    p.generate.validation() if p.generate is not None else None) for p in evaluated]
+    frame = ablation_frame(levels, evaluated[0].grid.reference, classes, selection)
+    files = ablation_figure(frame, classes, selection, out, opts.formats, opts.dpi)
+    files += ablation_table(frame, classes, selection, out)
+    metrics: dict[str, float] = {}
+    for r in frame.to_dict("records"):
+        base = f"ablation/{r['label']}/{r['model']}/{r['condition']}"
+        metrics[f"{base}/xi_mean"] = r["xi_mean"]
+        for c in classes:
+            metrics[f"{base}/rho_valid/{selection}/{c}"] = r[f"rho_{selection}_{c}"]
+        metrics[f"{base}/structure_agreement"] = r["structure_agreement"]
+    return files, metrics

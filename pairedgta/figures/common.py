@@ -5,15 +5,18 @@ import contextlib
 import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+import pandas as pd
 import seaborn as sns
 
 from pairedgta.cityscapes import CLASS_NAMES, PALETTE
+from pairedgta.conditions import condition_display  # noqa: F401  (the one naming of conditions, re-exported)
 
 # paper widths (inches): one column of a two-column layout, and the full text width
 COLUMN_WIDTH = 3.4
@@ -32,7 +35,13 @@ MODEL_DISPLAY = {
 }
 # a fixed colour per model, so a model has the same colour in every figure of every run
 _MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
-WEATHER_DISPLAY = {"EXTRASUNNY": "Sunny", "RAIN": "Rain", "FOGGY": "Foggy", "CLEAR": "Clear"}
+
+
+def concat_tables(results: Iterable[Any], table: str) -> pd.DataFrame:
+    """One table (`xi`, `rho`, `frame_counts`, `agreement`) over several evaluations, through each
+    evaluation's own reader (`result.xi()`, ...)."""
+    frames = [f for f in (getattr(r, table)() for r in results) if not f.empty]
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def model_display(name: str) -> str:
@@ -45,11 +54,6 @@ def model_color(name: str) -> tuple[float, float, float]:
     palette = sns.color_palette("tab10", 10) + sns.color_palette("Dark2", 8)
     idx = _MODEL_ORDER.index(name) if name in _MODEL_ORDER else zlib.crc32(name.encode())
     return tuple(palette[idx % len(palette)])  # type: ignore[return-value]
-
-
-def condition_display(name: str) -> str:
-    """Day-EXTRASUNNY -> Day-Sunny (the paper's wording); other parts of the name unchanged."""
-    return "-".join(WEATHER_DISPLAY.get(part, part) for part in name.split("-"))
 
 
 def class_short(name: str) -> str:

@@ -11,7 +11,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from pairedgta.cityscapes import colorize  # noqa: E402
+from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
+from pairedgta.figures import FigureOptions  # noqa: E402
 from pairedgta.figures.common import save  # noqa: E402
 
 
@@ -32,7 +34,7 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
         ax.axis("off")
     for ax, name in zip(axes.flat, names):
         ax.imshow(load_image(group.images[name]))
-        ax.set_title(name, fontsize=8)
+        ax.set_title(condition_display(name), fontsize=8)
     if has_labels:
         ax = axes.flat[len(names)]
         ax.imshow(colorize(load_label(group.labels[dataset.reference])))
@@ -40,3 +42,12 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
     fig.suptitle(f"{dataset.name} group {group.group_id}", fontsize=9)
     fig.tight_layout()
     return save(fig, out, stem, formats, dpi)
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """A contact sheet of the first group of every generated pass."""
+    files: list[Path] = []
+    for p in passes:
+        if p.dataset is not None and p.generate is not None:
+            files += contact_sheet(p.dataset, p.grid.names, out, ["png"], opts.dpi, stem=opts.stem("contact_sheet", p.label))
+    return files, {}

@@ -3,9 +3,11 @@ and the average pipeline time split into the three phases of Algorithm 1; one ro
 (the paper's CSV beside this project's own generate run)."""
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -13,7 +15,10 @@ import pandas as pd
 import seaborn as sns
 
 from pairedgta.errors import DataError
-from pairedgta.figures.common import TEXT_WIDTH, markdown_table, paper_style, save
+from pairedgta.figures import FigureOptions
+from pairedgta.figures.common import TEXT_WIDTH, markdown_table, paper_style, save, slug
+
+log = logging.getLogger("pairedgta.plot")
 
 PHASES = {
     "scene_sampling_time": "Phase 1\nscene sampling",
@@ -132,3 +137,49 @@ def cost_table(sources: list[Timings], out: Path, stem: str = "cost_summary") ->
     (out / f"{stem}.md").write_text("# Generation cost per scene (means)\n\n" + markdown_table(header, md)
                                     + (f"\nDerived values:{notes}\n" if notes else ""))
     return [out / f"{stem}.csv", out / f"{stem}.md"]
+
+
+def sources(passes: list, opts: FigureOptions) -> list[tuple[str, str, Path]]:
+    """(metric key, label, CSV) of every timing source: the paper's CSV (cost.paper), then cost.csv or
+    each generated pass's own timings."""
+    from pairedgta.data import PAPER_GENERATION_TIMES
+
+    ccfg = opts.cfg.get("cost") or {}
+    listed: list[tuple[str, str, Path]] = []
+    if ccfg.get("paper", True):
+        listed.append(("paper", str(ccfg.get("paper_label") or "paper (GTA V, RTX 2080)"), PAPER_GENERATION_TIMES))
+    if ccfg.get("csv"):
+        path = Path(str(ccfg["csv"]))
+        listed.append((slug(str(ccfg.get("label") or path.stem)), str(ccfg.get("label") or path.stem), path))
+        return listed
+    for p in passes:
+        if p.generate is not None:
+            backend = (p.cfg.get("renderer") or {}).get("backend", "renderer")
+            label = str(ccfg.get("label") or f"this run ({backend})")
+            key = "run" if len(passes) == 1 else f"run_{slug(p.label)}"
+            listed.append((key, label if len(passes) == 1 else f"{label} {p.label}", p.generate.timings_csv))
+    return listed
+
+
+def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+    """The cost settings, and the content hash of every timing CSV read (the plot stage's cache key)."""
+    import hashlib
+
+    inputs = {f"cost/{key}": hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+              for key, _, path in sources(passes, opts) if path.is_file()}
+    return dict(opts.cfg.get("cost") or {}), inputs
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    listed = sources(passes, opts)
+    timings = [load_timings(path, label) for _, label, path in listed]
+    if not timings:
+        return [], {}
+    files = cost_figure(timings, out, opts.formats, opts.dpi) + cost_table(timings, out)
+    metrics: dict[str, float] = {}
+    for (key, _, _), t in zip(listed, timings):
+        for k, v in summary(t).items():
+            metrics[f"cost/{key}/{k}"] = v
+        for note in t.notes:
+            log.info("cost, %s: %s", t.label, note)
+    return files, metrics

@@ -4,14 +4,16 @@ its pseudo-label in the Cityscapes palette below."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.gridspec import GridSpec
 
 from pairedgta.cityscapes import colorize
-from pairedgta.datasets import PairedDataset, load_image, load_label
+from pairedgta.datasets import PairedDataset, load_image
 from pairedgta.errors import DataError
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     CLASS_COLORS,
     COLUMN_WIDTH,
@@ -23,16 +25,16 @@ from pairedgta.figures.common import (
 )
 
 
-def pixel_mass(pseudo_dir: Path) -> pd.DataFrame:
-    """histogram.csv in Cityscapes order with the share of valid pixels in percent."""
-    hist = pd.read_csv(pseudo_dir / "histogram.csv").sort_values("class_id").reset_index(drop=True)
+def pixel_mass(pseudo: Any) -> pd.DataFrame:
+    """The pseudo-labels' class histogram in Cityscapes order with the share of valid pixels in percent."""
+    hist = pseudo.histogram().sort_values("class_id").reset_index(drop=True)
     hist["percent_of_valid"] = 100 * hist["share_of_valid"]
     return hist
 
 
-def example_group(pseudo_dir: Path, wanted: str | None) -> str:
+def example_group(pseudo: Any, wanted: str | None) -> str:
     """The configured group, else the group whose pseudo-label keeps the most pixels (ties: first id)."""
-    index = pd.read_csv(pseudo_dir / "index.csv", dtype={"group_id": str})
+    index = pseudo.index()
     if wanted is not None:
         if str(wanted) not in set(index["group_id"]):
             raise DataError(f"plot.distribution_example={wanted!r} is not a group of this dataset")
@@ -41,16 +43,14 @@ def example_group(pseudo_dir: Path, wanted: str | None) -> str:
     return str(index["group_id"].iloc[0])
 
 
-def distribution_figure(dataset: PairedDataset, pseudo_dir: Path, reference_model: str, tau: float, out: Path,
-                        formats: list[str], dpi: int, example: str | None = None,
-                        stem: str = "pseudo_label_distribution") -> tuple[list[Path], str]:
-    from pairedgta.stages.pseudolabel import label_path
-
-    hist = pixel_mass(pseudo_dir)
-    gid = example_group(pseudo_dir, example)
+def distribution_figure(dataset: PairedDataset, pseudo: Any, out: Path, formats: list[str], dpi: int,
+                        example: str | None = None, stem: str = "pseudo_label_distribution") -> tuple[list[Path], str]:
+    reference_model, tau = pseudo.reference_model(), pseudo.tau()
+    hist = pixel_mass(pseudo)
+    gid = example_group(pseudo, example)
     group = next(g for g in dataset.groups if g.group_id == gid)
     image = load_image(group.images[dataset.reference])
-    labels = load_label(label_path(pseudo_dir, gid))
+    labels = pseudo.labels.load(gid)
     void = 1 - float(hist["share_of_all"].sum())  # share_of_all = pixels / all pixels
     with paper_style():
         h, w = image.shape[:2]
@@ -76,10 +76,28 @@ def distribution_figure(dataset: PairedDataset, pseudo_dir: Path, reference_mode
         return save(fig, out, stem, formats, dpi), gid
 
 
-def distribution_table(pseudo_dir: Path, out: Path, stem: str = "pixel_mass") -> list[Path]:
-    hist = pixel_mass(pseudo_dir)
+def distribution_table(pseudo: Any, out: Path, stem: str = "pixel_mass") -> list[Path]:
+    hist = pixel_mass(pseudo)
     hist.to_csv(out / f"{stem}.csv", index=False)
     rows = [[c, f"{int(p):d}", f"{v:.2f}"] for c, p, v in zip(hist["class_name"], hist["pixels"], hist["percent_of_valid"])]
     (out / f"{stem}.md").write_text("# Pseudo-label pixel mass per class\n\n"
                                     + markdown_table(["Class", "Pixels", "% of valid"], rows))
     return [out / f"{stem}.csv", out / f"{stem}.md"]
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Pixel mass per class of each pass's pseudo-labels, with one reference image and its pseudo-label."""
+    files: list[Path] = []
+    metrics: dict[str, float] = {}
+    for p in passes:
+        if p.pseudo is None or p.dataset is None:
+            continue
+        paths, _example = distribution_figure(p.dataset, p.pseudo, out, opts.formats, opts.dpi,
+                                              example=opts.plot.get("distribution_example"),
+                                              stem=opts.stem("pseudo_label_distribution", p.label))
+        files += paths + distribution_table(p.pseudo, out, stem=opts.stem("pixel_mass", p.label))
+        hist = p.pseudo.histogram()
+        for r in hist.itertuples():
+            metrics[f"pseudo_label/{p.label}/share_of_valid/{r.class_name}"] = r.share_of_valid
+        metrics[f"pseudo_label/{p.label}/void_share"] = 1 - float(hist["share_of_all"].sum())
+    return files, metrics

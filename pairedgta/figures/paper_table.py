@@ -197,7 +197,8 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
     xi.to_csv(long_path, index=False)
     paths.append(long_path)
     if formats:
-        paths += xi_fig.heatmap_figure(xi, REFERENCE, out, list(formats), dpi, stem=f"{stem}_heatmap")
+        for files in xi_fig.heatmap_figures(xi, REFERENCE, out, list(formats), dpi, stem=f"{stem}_heatmap").values():
+            paths += files  # one conditions x classes heatmap per model
     log.info("Table 1 from %s (%s convention): %d models x %d conditions", csv_path.name, convention.name,
              xi["model"].nunique(), xi.loc[xi["condition"] != REFERENCE, "condition"].nunique())
     return paths, xi

@@ -13,15 +13,23 @@ from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.patches import Patch
 import pandas as pd
 
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
-from pairedgta.datasets import PairedDataset, load_group_images, load_label
-from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
+from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
+from pairedgta.figures import FigureOptions
+from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save, slug
 
 log = logging.getLogger("pairedgta.plot")
 COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",
-           "disagreement with\npseudo-label (red)")
+           "disagreement with\npseudo-label")
+RED, GREEN = np.array([230, 25, 25]), np.array([40, 200, 60])
+DISAGREE, AGREE = 0.65, 0.3  # how much of the colour is mixed into the dimmed image
+MID_GREY = np.full(3, 64.0)  # a typical dimmed pixel, for the legend's swatches
+LEGEND = (("disagrees with the pseudo-label", (1 - DISAGREE) * MID_GREY + DISAGREE * RED),
+          ("agrees with the pseudo-label", (1 - AGREE) * MID_GREY + AGREE * GREEN),
+          ("void: no pseudo-label (confidence < \u03c4)", MID_GREY))
 
 
 def select_groups(agreement: pd.DataFrame, conditions: list[str], n: int) -> list[dict[str, Any]]:
@@ -49,21 +57,20 @@ def disagreement_overlay(image: np.ndarray, pred: np.ndarray, pseudo: np.ndarray
     grey = image.astype(float).mean(axis=-1, keepdims=True).repeat(3, axis=-1) * 0.5
     valid = pseudo != IGNORE_INDEX
     out = grey.copy()
-    out[valid & (pred != pseudo)] = 0.35 * grey[valid & (pred != pseudo)] + 0.65 * np.array([230, 25, 25])
-    out[valid & (pred == pseudo)] = 0.7 * grey[valid & (pred == pseudo)] + 0.3 * np.array([40, 200, 60])
+    out[valid & (pred != pseudo)] = (1 - DISAGREE) * grey[valid & (pred != pseudo)] + DISAGREE * RED
+    out[valid & (pred == pseudo)] = (1 - AGREE) * grey[valid & (pred == pseudo)] + AGREE * GREEN
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.DataFrame, model_cfg: dict[str, Any],
-                     conditions: list[str], n: int, clean: str, out: Path, stem: str, formats: list[str], dpi: int,
-                     title: str = "") -> tuple[list[Path], pd.DataFrame]:
-    from pairedgta.models import build_segmenter
-    from pairedgta.stages.pseudolabel import label_path
+def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement: pd.DataFrame,
+                     model_cfg: dict[str, Any], conditions: list[str], n: int, clean: str, out: Path, stem: str,
+                     formats: list[str], dpi: int, title: str = "", device: str = "cpu") -> tuple[list[Path], pd.DataFrame]:
+    from pairedgta.models import shared_segmenter
 
     picks = select_groups(agreement, conditions, n)
     if not picks:
         return [], pd.DataFrame()
-    segmenter = build_segmenter(model_cfg)
+    segmenter = shared_segmenter(model_cfg, device=device)  # the one evaluate loaded, within a run
     groups = {g.group_id: g for g in dataset.groups}
     rows = []
     panels = []
@@ -72,7 +79,7 @@ def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.Dat
         if group is None or p["condition"] not in group.images:
             continue
         images = load_group_images(group, [clean, p["condition"]])
-        pseudo = load_label(label_path(pseudo_dir, group.group_id)).astype(np.int64)
+        pseudo = pseudo_labels.load(group.group_id).astype(np.int64)
         labels, conf = segmenter.predict(np.stack([images[clean], images[p["condition"]]]))
         labels, conf = labels.numpy(), conf.numpy()
         valid = pseudo != IGNORE_INDEX
@@ -87,14 +94,15 @@ def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.Dat
     h, w = panels[0][1].shape[:2]
     cell_w = TEXT_WIDTH / len(COLUMNS)
     with paper_style():
-        fig, axes = plt.subplots(len(panels), len(COLUMNS), figsize=(TEXT_WIDTH, len(panels) * (cell_w * h / w + 0.22)),
-                                 squeeze=False)
+        fig, axes = plt.subplots(len(panels), len(COLUMNS), squeeze=False, layout="constrained",
+                                 figsize=(TEXT_WIDTH, len(panels) * (cell_w * h / w + 0.22) + 0.45))
+        confidence = None
         for i, (p, clean_img, clean_pred, adv_img, adv_pred, adv_conf, pseudo) in enumerate(panels):
             shown = [clean_img, colorize(clean_pred), adv_img, colorize(adv_pred), adv_conf,
                      disagreement_overlay(adv_img, adv_pred, pseudo)]
             for j, (ax, im) in enumerate(zip(axes[i], shown)):
                 if j == 4:
-                    ax.imshow(im, cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+                    confidence = ax.imshow(im, cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
                 else:
                     ax.imshow(im, interpolation="nearest")
                 ax.set_xticks([])
@@ -103,6 +111,44 @@ def qualitative_grid(dataset: PairedDataset, pseudo_dir: Path, agreement: pd.Dat
                     ax.set_title(COLUMNS[j], fontsize=6)
             axes[i, 0].set_ylabel(f"{p['kind']}: {condition_display(p['condition'])}\n{p['pair_id']}\n"
                                   f"agreement {p['agreement']:.2f}", fontsize=5)
+        # the confidence column's scale, and what each colour of the disagreement column means
+        bar = fig.colorbar(confidence, ax=list(axes[:, 4]), location="bottom", shrink=0.9, aspect=12, pad=0.02)
+        bar.set_label("max softmax probability", fontsize=5)
+        bar.ax.tick_params(labelsize=5, length=2)
+        handles = [Patch(facecolor=colour / 255.0, edgecolor="none", label=text) for text, colour in LEGEND]
+        fig.legend(handles=handles, loc="outside lower right", fontsize=5, frameon=False, ncols=1)
         fig.suptitle(title or model_display(segmenter.name), fontsize=7)
-        fig.tight_layout()
         return save(fig, out, stem, formats, dpi), pd.DataFrame(rows)
+
+
+def clean_condition(p: Any) -> str:
+    clean = ((p.cfg.get("metric") or {}).get("rho") or {}).get("clean_condition")
+    return clean if clean in p.grid.names else p.grid.reference
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Worst/best groups per adverse condition for every evaluated model of every pass."""
+    n = int(opts.plot.get("qualitative_groups", 2))
+    wanted = opts.plot.get("qualitative_conditions")
+    files: list[Path] = []
+    tables = []
+    for p in passes:
+        if not p.evaluations or p.dataset is None or p.pseudo is None or n < 1:
+            continue
+        clean = clean_condition(p)
+        conditions = [c for c in p.grid.names if c != clean and (not wanted or c in wanted)]
+        for e in p.evaluations:
+            model_cfg = e.model_config()
+            paths, table = qualitative_grid(
+                p.dataset, p.pseudo.labels, e.agreement(), model_cfg, conditions, n, clean, out,
+                opts.stem("qualitative", p.label) + f"_{slug(model_cfg['name'])}", opts.formats, opts.dpi,
+                title=f"{p.label} \u00b7 {model_cfg['name']}" if opts.multi else "", device=str(opts.cfg.get("device", "cpu")),
+            )
+            files += opts.own(paths, model_cfg["name"], p.label)
+            if not table.empty:
+                table.insert(0, "dataset_label", p.label)
+                tables.append(table)
+    if tables:
+        pd.concat(tables, ignore_index=True).to_csv(out / "qualitative.csv", index=False)
+        files.append(out / "qualitative.csv")
+    return files, {}

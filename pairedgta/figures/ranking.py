@@ -12,8 +12,10 @@ import numpy as np
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
+    concat_tables,
     condition_display,
     markdown_table,
     model_display,
@@ -75,16 +77,21 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     top.axis("off")
                     bottom.axis("off")
                     continue
+                r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
+                vals = {row.selection: row.rho for row in r.itertuples()}
+                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
+                if not parts:
+                    # no rho_valid (too few frames with the class, or constant counts): say so in words
+                    # rather than draw an all-black heatmap
+                    _no_rho_panel(top, bottom, g, f"{inp.label} \u00b7 {model_display(model)}\n{cls}: \u03c1_valid n/a")
+                    continue
                 heat = np.vstack([g["clean_count"].to_numpy(), g["adv_count"].to_numpy()]).astype(float)
                 cax = top.inset_axes([1.02, 0.0, 0.035, 1.0])  # outside, so heat and difference align
                 sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
                             vmin=0, vmax=max(1.0, float(heat.max())))
                 cax.tick_params(labelsize=5, length=2)
-                r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
-                vals = {row.selection: row.rho for row in r.itertuples()}
-                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
                 top.set_title(f"{inp.label} \u00b7 {model_display(model)}\n{cls}: "
-                              f"\u03c1_valid {', '.join(parts) if parts else 'n/a'}", fontsize=6)
+                              f"\u03c1_valid {', '.join(parts)}", fontsize=6)
                 top.tick_params(length=0, labelsize=5)
                 diff = g["clean_count"].to_numpy() - g["adv_count"].to_numpy()
                 x = np.arange(len(diff))
@@ -101,6 +108,22 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     if i == 0:
                         bottom.legend(fontsize=5, frameon=False)
         return save(fig, out, stem, formats, dpi)
+
+
+def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
+    """Both axes of a (model, class) column without rho_valid: the title and a sentence with the
+    frame counts that explain why."""
+    n = len(g)
+    clean = int((g["clean_count"] > 0).sum())
+    adverse = int((g["adv_count"] > 0).sum())
+    top.set_title(title, fontsize=6)
+    top.axis("off")
+    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class is predicted in {clean} of {n} clean\n"
+             f"and {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
+             transform=top.transAxes, wrap=True)
+    bottom.axis("off")
+    bottom.text(0.5, 0.6, "needs \u2265 2 frames with differing\nclean counts (more scenes that show it)",
+                ha="center", va="center", fontsize=5, color="0.35", transform=bottom.transAxes)
 
 
 def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: str = "rho_valid") -> list[Path]:
@@ -129,3 +152,30 @@ def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: s
             + markdown_table(header, md_rows, ["l", "l", "l"] + ["r"] * (len(header) - 3)))
     (out / f"{stem}.md").write_text(text)
     return [out / f"{stem}.csv", out / f"{stem}.md"]
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """The ranking figure and rho table over every evaluated pass (its own adverse condition each)."""
+    ranking = opts.plot.get("ranking") or {}
+    classes = list(ranking.get("classes") or ["person", "car"])
+    inputs = []
+    for p in passes:
+        if not p.evaluations:
+            continue
+        counts = concat_tables(p.evaluations, "frame_counts")
+        rho = concat_tables(p.evaluations, "rho")
+        wanted = ((p.cfg.get("plot") or {}).get("ranking") or {}).get("condition")
+        cond = pick_condition(list(dict.fromkeys(counts["condition"])) if not counts.empty else [], wanted, p.grid.reference)
+        if cond is not None:
+            inputs.append(RankingInput(p.label, cond, counts, rho))
+    if not inputs:
+        return [], {}
+    selections = tuple((opts.cfg.get("metric") or {}).get("rho", {}).get("selections") or ("top_m", "nonzero"))
+    files = ranking_figure(inputs, classes, int(ranking.get("window", 5)), out, opts.formats, opts.dpi, selections=selections)
+    files += rho_table(inputs, classes, out)
+    metrics: dict[str, float] = {}
+    for inp in inputs:
+        r = inp.rho[(inp.rho["condition"] == inp.condition) & inp.rho["class_name"].isin(classes)]
+        for row in r.itertuples():
+            metrics[f"rho_valid/{inp.label}/{row.model}/{row.selection}/{row.class_name}"] = row.rho
+    return files, metrics

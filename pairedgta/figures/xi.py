@@ -1,5 +1,5 @@
 """Table 1 of the paper: xi per class (reference -> each adverse condition) for every model, as CSV,
-Markdown and a LaTeX booktabs table with the best value per column in bold, plus the heatmap figure."""
+Markdown and a LaTeX booktabs table with the best value per column in bold, plus a heatmap per model."""
 from __future__ import annotations
 
 import math
@@ -9,8 +9,10 @@ import matplotlib.pyplot as plt
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
+    concat_tables,
     class_short,
     condition_display,
     latex_escape,
@@ -19,6 +21,7 @@ from pairedgta.figures.common import (
     ordered_classes,
     paper_style,
     save,
+    slug,
 )
 
 GT = "ground_truth"
@@ -129,24 +132,54 @@ def write_tables(xi: pd.DataFrame, reference: str, out: Path, stem: str = "table
     return paths + [out / f"{stem}.md", out / f"{stem}.tex"]
 
 
-def heatmap_figure(xi: pd.DataFrame, reference: str, out: Path, formats: list[str], dpi: int, stem: str = "xi_table") -> list[Path]:
-    """Models x classes heatmap of xi (%), one panel per adverse condition, with the tables' columns."""
-    tables = xi_tables(xi, reference)
-    if not tables:
-        return []
-    n_models = max(len(t) for t in tables.values())
-    with paper_style():
-        fig, axes = plt.subplots(len(tables), 1, figsize=(TEXT_WIDTH, (0.22 * n_models + 0.7) * len(tables)), squeeze=False)
-        for ax, (cond, t) in zip(axes[:, 0], tables.items()):
-            shown = display_values(t)
-            shown.index = [model_display(m) for m in t.index]
-            shown.columns = [class_short(c) if c != "mean" else "Mean" for c in t.columns]
-            sns.heatmap(shown, ax=ax, annot=True, fmt=".1f", vmin=0, vmax=100, cmap="viridis", cbar=False,
-                        annot_kws={"fontsize": 5}, mask=shown.isna(), linewidths=0.3, linecolor="white")
-            ax.set_title(f"{condition_display(reference)} \u2192 {condition_display(cond)}: \u03be (%)")
+def heatmap_figures(xi: pd.DataFrame, reference: str, out: Path, formats: list[str], dpi: int,
+                    stem: str = "xi_table") -> dict[str, list[Path]]:
+    """Per model one conditions x classes heatmap of xi (%) with a colour bar, on one 0-100 scale and with
+    the tables' columns, so the models' figures compare side by side. Returns the files per model."""
+    xi = xi[(xi["reference_model"] != GT) & (xi["condition"] != reference)]
+    if xi.empty:
+        return {}
+    columns = table_columns(xi)
+    conditions = list(dict.fromkeys(xi["condition"]))
+    files: dict[str, list[Path]] = {}
+    for model in sorted(dict.fromkeys(xi["model"]), key=lambda m: model_display(m).lower()):
+        part = xi[xi["model"] == model]
+        wide = part.pivot_table(index="condition", columns="class_name", values="xi", dropna=False, aggfunc="first")
+        shown = display_values(wide.reindex(index=conditions, columns=columns))
+        shown.index = [condition_display(c) for c in shown.index]
+        shown.columns = [class_short(c) if c != "mean" else "Mean" for c in columns]
+        with paper_style():
+            fig, ax = plt.subplots(figsize=(TEXT_WIDTH, 0.24 * len(conditions) + 0.9))
+            sns.heatmap(shown, ax=ax, annot=True, fmt=".1f", vmin=0, vmax=100, cmap="viridis", mask=shown.isna(),
+                        annot_kws={"fontsize": 5}, linewidths=0.3, linecolor="white",
+                        cbar_kws={"label": "\u03be (%)", "pad": 0.01, "fraction": 0.04})
+            ax.set_title(f"{model_display(model)}: \u03be (%) from {condition_display(reference)}, per condition and class")
             ax.set_xlabel("")
             ax.set_ylabel("")
             ax.tick_params(length=0)
             ax.set_xticklabels(ax.get_xticklabels(), rotation=45, ha="right")
-        fig.tight_layout()
-        return save(fig, out, stem, formats, dpi)
+            ax.set_yticklabels(ax.get_yticklabels(), rotation=0)
+            fig.tight_layout()
+            files[model] = save(fig, out, f"{stem}_{slug(model)}", formats, dpi)
+    return files
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Table 1 (CSV/Markdown/LaTeX) + heatmap per evaluated pass, xi against the pseudo-labels."""
+    files: list[Path] = []
+    metrics: dict[str, float] = {}
+    for p in passes:
+        if not p.evaluations:
+            continue
+        xi = concat_tables(p.evaluations, "xi")
+        pl = xi[xi["reference_model"] != GT]
+        for model, paths in heatmap_figures(pl, p.grid.reference, out, opts.formats, opts.dpi,
+                                            stem=opts.stem("xi_table", p.label)).items():
+            files += opts.own(paths, model, p.label)
+        files += write_tables(pl, p.grid.reference, out, stem=opts.stem("table1_xi", p.label))
+        path = out / f"{opts.stem('xi_all_models', p.label)}.csv"
+        pl.to_csv(path, index=False)
+        files.append(path)
+        for r in pl[pl["class_name"] == "mean"].itertuples():
+            metrics[f"table/{p.label}/xi_mean/{r.condition}/{r.model}"] = r.xi
+    return files, metrics

@@ -1,66 +1,89 @@
-"""Model zoo: one registry of families, one factory, configs in conf/model/<name>.yaml.
+"""Model zoo: one registry of families, configs in the `model` config group.
 
-`build_segmenter(name, **overrides)` reads the model's YAML, applies overrides and hands the result to
-the family's builder; architecture modules know nothing about Hydra.
-"""
+`build_segmenter(name_or_config, device=..., **overrides)` reads the model's YAML through the config
+search path (or takes an already composed config), applies overrides and calls the family's builder
+with the config's keys as keyword arguments; architecture modules know nothing about Hydra.
+
+Inside `run_models()` (one run of the app) `shared_segmenter` builds each distinct model config once:
+pseudo-labelling, evaluation and the qualitative figure use the same loaded model."""
 from __future__ import annotations
 
-import importlib
-from pathlib import Path
-from typing import Any, Callable, Mapping
+import contextlib
+import json
+import logging
+from typing import Any, Iterator, Mapping
 
-from omegaconf import OmegaConf
-
-from pairedgta.errors import ConfigError
+from pairedgta.configs import group_option, group_options
 from pairedgta.models.base import Segmenter, resolve_device
+from pairedgta.registry import Registry
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "model"
-
-# family -> "module:builder"; builder(cfg: dict, device, **runtime) -> Segmenter
-FAMILIES: dict[str, str] = {
-    "segformer": "pairedgta.models.segformer:build",
-    "mask2former": "pairedgta.models.mask2former:build",
-    "deeplabv3plus": "pairedgta.models.deeplabv3plus:build",
-    "pidnet": "pairedgta.models.pidnet:build",
-    "ddrnet": "pairedgta.models.ddrnet:build",
-}
+FAMILIES = Registry("model family", "model.family")
+FAMILIES.register("segformer", "pairedgta.models.segformer:build")
+FAMILIES.register("mask2former", "pairedgta.models.mask2former:build")
+FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:build")
+FAMILIES.register("pidnet", "pairedgta.models.pidnet:build")
+FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:build")
+RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
+log = logging.getLogger("pairedgta.models")
+_RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
 
 
 def available_models() -> list[str]:
-    return sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
+    return group_options("model")
 
 
 def model_config(name: str, **overrides: Any) -> dict[str, Any]:
-    path = CONF_DIR / f"{name}.yaml"
-    if not path.is_file():
-        raise ConfigError(
-            f"unknown model '{name}' (no {path}); choose one of: {', '.join(available_models())}"
-        )
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(cfg, dict)
-    cfg.update({k: v for k, v in overrides.items()})
+    """pairedgta/conf/model/<name>.yaml (through the config search path) with `overrides` applied."""
+    cfg = group_option("model", name)
+    cfg.update(overrides)
     return cfg
 
 
-def build_segmenter(name: str | Mapping[str, Any], **overrides: Any) -> Segmenter:
-    """Build a segmenter by model name (or from an already composed model config mapping)."""
-    if isinstance(name, Mapping):
-        cfg = dict(name)
-        cfg.update(overrides)
-    else:
-        cfg = model_config(name, **overrides)
-    family = cfg.get("family")
-    if family not in FAMILIES:
-        raise ConfigError(
-            f"model '{cfg.get('name')}': family {family!r} is unknown; known: {', '.join(sorted(FAMILIES))}"
-        )
-    module_name, fn_name = FAMILIES[family].split(":")
+def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
+    """Unknown keys of a model config are the same one-line error before anything is built."""
+    from pairedgta.registry import check_keys
+
+    check_keys(FAMILIES.resolve(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
+
+
+def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Segmenter:
+    """Build a segmenter by model name or from a composed model config mapping."""
+    cfg = dict(model) if isinstance(model, Mapping) else model_config(str(model))
+    cfg.update(overrides)
+    device = device or cfg.pop("device", None) or "cpu"
+    return FAMILIES.build(cfg.get("family"), cfg, where=f"model ({cfg.get('name')})", device=device)
+
+
+def _cache_key(cfg: Mapping[str, Any], device: str | None) -> str:
+    return json.dumps({"config": dict(cfg), "device": device}, sort_keys=True, default=str)
+
+
+@contextlib.contextmanager
+def run_models() -> Iterator[dict[str, Segmenter]]:
+    """The scope of one run: `shared_segmenter` keeps every model it builds until the scope ends
+    (nested scopes share the outer one). Outside a scope it builds a fresh model each call."""
+    global _RUN_CACHE
+    if _RUN_CACHE is not None:
+        yield _RUN_CACHE
+        return
+    _RUN_CACHE = {}
     try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        raise ConfigError(f"model family '{family}' is not available here ({exc})") from None
-    builder: Callable[..., Segmenter] = getattr(module, fn_name)
-    return builder(cfg)
+        yield _RUN_CACHE
+    finally:
+        _RUN_CACHE = None
 
 
-__all__ = ["Segmenter", "build_segmenter", "model_config", "available_models", "resolve_device", "FAMILIES"]
+def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Segmenter:
+    """`build_segmenter(model, device)`, built once per run for the same composed config and device."""
+    if _RUN_CACHE is None:
+        return build_segmenter(model, device=device)
+    key = _cache_key(model, device)
+    if key not in _RUN_CACHE:
+        _RUN_CACHE[key] = build_segmenter(model, device=device)
+    else:
+        log.debug("model %s: reused within this run", model.get("name"))
+    return _RUN_CACHE[key]
+
+
+__all__ = ["Segmenter", "build_segmenter", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
+           "resolve_device", "FAMILIES", "RUNTIME_KEYS"]

@@ -15,9 +15,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pairedgta.cityscapes import NUM_CLASSES
-from pairedgta.errors import ConfigError, ModelError
+from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.models.base import Segmenter
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +47,8 @@ def _numpy_safe_globals() -> list[Any]:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0][:160]}" if text else type(exc).__name__
+    """The whole reason on one line (a refused pickle names the global, e.g. posix.system)."""
+    return reason(exc)
 
 
 def _is_state_dict(obj: Any) -> bool:
@@ -199,12 +201,11 @@ def build_inproject(
 ) -> NormalizedSegmenter:
     """Common `build(cfg)` body: validate runtime keys, seed, construct, load weights, wrap."""
     name = str(cfg.get("name") or cfg.get("family"))
-    if int(cfg.get("num_classes", NUM_CLASSES)) != NUM_CLASSES:
-        raise ConfigError(f"model '{name}': num_classes must be {NUM_CLASSES} (Cityscapes train ids)")
     amp = cfg.get("amp")
     if amp not in (None, "bf16", "fp16"):
         raise ConfigError(f"model '{name}': amp must be null, bf16 or fp16, got {amp!r}")
-    mean, std = _check_triplet(cfg, "mean"), _check_triplet(cfg, "std")
+    mean = _check_triplet(cfg, "mean") if cfg.get("mean") is not None else list(IMAGENET_MEAN)
+    std = _check_triplet(cfg, "std") if cfg.get("std") is not None else list(IMAGENET_STD)
     pad_multiple = int(cfg.get("pad_multiple") or default_pad_multiple)
     if pad_multiple < 1:
         raise ConfigError(f"model '{name}': pad_multiple must be >= 1, got {pad_multiple}")

@@ -227,7 +227,16 @@ def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> DDRNet:
     )
 
 
-def build(cfg: dict) -> Segmenter:
+def build(
+    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
+    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
+    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
+    mean: list | None = None, std: list | None = None, pad_multiple: int | None = None,
+    upsample_align_corners: bool | None = None, device: str = "cpu",
+    layers: list = (2, 2, 2, 2), planes: int = 64, spp_planes: int = 128, head_planes: int = 128,
+) -> Segmenter:
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    cfg = dict(locals())
     return build_inproject(
         cfg,
         lambda: build_module(cfg),

@@ -120,7 +120,17 @@ def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> DeepLabV3P
     )
 
 
-def build(cfg: dict) -> Segmenter:
+def build(
+    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
+    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
+    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
+    mean: list | None = None, std: list | None = None, pad_multiple: int | None = None,
+    upsample_align_corners: bool | None = None, device: str = "cpu",
+    layers: list = (3, 4, 23, 3), backbone_channels: list = (64, 128, 256, 512), output_stride: int = 16,
+    aspp_rates: list = (6, 12, 18), aspp_channels: int = 256, low_level_channels: int = 48, decoder_channels: int = 256,
+) -> Segmenter:
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    cfg = dict(locals())
     return build_inproject(
         cfg,
         lambda: build_module(cfg),

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from pairedgta.cityscapes import CLASS_NAMES
-from pairedgta.errors import ModelError
+from pairedgta.errors import ModelError, reason
 
 log = logging.getLogger(__name__)
 
@@ -18,6 +18,25 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+
+def _load_error_types() -> tuple[type[BaseException], ...]:
+    """What a damaged or hostile weights folder raises inside from_pretrained: I/O and format errors,
+    safetensors' header errors, a truncated or refused pickle (weights_only), a bad config.json."""
+    import pickle
+
+    types: list[type[BaseException]] = [OSError, ValueError, EOFError, RuntimeError, KeyError, TypeError,
+                                        pickle.UnpicklingError]
+    try:
+        from safetensors import SafetensorError
+
+        types.append(SafetensorError)
+    except ImportError:  # pragma: no cover - safetensors ships with transformers
+        pass
+    return tuple(types)
+
+
+_LOAD_ERRORS = _load_error_types()
 
 
 def pretrained_source(cfg: dict[str, Any]) -> str:
@@ -41,10 +60,15 @@ def load_pretrained(model_cls: Any, cfg: dict[str, Any]) -> Any:
     source = pretrained_source(cfg)
     try:
         model = model_cls.from_pretrained(source)
-    except (OSError, ValueError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    except _LOAD_ERRORS as exc:
+        if cfg.get("path"):
+            # a local folder whose files are corrupt, truncated or a refused pickle: say which, whole
+            raise ModelError(
+                f"model '{cfg.get('name')}': cannot load the weights in model.path={source} ({reason(exc)}); "
+                "replace them with an intact safetensors export of the model"
+            ) from None
         raise ModelError(
-            f"model '{cfg.get('name')}': cannot load '{source}' ({first[:160]}); offline, download the hub id "
+            f"model '{cfg.get('name')}': cannot load '{source}' ({reason(exc)}); offline, download the hub id "
             f"'{cfg.get('hub_id')}' elsewhere (huggingface-cli download {cfg.get('hub_id')} --local-dir DIR) "
             "and pass model.path=DIR"
         ) from None

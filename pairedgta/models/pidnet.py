@@ -153,7 +153,16 @@ def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> PIDNet:
     )
 
 
-def build(cfg: dict) -> Segmenter:
+def build(
+    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
+    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
+    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
+    mean: list | None = None, std: list | None = None, pad_multiple: int | None = None,
+    upsample_align_corners: bool | None = None, device: str = "cpu",
+    m: int = 2, n: int = 3, planes: int = 64, ppm_planes: int = 96, head_planes: int = 128,
+) -> Segmenter:
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    cfg = dict(locals())
     # The official evaluation upsamples the 1/8 logits with align_corners=True (config default ALIGN_CORNERS).
     return build_inproject(
         cfg,

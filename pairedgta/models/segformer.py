@@ -19,7 +19,15 @@ class SegFormerSegmenter(Segmenter):
         return self.module(pixel_values=self.pre(images)).logits
 
 
-def build(cfg: dict[str, Any]) -> Segmenter:
+def build(
+    *, name: str, family: str, hub_id: str | None = None, path: str | None = None,
+    preprocess: str = "processor", random_init: bool = False, init_seed: int = 0, arch: dict | None = None,
+    mean: list | None = None, std: list | None = None, resize: Any = None, size_divisor: int | None = None,
+    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
+    device: str = "cpu",
+) -> Segmenter:
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    cfg = dict(locals())
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 
     if cfg.get("random_init"):

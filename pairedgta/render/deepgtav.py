@@ -1,4 +1,5 @@
-"""GTA V backend: a client of the DeepGTAV plugin (shared/docs/deepgtav-protocol.md).
+"""GTA V backend: a client of the DeepGTAV plugin (its wire protocol is reproduced, for tests
+without the game, by pairedgta/testing/deepgtav_server.py).
 
 Semantic scene construction (`prepare`): start or reconfigure a stationary session at the ego
 pose, TeleportToLocation, SetCameraPositionAndRotation, then CreateVehicle/CreatePed for every
@@ -470,13 +471,8 @@ class DeepGTAVRenderer(Renderer):
         check_state: bool = True,
         clock_tolerance_min: int = 10,
         ego_tolerance_m: float = 5.0,
-        **unknown: Any,
     ) -> None:
         given = dict(locals())
-        if unknown:
-            raise ConfigError(
-                f"renderer.{min(unknown)} is not a deepgtav option; use one of {', '.join(sorted(self._options()))}"
-            )
 
         def need(key: str, ok: bool, fix: str) -> None:
             if not ok:
@@ -525,13 +521,6 @@ class DeepGTAVRenderer(Renderer):
         # (already part of the prepare/render wall time), and the number of retries
         self.overhead_s = 0.0
         self.retries_used = 0
-
-    @staticmethod
-    def _options() -> list[str]:
-        import inspect
-
-        sig = inspect.signature(DeepGTAVRenderer.__init__)
-        return [p for p in sig.parameters if p not in ("self", "unknown")]
 
     @property
     def address(self) -> str:
@@ -704,6 +693,8 @@ class DeepGTAVRenderer(Renderer):
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, ValueError):
             raise _Transient(f"sent a frame whose JSON document is not valid JSON ({raw[:24]!r}...)") from None
+        except RecursionError:  # hostile or broken nesting ([[[[...]]]]): not a state document
+            raise _Transient(f"sent a frame whose JSON document nests too deeply to parse ({raw[:24]!r}...)") from None
         if not isinstance(doc, dict):
             raise _Transient(f"sent a JSON document that is a {type(doc).__name__}, not an object")
         return frame, doc

@@ -48,7 +48,6 @@ class SyntheticRenderer(Renderer):
         sidewalk_width: float = 2.5,
         max_distance: float = 150.0,
         noise_std: float = 2.0,
-        **kw: Any,
     ) -> None:
         super().__init__(width, height)
         self.road_half = float(road_half_width)

@@ -14,7 +14,7 @@ from typing import Any
 from pairedgta.errors import DataError
 
 CATEGORIES = ("car", "truck", "bus", "motorcycle", "bicycle", "person", "rider")
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: ambient population
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,31 @@ class DynamicObject:
 
 
 @dataclass(frozen=True)
+class AmbientEntity:
+    """One entity of a region's ambient population (parked and standing traffic, pedestrians,
+    cyclists) in world coordinates: part of the static scene, distinct from the paper's dynamic
+    objects. `scale` multiplies the model's size (a person's height), `pose` is a walking phase in
+    [-1, 1] (0 = standing), `role` says where it was placed (parked, lane, sidewalk, crossing)."""
+
+    category: str
+    model: str
+    x: float
+    y: float
+    heading: float = 0.0
+    color: tuple[int, int, int] = (128, 128, 128)
+    secondary_color: tuple[int, int, int] = (128, 128, 128)
+    scale: float = 1.0
+    pose: float = 0.0
+    role: str = ""
+
+    def __post_init__(self) -> None:
+        if self.category not in CATEGORIES:
+            raise DataError(
+                f"ambient entity category '{self.category}' is unknown; use one of {', '.join(CATEGORIES)}"
+            )
+
+
+@dataclass(frozen=True)
 class SceneDescriptor:
     scene_id: str
     seed: int
@@ -70,11 +95,13 @@ class SceneDescriptor:
     region: str = ""
     requested_objects: int | None = None
     extra: tuple[tuple[str, Any], ...] = ()
+    ambient: tuple[AmbientEntity, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["schema_version"] = SCHEMA_VERSION
         data["objects"] = [asdict(o) for o in self.objects]
+        data["ambient"] = [asdict(o) for o in self.ambient]
         data["extra"] = dict(self.extra)
         return data
 
@@ -100,6 +127,11 @@ class SceneDescriptor:
                 )
                 for o in data.get("objects", [])
             )
+            ambient = tuple(
+                AmbientEntity(**{**o, "color": tuple(o.get("color", (128, 128, 128))),
+                                 "secondary_color": tuple(o.get("secondary_color", (128, 128, 128)))})
+                for o in data.get("ambient", [])
+            )
             return cls(
                 scene_id=str(data["scene_id"]),
                 seed=int(data["seed"]),
@@ -109,6 +141,7 @@ class SceneDescriptor:
                 region=str(data.get("region", "")),
                 requested_objects=data.get("requested_objects"),
                 extra=tuple(sorted(dict(data.get("extra", {})).items())),
+                ambient=ambient,
             )
         except (KeyError, TypeError) as exc:
             raise DataError(f"scene descriptor is malformed ({exc}); regenerate it with the generate stage") from exc

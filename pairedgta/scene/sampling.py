@@ -5,7 +5,6 @@
 """
 from __future__ import annotations
 
-import importlib
 import math
 from typing import Any, Mapping, Protocol
 
@@ -13,6 +12,7 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 
 from pairedgta.errors import ConfigError, DataError
+from pairedgta.registry import Registry
 from pairedgta.scene.descriptor import Location
 
 
@@ -37,7 +37,6 @@ class PolygonRegion:
         excluded: list | None = None,
         z: float = 0.0,
         max_tries: int = 100_000,
-        **_: Any,
     ) -> None:
         if not valid:
             raise ConfigError(f"region '{name}': `valid` has no polygons; add at least one [[x, y], ...] list")
@@ -89,29 +88,24 @@ class PolygonRegion:
 class RectangleRegion(PolygonRegion):
     """An axis-aligned box, handy for tests and the synthetic backend."""
 
-    def __init__(self, name: str, x_range: list, y_range: list, **kw: Any) -> None:
+    def __init__(self, name: str, x_range: list, y_range: list, z: float = 0.0, max_tries: int = 100_000) -> None:
         (x0, x1), (y0, y1) = x_range, y_range
-        super().__init__(name=name, valid=[[[x0, y0], [x1, y0], [x1, y1], [x0, y1]]], **kw)
+        super().__init__(name=name, valid=[[[x0, y0], [x1, y0], [x1, y1], [x0, y1]]], z=z, max_tries=max_tries)
 
     def surface_at(self, x: float, y: float) -> str:
         # the synthetic world is an endless straight road along the ego heading: no global layout
         return "unknown"
 
 
-REGION_TYPES: dict[str, str] = {
-    "polygons": "pairedgta.scene.sampling:PolygonRegion",
-    "rectangle": "pairedgta.scene.sampling:RectangleRegion",
-    "procedural_town": "pairedgta.scene.town:ProceduralTownRegion",
-}
+REGIONS = Registry("region", "region.type")
+REGIONS.register("polygons", "pairedgta.scene.sampling:PolygonRegion")
+REGIONS.register("rectangle", "pairedgta.scene.sampling:RectangleRegion")
+REGIONS.register("procedural_town", "pairedgta.scene.town:ProceduralTownRegion")
 
 
 def build_region(cfg: Mapping[str, Any]) -> Region:
     cfg = dict(cfg)
-    kind = cfg.pop("type", None)
-    if kind not in REGION_TYPES:
-        raise ConfigError(f"region.type={kind!r} is unknown; choose one of {', '.join(REGION_TYPES)}")
-    module, cls = REGION_TYPES[kind].split(":")
-    return getattr(importlib.import_module(module), cls)(**cfg)
+    return REGIONS.build(cfg.pop("type", None), cfg, where="region")
 
 
 def world_offset(location: Location, forward: float, right: float) -> tuple[float, float]:

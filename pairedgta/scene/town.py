@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from pairedgta.errors import ConfigError
 from pairedgta.scene.descriptor import Location
+from pairedgta.scene.population import PopulationConfig
 
 # columns of one primitive row
 COLUMNS = ("cx", "cy", "cz", "sx", "sy", "sz", "yaw", "r", "g", "b", "a")
@@ -43,6 +45,7 @@ class TownLayout:
     params: dict[str, Any]
     groups: dict[tuple[str, str, str], np.ndarray]
     lamps: np.ndarray  # (M, 3) light positions of street lamps (spots pointing down)
+    crossings: np.ndarray  # (C, 6) zebra crossings: axis, road centre, along a0, a1, across o0, o1
     solids: np.ndarray  # (K, 7) boxes cx, cy, cz, sx, sy, sz, yaw that a camera must not be in
     half_extent: float  # town square half size incl. outer sidewalks
     road_half_length: float  # roads run from -L to L
@@ -56,6 +59,7 @@ class _Builder:
         self.rows: dict[tuple[str, str, str], list[tuple[float, ...]]] = {}
         self.lamps: list[tuple[float, float, float]] = []
         self.solids: list[tuple[float, ...]] = []
+        self.crossings: list[tuple[float, ...]] = []
 
     def add(self, shape: str, material: str, label: str, center, size, yaw=0.0,
             color=(1.0, 1.0, 1.0), a=0.0) -> None:
@@ -79,6 +83,7 @@ class _Builder:
             params=params,
             groups=groups,
             lamps=np.asarray(self.lamps, dtype=np.float32).reshape(-1, 3),
+            crossings=np.asarray(self.crossings, dtype=np.float64).reshape(-1, 6),
             solids=np.asarray(self.solids, dtype=np.float32).reshape(-1, 7),
             half_extent=half_extent,
             road_half_length=road_half_length,
@@ -92,42 +97,29 @@ def _jitter(rng: np.random.Generator, color, amount=0.06):
 class ProceduralTownRegion:
     """Region interface over a procedural town: lane sampling, surface queries and the layout."""
 
-    _DEFAULTS: ClassVar[dict[str, Any]] = {
-        "kerb_height": 0.15,
-        "floor_height": 3.2,
-        "min_floors": 2,
-        "max_floors": 9,
-        "park_fraction": 0.15,
-        "lamp_spacing": 28.0,
-        "street_tree_fraction": 0.6,
-        "lit_window_fraction": 0.45,
-        "countryside_trees": 60,
-    }
-
     def __init__(self, name: str = "procedural_town", town_seed: int = 0, blocks: int = 4,
                  block_size: float = 60.0, road_width: float = 7.0, sidewalk_width: float = 3.0,
-                 **kw: Any) -> None:
-        unknown = sorted(set(kw) - set(self._DEFAULTS))
-        if unknown:
-            raise ConfigError(
-                f"region procedural_town: unknown keys {unknown}; allowed extra keys: {sorted(self._DEFAULTS)}"
-            )
+                 kerb_height: float = 0.15, floor_height: float = 3.2, min_floors: int = 2, max_floors: int = 9,
+                 park_fraction: float = 0.15, lamp_spacing: float = 28.0, street_tree_fraction: float = 0.6,
+                 lit_window_fraction: float = 0.45, countryside_trees: int = 60,
+                 population: Mapping[str, Any] | None = None) -> None:
+        # population: ambient traffic and pedestrians (pairedgta/scene/population.py); None = none
         self.name = str(name)
         self.town_seed = int(town_seed)
         self.blocks = int(blocks)
         self.block_size = float(block_size)
         self.road_width = float(road_width)
         self.sidewalk_width = float(sidewalk_width)
-        opts = {**self._DEFAULTS, **kw}
-        self.kerb_height = float(opts["kerb_height"])
-        self.floor_height = float(opts["floor_height"])
-        self.min_floors = int(opts["min_floors"])
-        self.max_floors = int(opts["max_floors"])
-        self.park_fraction = float(opts["park_fraction"])
-        self.lamp_spacing = float(opts["lamp_spacing"])
-        self.street_tree_fraction = float(opts["street_tree_fraction"])
-        self.lit_window_fraction = float(opts["lit_window_fraction"])
-        self.countryside_trees = int(opts["countryside_trees"])
+        self.kerb_height = float(kerb_height)
+        self.floor_height = float(floor_height)
+        self.min_floors = int(min_floors)
+        self.max_floors = int(max_floors)
+        self.park_fraction = float(park_fraction)
+        self.lamp_spacing = float(lamp_spacing)
+        self.street_tree_fraction = float(street_tree_fraction)
+        self.lit_window_fraction = float(lit_window_fraction)
+        self.countryside_trees = int(countryside_trees)
+        self.population = PopulationConfig.from_cfg(population)
         checks = (
             ("blocks", self.blocks >= 1, "an integer >= 1"),
             ("block_size", self.block_size >= 30.0, ">= 30 (metres)"),
@@ -170,6 +162,7 @@ class ProceduralTownRegion:
             "street_tree_fraction": self.street_tree_fraction,
             "lit_window_fraction": self.lit_window_fraction,
             "countryside_trees": self.countryside_trees,
+            "population": self.population.to_dict(),
         }
 
     def _nearest_centre_dist(self, v: float) -> float:
@@ -236,6 +229,13 @@ class ProceduralTownRegion:
             heading = 270.0 if sign > 0 else 90.0
             x, y = along, road - sign * lane
         return Location(x=round(x, 3), y=round(y, 3), z=0.0, heading=heading)
+
+    def populate(self, descriptor):
+        """The descriptor with this town's ambient population around its ego location, drawn from
+        its seed alone (the scene's other draws are untouched); see pairedgta/scene/population.py."""
+        from pairedgta.scene.population import populate
+
+        return populate(self, descriptor)
 
     # ---- layout ---------------------------------------------------------------------------
     def layout(self) -> TownLayout:
@@ -321,6 +321,8 @@ def _markings(t: ProceduralTownRegion, b: _Builder, rng: np.random.Generator) ->
                 for direction in (-1, 1):
                     mouth = cross + direction * (hw + sw)
                     if zebra:
+                        b.crossings.append((axis, road, min(mouth, mouth - direction * 3.0),
+                                            max(mouth, mouth - direction * 3.0), -hw + 0.6, hw - 0.1))
                         for k in np.arange(-hw + 0.6, hw - 0.4, 1.0):
                             _strip(b, axis, road, min(mouth, mouth - direction * 3.0),
                                    max(mouth, mouth - direction * 3.0), k, k + 0.5, z, white)

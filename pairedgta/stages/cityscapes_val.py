@@ -23,11 +23,14 @@ import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
-from pairedgta.datasets.cityscapes import CityscapesSplit, open_cityscapes
+from pairedgta.datasets import open_dataset
+from pairedgta.datasets.cityscapes import CityscapesSplit
+from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
-from pairedgta.models import build_segmenter
+from pairedgta.jsonio import write_json
+from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.tracking import Tracker
+from pairedgta.tracking import Tracker, bundle, dataset_label, run_name
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -58,8 +61,8 @@ def preprocessing_warning(model: str, miou: float) -> str | None:
     )
 
 
-def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path) -> dict[str, Any]:
-    segmenter = build_segmenter(model_cfg)
+def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, device: str = "cpu") -> dict[str, Any]:
+    segmenter = shared_segmenter(model_cfg, device=device)
     model = model_cfg["name"]
     cm = ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX)
     with tqdm(dataset.samples, desc=f"{STAGE} [{model}]", unit="img") as bar:
@@ -88,7 +91,7 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path) -> d
         "evaluated_pixels": int(cm.mat.sum()),
         "iou": {CLASS_NAMES[k]: (None if math.isnan(iou[k]) else float(iou[k])) for k in range(NUM_CLASSES)},
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     np.save(out / "confusion.npy", cm.mat.numpy())  # rows ground truth, columns prediction
     return {"miou": miou}
 
@@ -102,7 +105,7 @@ def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_
     own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
     result = run_cached(
         own, STAGE, VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(dataset, model_cfg, out), label=f"[{model_cfg['name']}]",
+        lambda out: compute(dataset, model_cfg, out, ctx.cfg.get("device", "cpu")), label=f"[{model_cfg['name']}]",
     )
     if result.hit:
         log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
@@ -120,7 +123,9 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
 
 
 def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[str, Any]:
-    dataset = open_cityscapes(ctx.cfg["dataset"])
+    dataset = open_dataset(ctx.cfg["dataset"])
+    if not isinstance(dataset, CityscapesSplit):
+        raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")
     dataset_key = f"cityscapes:{dataset.fingerprint()}"
     tracker.tags({"dataset": dataset.name, "dataset_key": dataset_key, "split": dataset.split})
     summary: dict[str, Any] = {
@@ -129,12 +134,15 @@ def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[st
     }
     for model_cfg in models:
         name = model_cfg["name"]
-        with tracker.run(name, nested=True):
+        with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
             result = check_model(ctx, dataset, dataset_key, model_cfg)
             tracker.params({"model": model_cfg, "dataset": ctx.cfg["dataset"]})
-            tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit)})
+            tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit), "model": name})
             tracker.metrics(tracked_metrics(result.path))
-            tracker.artifacts([result.path / "iou.csv", result.path / "summary.json"], STAGE)
+            tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1], {"split": dataset.split})
+            tracker.config({**{k: v for k, v in ctx.cfg.items() if k != "hydra"}, "model": model_cfg})
+            tracker.stage_files(bundle(STAGE, result.key), result.hit, [result.path / "iou.csv", result.path / "summary.json"],
+                                STAGE)
         s = json.loads((result.path / "summary.json").read_text())
         published = s.get("published_miou")
         log.info(

@@ -1,14 +1,15 @@
 """What every stage shares: the run context, stage results and cache lookups."""
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
-from pairedgta.errors import PairedGTAError
+from pairedgta.errors import ConfigError, PairedGTAError
 
 log = logging.getLogger("pairedgta")
 STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
@@ -16,13 +17,41 @@ STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # th
 RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
 
+def inference_threads(cfg: dict[str, Any]) -> int:
+    """`threads`: CPU threads for model inference. It enters the pseudolabel/evaluate hashes because
+    float reductions are split by thread count, so logits (and argmax near-ties) depend on it."""
+    return int(cfg.get("threads") or 1)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 @dataclass
 class StageResult:
+    """A stage's cache entry. Each stage subclasses it with readers of its own files, so no other stage,
+    figure or the app needs to know a file name of another stage."""
+
     stage: str
     key: str
     path: Path
     hit: bool
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def manifest(self) -> dict[str, Any]:
+        import json
+
+        from pairedgta.cache import MANIFEST
+
+        return json.loads((self.path / MANIFEST).read_text())
 
 
 @dataclass
@@ -33,6 +62,26 @@ class Context:
     stages: list[str]
     force: set[str]
     results: dict[str, Any] = field(default_factory=dict)
+
+
+def whole_number(node: dict[str, Any], key: str, default: int, where: str) -> int:
+    value = node.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        try:
+            value = int(str(value))
+        except ValueError:
+            raise ConfigError(f"{where}.{key}={value!r} is not a whole number") from None
+    return value
+
+
+def shard_keys(node: dict[str, Any], where: str) -> tuple[int, int]:
+    """(num_shards, shard) of a stage split over jobs, validated: shard i of N takes items i, i+N, ..."""
+    num, shard = whole_number(node, "num_shards", 1, where), whole_number(node, "shard", 0, where)
+    if num < 1:
+        raise ConfigError(f"{where}.num_shards={num}; set it to at least 1")
+    if not 0 <= shard < num:
+        raise ConfigError(f"{where}.shard={shard} is outside 0..{num - 1} ({where}.num_shards={num})")
+    return num, shard
 
 
 def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
@@ -53,27 +102,36 @@ def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
         files.append(Path(ckpt))
     if not files:
         return None
+    from pairedgta.filehash import default
+
+    memo = default()  # large weights are read once, then only when their size or mtime changes
     h = hashlib.sha256()
     for f in files:
-        h.update(f.name.encode())
-        with open(f, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
+        h.update(f"{f.name}|{memo.sha256(f)}\n".encode())
     return h.hexdigest()[:16]
+
+
+HASH_ONLY_MODEL_KEYS = ("weights_sha256",)  # identify the weights in a hash; never a model option
+
+
+def model_config_from_hash(hashed: dict[str, Any]) -> dict[str, Any]:
+    """The buildable model config back from the one a stage hashed (runtime keys take their defaults)."""
+    return {k: v for k, v in hashed.items() if k not in HASH_ONLY_MODEL_KEYS}
 
 
 def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     cfg = {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
     fingerprint = _weights_fingerprint(model_cfg)
     if fingerprint:
-        cfg["weights_sha256"] = fingerprint
+        cfg[HASH_ONLY_MODEL_KEYS[0]] = fingerprint
     return cfg
 
 
-def _hit(ctx: Context, stage: str, key: str, label: str, what: str) -> StageResult:
+def _hit(ctx: Context, stage: str, key: str, label: str, what: str, result_cls: type[StageResult]) -> StageResult:
     log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
+    ctx.cache.use(stage, key)
     ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": True})
-    return StageResult(stage, key, ctx.cache.path(stage, key), hit=True)
+    return result_cls(stage, key, ctx.cache.path(stage, key), hit=True)
 
 
 def run_cached(
@@ -85,32 +143,46 @@ def run_cached(
     build: Callable[[Path], dict[str, Any] | None],
     label: str = "",
     resumable: bool = False,
+    result_cls: type[StageResult] = StageResult,
 ) -> StageResult:
-    """Hit -> skip and say so; miss (or force) -> build into a temp dir and rename into place.
-    A stage not listed in `stages` must already be cached: then the error names the stage to run."""
+    """Hit -> skip and say so; miss, damaged entry or force -> build beside it and swap it in on success
+    (a failed recompute leaves the previous result). A stage not listed in `stages` must already be
+    cached: then the error names the stage to run."""
     key = stage_hash(stage, version, config, inputs)
     what = f"{stage}{' ' + label if label else ''}"
-    forced = stage in ctx.force
-    if not forced and ctx.cache.is_hit(stage, key):
-        return _hit(ctx, stage, key, label, what)
+    # force= recomputes once per run: a later pass reaching the same hash reuses this run's result
+    forced = stage in ctx.force and (stage, key) not in ctx.cache.built
+    ctx.cache.sweep_once()
+    problem = None if forced else ctx.cache.problem(stage, key)
+    if not forced and problem is None:
+        return _hit(ctx, stage, key, label, what, result_cls)
     if stage not in ctx.stages:
+        if problem not in (None, "missing"):
+            raise PairedGTAError(
+                f"{what}: the cached output {ctx.cache.path(stage, key)} is damaged ({problem}); "
+                f"recompute it, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
+            )
         raise PairedGTAError(
             f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
             f"run it first, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
         )
     with ctx.cache.lock(stage, key):
-        if not forced and ctx.cache.is_hit(stage, key):  # another job finished it while we waited
-            return _hit(ctx, stage, key, label, what)
-        if forced:
-            ctx.cache.invalidate(stage, key)
-            if resumable:
-                import shutil
+        if not forced:
+            problem = ctx.cache.problem(stage, key)
+            if problem is None:  # another job finished it while we waited
+                return _hit(ctx, stage, key, label, what, result_cls)
+            if problem != "missing":
+                log.warning("%s: cached output %s is damaged (%s); rebuilding it", what, ctx.cache.path(stage, key), problem)
+        elif resumable:
+            import shutil
 
-                shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)
-        log.info("%s: computing -> %s", what, ctx.cache.path(stage, key))
+            shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)  # forced: start afresh
+        log.info("%s: computing -> %s%s", what, ctx.cache.path(stage, key),
+                 " (the previous result stays until this one is complete)" if forced else "")
         manifest = {"version": version, "config": config, "inputs": inputs}
         work_dir = ctx.cache.partial_path(stage, key) if resumable else None
-        with ctx.cache.build(stage, key, manifest, work_dir=work_dir) as tmp:
+        with ctx.cache.build(stage, key, manifest, work_dir=work_dir, replace=forced) as tmp:
             extra = build(tmp) or {}
+    ctx.cache.use(stage, key)
     ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": False})
-    return StageResult(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)
+    return result_cls(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)

@@ -9,10 +9,12 @@ predictions, so memory does not grow with the image size times the number of ima
 """
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
+import os
+import shutil
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +25,11 @@ from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
 from pairedgta.datasets import PairedDataset, load_group_images, load_label
-from pairedgta.errors import ConfigError, DataError
+from pairedgta.errors import ConfigError, DataError, PairedGTAError
 from pairedgta.metrics.bootstrap import class_mean_ci, spearman_ci
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics import (
+    reference_consistency_counts,
     SELECTIONS,
     ConfusionMatrix,
     ReferenceConsistency,
@@ -38,13 +41,144 @@ from pairedgta.metrics import (
     select_frames,
     spearman,
 )
-from pairedgta.models import build_segmenter
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.stages.pseudolabel import label_path
+from pairedgta.models import shared_segmenter
+from pairedgta.cache import MANIFEST, canonical_json, stage_hash
+from pairedgta.conditions import ConditionGrid
+from pairedgta.jsonio import write_json
+from pairedgta.stages.common import (
+    Context,
+    StageResult,
+    inference_threads,
+    model_config_from_hash,
+    model_hash_config,
+    run_cached,
+    shard_keys,
+    torch_threads,
+)
+from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
 VERSION = "2"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0
 GT = "ground_truth"
+
+
+class EvaluateResult(StageResult):
+    """One model's evaluate entry and the readers of its files (the only code that names them).
+    `complete` is False for a shard job's partial result (nothing to read yet)."""
+
+    complete: bool = True
+
+    FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json")
+
+    def model_config(self) -> dict[str, Any]:
+        """The model's composed config: as this run built it, or (an evaluation collected from the cache)
+        buildable from its manifest (figures re-predict a few groups with it)."""
+        if "model_config" in self.extra:
+            return dict(self.extra["model_config"])
+        return model_config_from_hash(self.manifest()["config"]["model"])
+
+    @property
+    def model(self) -> str:
+        return str(self.model_config()["name"])
+
+    def _csv(self, name: str) -> pd.DataFrame:
+        path = self.path / name
+        return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
+
+    def xi(self) -> pd.DataFrame:
+        return self._csv("xi.csv")
+
+    def rho(self) -> pd.DataFrame:
+        return self._csv("rho_valid.csv")
+
+    def frame_counts(self) -> pd.DataFrame:
+        return self._csv("frame_counts.csv")
+
+    def agreement(self) -> pd.DataFrame:
+        return self._csv("pixel_agreement.csv")
+
+    def gt_iou(self) -> pd.DataFrame:
+        return self._csv("gt_iou.csv")
+
+    def summary(self) -> dict[str, Any]:
+        return json.loads((self.path / "summary.json").read_text())
+
+    def artifacts(self) -> list[Path]:
+        return [self.path / f for f in self.FILES if (self.path / f).is_file()]
+
+    def metrics(self) -> dict[str, float]:
+        """The MLflow view: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<cond>/<sel>/<class>, gt_miou/<cond>."""
+        metrics: dict[str, float] = {}
+        for row in self.xi().itertuples():
+            prefix = "xi" if row.reference_model != GT else "xi_gt"
+            if row.class_name == "mean":
+                metrics[f"{prefix}_mean/{row.condition}"] = row.xi
+            else:
+                metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
+        rho = self.rho()
+        conds = list(dict.fromkeys(rho["condition"])) if not rho.empty else []
+        main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
+        for row in rho.itertuples():
+            metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
+            if row.condition == main:
+                metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
+        summary = self.summary()
+        for cond, v in summary.get("gt_miou", {}).items():
+            metrics[f"gt_miou/{cond}"] = v
+        for cond, v in summary.get("agreement", {}).items():
+            metrics[f"agreement/{cond}"] = v
+        return metrics
+
+
+def concat(results: list[EvaluateResult], table: str) -> pd.DataFrame:
+    """One table (xi, rho, frame_counts, agreement, gt_iou) over several models' evaluations."""
+    frames = [getattr(r, table)() for r in results]
+    frames = [f for f in frames if not f.empty]
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def conditions_for(cfg: dict[str, Any], grid: ConditionGrid) -> list[str]:
+    """The conditions an evaluation covers: `evaluate.conditions` (always with the reference), else all."""
+    wanted = (cfg.get("evaluate") or {}).get("conditions")
+    if not wanted:
+        return list(grid.names)
+    unknown = [c for c in wanted if c not in grid.names]
+    if unknown:
+        raise ConfigError(f"evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(grid.names)}")
+    return [c for c in grid.names if c in wanted or c == grid.reference]
+
+
+def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult,
+                exclude: set[str]) -> list[EvaluateResult]:
+    """Every cached evaluation of this dataset and pseudo-labels under the same metric settings and
+    conditions (e.g. the models of an earlier multirun over `model=`): the newest per model, except the
+    models in `exclude`."""
+    root = ctx.cache.root / "evaluate"
+    if not root.is_dir():
+        return []
+    want_inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
+    grid = dataset.grid or ctx.grid
+    settings = json.loads(canonical_json(metric_settings(ctx.cfg, grid.names, dataset.reference)))
+    conditions = conditions_for(ctx.cfg, grid)
+    found: dict[str, tuple[float, EvaluateResult]] = {}
+    for manifest_path in root.glob(f"*/{MANIFEST}"):
+        d = manifest_path.parent
+        if d.name.startswith("."):
+            continue
+        try:
+            m = json.loads(manifest_path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        cfg = m.get("config") or {}
+        if m.get("inputs") != want_inputs or cfg.get("metric") != settings or cfg.get("conditions") != conditions:
+            continue
+        name = str((cfg.get("model") or {}).get("name"))
+        if name in exclude:
+            continue
+        mtime = manifest_path.stat().st_mtime
+        if name not in found or mtime > found[name][0]:
+            found[name] = (mtime, EvaluateResult("evaluate", d.name, d, hit=True))
+    return [r for _, r in sorted(found.values(), key=lambda t: t[1].key)]
 
 
 class _Accumulator:
@@ -55,10 +189,12 @@ class _Accumulator:
         self.retained: list[np.ndarray] = []
         self.reference: list[np.ndarray] = []
 
-    def update(self, ref: torch.Tensor, pred: torch.Tensor) -> None:
-        retained, reference = self.metric.update(ref, pred)
-        self.retained.append(retained.numpy().astype(np.int64))
-        self.reference.append(reference.numpy().astype(np.int64))
+    def add(self, retained: np.ndarray, reference: np.ndarray) -> None:
+        """One image's per-class counts (from `group_counts`, possibly computed by a shard job)."""
+        self.metric.retained += torch.from_numpy(retained.astype(np.int64))
+        self.metric.reference += torch.from_numpy(reference.astype(np.int64))
+        self.retained.append(retained.astype(np.int64))
+        self.reference.append(reference.astype(np.int64))
 
 
 def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) -> dict[str, Any]:
@@ -93,9 +229,9 @@ def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) 
         "seed": int(boot.get("seed", 0)), "clean": clean,
         "convention": convention_from_config(metric, selections).as_dict(),
         "sampling": sampling,
+        # only a random draw depends on the seed (so `seed=` alone does not invalidate sampling=all results)
+        "sampling_seed": int(ev.get("sampling_seed") or 0) if sampling == "random_one" else 0,
     }
-    if sampling == "random_one":
-        settings["sampling_seed"] = int(ev.get("sampling_seed") or 0)
     return settings
 
 
@@ -105,115 +241,260 @@ SAMPLINGS = ("all", "random_one")
 def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: str, seed: int) -> list[str]:
     """The conditions of one group to evaluate: all, or the clean one plus one adverse condition drawn
     at random (the authors' loader). The draw depends only on (seed, group id), so it is reproducible
-    and does not change when groups are added or reordered."""
+    and does not change when groups are added, reordered or split over shards."""
     if sampling == "all":
         return present
     adverse = [c for c in present if c != clean]
     if not adverse:
         return present
-    import zlib
-
     rng = np.random.default_rng([seed, zlib.crc32(str(group_id).encode())])
     return [clean, adverse[int(rng.integers(len(adverse)))]]
 
 
-def compute(
-    ctx: Context, dataset: PairedDataset, pseudo_dir: Path, model_cfg: dict[str, Any], conditions: list[str],
-    reference_model: str, out: Path,
-) -> dict[str, Any]:
-    s = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
-    conv = convention_from_config(ctx.cfg["metric"], s["selections"])
-    log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
-             "sampling %s", conv.name, conv.absent, list(conv.mean_exclude) or "none", conv.agreement, conv.rho_headline,
-             s["sampling"])
-    segmenter = build_segmenter(model_cfg)
-    model = segmenter.name
-    clean = s["clean"]
-    order = [clean] + [c for c in conditions if c != clean]
-    use_pl = s["reference_mode"] in ("pseudo_label", "both")
-    use_gt = s["reference_mode"] in ("ground_truth", "both")
-    acc: dict[tuple[str, str], _Accumulator] = {}
-    gt_cm: dict[str, ConfusionMatrix] = {}
-    agreement_rows: list[dict[str, Any]] = []
-    count_rows: list[dict[str, Any]] = []
-    batch = int(ctx.cfg["evaluate"].get("batch_size", 4))
-    for group in tqdm(dataset.groups, desc=f"evaluate [{model}]", unit="group"):
-        present = [c for c in order if c in group.images]
-        if clean not in present:
-            continue
-        present = sampled_conditions(group.group_id, present, clean, s["sampling"], s.get("sampling_seed", 0))
+class _GroupInputs(torch.utils.data.Dataset):
+    """Decodes one group's images and label maps, in DataLoader workers (`evaluate.num_workers`), so the
+    model forward, not PNG decoding, bounds evaluation. Errors come back as values, so the main process
+    raises the same one-line error a sequential run would."""
+
+    def __init__(self, dataset: PairedDataset, groups: list[Any], order: list[str], clean: str,
+                 pseudo: PseudoLabels, use_gt: bool, sampling: str = "all", sampling_seed: int = 0) -> None:
+        self.dataset, self.groups, self.order, self.clean = dataset, groups, order, clean
+        self.labels, self.use_gt = pseudo.labels, use_gt
+        self.sampling, self.sampling_seed = sampling, sampling_seed
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        try:
+            return self._load(self.groups[i])
+        except PairedGTAError as exc:
+            return {"error": str(exc), "kind": type(exc).__name__}
+
+    def _load(self, group: Any) -> dict[str, Any]:
+        present = [c for c in self.order if c in group.images]
+        if self.clean not in present:
+            return {"group_id": group.group_id, "present": []}
+        present = sampled_conditions(group.group_id, present, self.clean, self.sampling, self.sampling_seed)
         images = load_group_images(group, present)
-        shape = images[clean].shape[:2]
-        pl_path = label_path(pseudo_dir, group.group_id)
+        shape = images[self.clean].shape[:2]
+        pl_path = self.labels.path(group.group_id)
         pseudo = load_label(pl_path)
         if pseudo.shape != shape:
             raise DataError(
                 f"{pl_path}: pseudo-label is {pseudo.shape[1]}x{pseudo.shape[0]} but the images of group "
                 f"{group.group_id} are {shape[1]}x{shape[0]}; rerun with force=[pseudolabel]"
             )
-        pseudo_t = pseudo.astype(np.int64)
-        gt_t = None
-        if use_gt and dataset.reference in group.labels:
-            gt = load_label(group.labels[dataset.reference])
-            if gt.shape != shape:
-                raise DataError(f"{group.labels[dataset.reference]}: label map size differs from its image")
-            gt_t = gt.astype(np.int64)
-        preds: dict[str, np.ndarray] = {}
-        masses: dict[str, np.ndarray] = {}
-        for start in range(0, len(present), batch):
-            names = present[start : start + batch]
-            labels, conf = segmenter.predict(np.stack([images[c] for c in names]))
-            mass = prediction_mass_from_labels(labels, conf, NUM_CLASSES, s["tau_mass"]).numpy()
-            labels = labels.numpy()
-            for i, c in enumerate(names):
-                preds[c] = labels[i]
-                masses[c] = mass[i]
-        for c in present:
-            pred = preds[c]
-            if use_pl:
-                acc.setdefault(("pseudo_label", c), _Accumulator(conv.absent)).update(pseudo_t, pred)
-            if gt_t is not None:
-                acc.setdefault((GT, c), _Accumulator(conv.absent)).update(gt_t, pred)
-            # IoU of condition c needs c's own truth; the reference's truth stands in only where the
-            # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
-            # only: they are never used as reference truth nor for the reference image)
-            own = group.labels.get(c) if use_gt else None
-            if own is not None:
-                target = load_label(own).astype(np.int64)
-                if target.shape != shape:
-                    raise DataError(f"{own}: label map size differs from its image")
-            else:
-                target = gt_t
-            if target is not None:
-                gt_cm.setdefault(c, ConfusionMatrix(NUM_CLASSES)).update(target, pred)
-            valid = pseudo_t != IGNORE_INDEX
-            n_valid = int(valid.sum())
-            agree_ref = int(((pred == pseudo_t) & valid).sum())
-            agree_clean = int(((pred == preds[clean]) & valid).sum())
-            agreement_rows.append({
-                "model": model, "condition": c, "pair_id": group.group_id, "valid_pixels": n_valid,
-                "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
-                "agreement_reference": agree_ref / n_valid if n_valid else math.nan,
-                "agreement_clean": agree_clean / n_valid if n_valid else math.nan,
-            })
-            if c != clean:
-                for k in s["class_ids"]:
-                    count_rows.append({
-                        "dataset": dataset.name, "model": model, "class_name": CLASS_NAMES[k],
-                        "pair_id": group.group_id, "condition": c,
-                        "clean_count": int(masses[clean][k]), "adv_count": int(masses[c][k]),
-                    })
-        del images, preds
-    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows)
+        own: dict[str, np.ndarray] = {}
+        for c in present if self.use_gt else []:
+            if c in group.labels:
+                own[c] = load_label(group.labels[c])
+                if own[c].shape != shape:
+                    raise DataError(f"{group.labels[c]}: label map size differs from its image")
+        return {"group_id": group.group_id, "present": present, "images": images, "pseudo": pseudo, "own": own}
 
 
-def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows) -> dict[str, Any]:
+def decode_workers(value: Any, device: str) -> int:
+    """`evaluate.num_workers`: a count, or auto = none on the CPU (the forward already uses every core;
+    measured in experiments/bench_evaluate.py) and up to 4 beside a GPU."""
+    if value in (None, "auto"):
+        return 0 if device == "cpu" else min(4, os.cpu_count() or 1)
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"evaluate.num_workers={value!r}; use a whole number >= 0 or auto") from None
+    if n < 0:
+        raise ConfigError(f"evaluate.num_workers={n}; use a whole number >= 0 or auto")
+    return n
+
+
+def _identity(item: Any) -> Any:
+    return item
+
+
+def _loader(inputs: _GroupInputs, workers: int) -> Any:
+    if workers < 1:
+        return (inputs[i] for i in range(len(inputs)))
+    return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
+                                       collate_fn=_identity, prefetch_factor=2, persistent_workers=False)
+
+
+def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], reference: str, use_pl: bool,
+                 batch: int, model: str, dataset_name: str) -> dict[str, Any]:
+    """Everything evaluate keeps of one group, as plain numbers (a shard's partial sums are lists of
+    these): per (reference source, condition) the retained and reference pixel counts per class, the
+    confusion matrix against ground truth per condition, the agreement counts and the phi counts."""
+    clean, present = s["clean"], item["present"]
+    images, pseudo_t = item["images"], item["pseudo"].astype(np.int64)
+    own = item["own"]
+    gt_t = own[reference].astype(np.int64) if reference in own else None
+    preds: dict[str, np.ndarray] = {}
+    masses: dict[str, np.ndarray] = {}
+    for start in range(0, len(present), batch):
+        names = present[start : start + batch]
+        labels, conf = segmenter.predict(np.stack([images[c] for c in names]))
+        mass = prediction_mass_from_labels(labels, conf, NUM_CLASSES, s["tau_mass"]).numpy()
+        labels = labels.numpy()
+        for i, c in enumerate(names):
+            preds[c] = labels[i]
+            masses[c] = mass[i]
+    out: dict[str, Any] = {"group_id": item["group_id"], "xi": {}, "cm": {}, "agreement": [], "counts": []}
+    valid = pseudo_t != IGNORE_INDEX
+    n_valid = int(valid.sum())
+    for c in present:
+        pred = preds[c]
+        if use_pl:
+            r, t = reference_consistency_counts(pseudo_t, pred, NUM_CLASSES, IGNORE_INDEX)
+            out["xi"][f"pseudo_label|{c}"] = [r.tolist(), t.tolist()]
+        if gt_t is not None:
+            r, t = reference_consistency_counts(gt_t, pred, NUM_CLASSES, IGNORE_INDEX)
+            out["xi"][f"{GT}|{c}"] = [r.tolist(), t.tolist()]
+        # IoU of condition c needs c's own truth; the reference's truth stands in only where the
+        # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
+        # only: they are never used as reference truth nor for the reference image)
+        target = own[c].astype(np.int64) if c in own else gt_t
+        if target is not None:
+            cm = ConfusionMatrix(NUM_CLASSES)
+            cm.update(target, pred)
+            out["cm"][c] = cm.mat.tolist()
+        agree_ref = int(((pred == pseudo_t) & valid).sum())
+        agree_clean = int(((pred == preds[clean]) & valid).sum())
+        out["agreement"].append({
+            "model": model, "condition": c, "pair_id": item["group_id"], "valid_pixels": n_valid,
+            "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
+        })
+        if c != clean:
+            for k in s["class_ids"]:
+                out["counts"].append({
+                    "dataset": dataset_name, "model": model, "class_name": CLASS_NAMES[k], "pair_id": item["group_id"],
+                    "condition": c, "clean_count": int(masses[clean][k]), "adv_count": int(masses[c][k]),
+                })
+    return out
+
+
+def count_groups(ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabels, model_cfg: dict[str, Any],
+                 conditions: list[str], groups: list[Any]) -> list[dict[str, Any]]:
+    """`group_counts` of `groups`, images decoded by `evaluate.num_workers` DataLoader workers."""
+    grid = dataset.grid or ctx.grid
+    s = metric_settings(ctx.cfg, grid.names, dataset.reference)
+    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    clean = s["clean"]
+    order = [clean] + [c for c in conditions if c != clean]
+    use_pl = s["reference_mode"] in ("pseudo_label", "both")
+    use_gt = s["reference_mode"] in ("ground_truth", "both")
+    ecfg = ctx.cfg.get("evaluate") or {}
+    batch = int(ecfg.get("batch_size", 4))
+    workers = decode_workers(ecfg.get("num_workers", "auto"), str(ctx.cfg.get("device", "cpu")))
+    inputs = _GroupInputs(dataset, groups, order, clean, pseudo_labels, use_gt, s["sampling"], s["sampling_seed"])
+    results = []
+    with torch_threads(inference_threads(ctx.cfg)):
+        for item in tqdm(_loader(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
+            if "error" in item:
+                raise DataError(item["error"])
+            if item["present"]:
+                results.append(group_counts(item, segmenter, s, dataset.reference, use_pl, batch, segmenter.name,
+                                            dataset.name))
+    return results
+
+
+def compute(
+    ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
+    reference_model: str, out: Path, parts: Path | None = None,
+) -> dict[str, Any]:
+    """Evaluate every group, or merge the partial sums that shard jobs left in `parts` and compute only
+    the groups no shard covered; the outputs are the same either way (groups in dataset order)."""
+    grid = dataset.grid or ctx.grid
+    s = metric_settings(ctx.cfg, grid.names, dataset.reference)
+    conv = s["convention"]
+    log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
+             "sampling %s", conv["name"], conv["absent"], list(conv["mean_exclude"]) or "none", conv["agreement"],
+             conv["rho_headline"], s["sampling"])
+    done = read_parts(parts) if parts is not None else {}
+    missing = [g for g in dataset.groups if g.group_id not in done]
+    if done:
+        log.info("evaluate: merging %d group(s) from shard jobs, computing %d", len(done), len(missing))
+    for r in count_groups(ctx, dataset, pseudo_labels, model_cfg, conditions, missing):
+        done[r["group_id"]] = r
+    results = [done[g.group_id] for g in dataset.groups if g.group_id in done]
+    model = str(model_cfg["name"])
+    acc: dict[tuple[str, str], _Accumulator] = {}
+    gt_cm: dict[str, ConfusionMatrix] = {}
+    agreement_rows: list[dict[str, Any]] = []
+    count_rows: list[dict[str, Any]] = []
+    for r in results:
+        for key, (retained, reference) in r["xi"].items():
+            source, cond = key.split("|", 1)
+            acc.setdefault((source, cond), _Accumulator(conv["absent"])).add(np.asarray(retained), np.asarray(reference))
+        for cond, mat in r["cm"].items():
+            gt_cm.setdefault(cond, ConfusionMatrix(NUM_CLASSES)).mat += torch.tensor(mat, dtype=torch.long)
+        for row in r["agreement"]:
+            n = row["valid_pixels"]
+            agreement_rows.append({**row, "agreement_reference": row["agree_reference_pixels"] / n if n else math.nan,
+                                   "agreement_clean": row["agree_clean_pixels"] / n if n else math.nan})
+        count_rows += r["counts"]
+    return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                         coverage(dataset, conditions, s["clean"], model))
+
+
+def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str) -> dict[str, Any]:
+    """How many groups each condition's numbers average over; a warning when they differ."""
+    groups = {c: 0 for c in conditions}
+    without_clean = 0
+    for g in dataset.groups:
+        if clean not in g.images:
+            without_clean += 1
+            continue
+        for c in conditions:
+            groups[c] += c in g.images
+    if without_clean or len(set(groups.values())) > 1:
+        log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
+                    "leaves its group out of that condition only; see summary.json groups_per_condition)",
+                    model, ", ".join(f"{c} {n}" for c, n in groups.items()),
+                    f"; {without_clean} group(s) without the clean image {clean} skipped" if without_clean else "")
+    return {"groups_per_condition": groups, "groups_without_clean": without_clean}
+
+
+# -- shards: partial sums of evaluate.shard i of evaluate.num_shards, merged by the unsharded run --------
+def parts_dir(ctx: Context, key: str) -> Path:
+    return ctx.cache.root / "evaluate" / f".parts-{key}"
+
+
+def read_parts(parts: Path) -> dict[str, dict[str, Any]]:
+    found: dict[str, dict[str, Any]] = {}
+    for path in sorted(parts.glob("part-*.json")) if parts.is_dir() else []:
+        try:
+            for r in json.loads(path.read_text()):
+                found[r["group_id"]] = r
+        except (OSError, json.JSONDecodeError, KeyError, TypeError):
+            log.warning("evaluate: ignoring unreadable shard result %s (its groups are computed again)", path)
+    return found
+
+
+def write_part(parts: Path, shard: int, num: int, results: list[dict[str, Any]]) -> Path:
+    parts.mkdir(parents=True, exist_ok=True)
+    path = parts / f"part-{shard:05d}-of-{num:05d}.json"
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(results, default=_jsonable, allow_nan=False))
+    os.replace(tmp, path)
+    return path
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
+                  coverage=None) -> dict[str, Any]:
     conv = s["convention"]
     name = conv["name"]
     summary: dict[str, Any] = {"model": model, "reference_model": reference_model, "dataset": dataset.name,
                                "convention": conv, "sampling": s["sampling"],
                                "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "rho_valid_headline": {},
-                               "gt_miou": {}, "agreement": {}, "n_pairs": {}}
+                               "gt_miou": {}, "agreement": {}, "n_pairs": {}, **(coverage or {})}
     if s["sampling"] == "random_one":
         summary["sampling_seed"] = s["sampling_seed"]
     in_mean = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
@@ -298,24 +579,59 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             rows.append({"model": model, "condition": cond, "class_id": -1, "class_name": "mean", "iou": miou})
             summary["gt_miou"][cond] = miou
         pd.DataFrame(rows).to_csv(out / "gt_iou.csv", index=False)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     return {"xi_mean": summary["xi_mean"]}
 
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult, model_cfg: dict[str, Any]) -> StageResult:
-    wanted = ctx.cfg["evaluate"].get("conditions")
-    if wanted:
-        unknown = [c for c in wanted if c not in ctx.grid.names]
-        if unknown:
-            raise ConfigError(f"evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(ctx.grid.names)}")
-        conditions = [c for c in ctx.grid.names if c in wanted or c == dataset.reference]
-    else:
-        conditions = list(ctx.grid.names)
-    settings = metric_settings(ctx.cfg, ctx.grid.names, dataset.reference)
-    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions}
-    reference_model = ctx.cfg["reference_model"]
-    return run_cached(
-        ctx, "evaluate", VERSION, config, {"dataset": dataset_key, "pseudolabel": pseudo.key},
-        lambda out: compute(ctx, dataset, pseudo.path, model_cfg, conditions, reference_model, out),
-        label=f"[{model_cfg['name']}]",
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLabels,
+        model_cfg: dict[str, Any]) -> EvaluateResult:
+    grid = dataset.grid or ctx.grid
+    conditions = conditions_for(ctx.cfg, grid)
+    settings = metric_settings(ctx.cfg, grid.names, dataset.reference)
+    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions,
+              "threads": inference_threads(ctx.cfg)}
+    inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
+    reference_model = pseudo.reference_model()
+    key = stage_hash("evaluate", VERSION, config, inputs)
+    parts = parts_dir(ctx, key)
+    partial = run_shard(ctx, dataset, pseudo, model_cfg, conditions, key, parts)
+    if partial is not None:
+        return partial
+    result = run_cached(
+        ctx, "evaluate", VERSION, config, inputs,
+        lambda out: compute(ctx, dataset, pseudo, model_cfg, conditions, reference_model, out, parts=parts),
+        label=f"[{model_cfg['name']}]", result_cls=EvaluateResult,
     )
+    assert isinstance(result, EvaluateResult)
+    result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
+    shutil.rmtree(parts, ignore_errors=True)  # merged into the entry
+    return result
+
+
+def run_shard(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any],
+              conditions: list[str], key: str, parts: Path) -> EvaluateResult | None:
+    """Shard i of N evaluates groups i, i+N, ... and stores their partial sums; None when there is
+    nothing left to shard (unsharded run, cached entry, or every group now covered: then the caller
+    merges them into the entry)."""
+    num, shard = shard_keys(ctx.cfg.get("evaluate") or {}, "evaluate")
+    if num == 1 or ctx.cache.is_hit("evaluate", key):
+        return None
+    if "evaluate" not in ctx.stages:
+        raise PairedGTAError(f"evaluate [{model_cfg['name']}]: no cached output for this configuration; run it first, "
+                             "e.g. stages=[evaluate]")
+    mine = dataset.groups[shard::num]
+    done = read_parts(parts)
+    todo = [g for g in mine if g.group_id not in done]
+    log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", model_cfg["name"], shard, num,
+             len(mine), len(dataset.groups), len(mine) - len(todo))
+    if todo:
+        results = count_groups(ctx, dataset, pseudo, model_cfg, conditions, todo)
+        write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + results)
+    covered = read_parts(parts)
+    if all(g.group_id in covered for g in dataset.groups):
+        return None
+    log.info("evaluate [%s]: %d of %d groups evaluated by shards so far; run the remaining shards, then without "
+             "evaluate.shard to merge", model_cfg["name"], len(covered), len(dataset.groups))
+    result = EvaluateResult("evaluate", key, parts, hit=False)
+    result.complete = False
+    return result

@@ -30,19 +30,40 @@ from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, scene_files
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError
+from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region
-from pairedgta.stages.common import Context, StageResult, run_cached
+from pairedgta.cache import SHARED_WORK, stage_hash
+from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
-VERSION = "1"
+VERSION = "2"  # 2: descriptors carry the region's ambient population
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
 ]
-EXECUTION_KEYS = ("workers", "endpoints")  # where scenes run, not what they are
+EXECUTION_KEYS = ("workers", "endpoints", "num_shards", "shard")  # where scenes run, not what they are
+# how to reach and retry the renderer, not what it renders: left out of the dataset hash
+RENDERER_EXECUTION_KEYS = ("host", "port", "timeout_s", "retries", "backoff_s")
+
+
+class GeneratedData(StageResult):
+    """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records.
+    `complete` is False for a shard job that left scenes to other shards (nothing to read yet)."""
+
+    complete: bool = True
+
+    @property
+    def timings_csv(self) -> Path:
+        return self.path / "timings.csv"
+
+    def validation(self) -> Any:  # pandas.DataFrame | None (pandas imported on use)
+        import pandas as pd
+
+        path = self.path / "validation.csv"
+        return pd.read_csv(path, dtype={"scene_id": str}) if path.is_file() else None
 
 
 PAIRING_DEFAULTS = {"camera_jitter_m": 0.0, "camera_jitter_deg": 0.0, "object_resample_prob": 0.0, "object_move_m": 0.0}
@@ -110,7 +131,7 @@ def hash_config(cfg: dict[str, Any], grid: ConditionGrid) -> dict[str, Any]:
     gen.pop("pairing", None)
     if not is_perfect(pairing):  # perfect pairing hashes as before the hook existed
         gen["pairing"] = pairing
-    renderer = {k: v for k, v in cfg["renderer"].items() if k not in ("host", "port", "timeout_s", "retries")}
+    renderer = {k: v for k, v in cfg["renderer"].items() if k not in RENDERER_EXECUTION_KEYS}
     return {
         "generate": gen, "renderer": renderer, "region": cfg["region"],
         "conditions": [c.to_dict() for c in grid], "reference": grid.reference,
@@ -137,6 +158,8 @@ def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDes
         # regions with a generated layout store it, so the descriptor alone replays the scene
         extra=(("town", region.params()),) if hasattr(region, "params") else (),
     )
+    if hasattr(region, "populate"):  # the region's ambient traffic and pedestrians, kept clear of the objects
+        descriptor = region.populate(descriptor)
     if len(objects) < requested:
         log.info("scene %s: placed %d of %d objects (region R_k too small for d_min)", descriptor.scene_id, len(objects), requested)
     return descriptor, {"scene_sampling_time": t1 - t0, "descriptor_time": time.perf_counter() - t1}
@@ -195,8 +218,8 @@ def render_scene(
             "condition_wise_rendering_time": rendering, "pipeline_time": max(wall - overhead, 0.0),
             "overhead_time": overhead, "total_time": wall, "retries": int(getattr(renderer, "retries_used", 0)),
         }
-        (tmp / "timings.json").write_text(json.dumps(row, indent=2))
-        (tmp / "validation.json").write_text(json.dumps(validation, indent=2))
+        write_json(tmp / "timings.json", row)
+        write_json(tmp / "validation.json", validation)
         if final.exists():
             shutil.rmtree(final)
         os.rename(tmp, final)
@@ -247,21 +270,55 @@ def _work(k: int, scenes_dir: str) -> dict[str, Any]:
     return render_scene(k, w["cfg"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
 
 
-def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
-    gen = cfg["generate"]
-    n = int(gen["num_scenes"])
-    workers = int(gen.get("workers", 1))
+def shard_of(gen: dict[str, Any]) -> tuple[int, int]:
+    return shard_keys(gen, "generate")
+
+
+def scene_count(gen: dict[str, Any]) -> int:
+    n = whole_number(gen, "num_scenes", 1, "generate")
     if n < 1:
         raise ConfigError(f"generate.num_scenes={n}; set it to at least 1")
+    return n
+
+
+def finished_scenes(scenes_dir: Path) -> set[int]:
+    if not scenes_dir.is_dir():
+        return set()
+    return {int(p.name) for p in scenes_dir.iterdir() if p.is_dir() and p.name.isdigit() and (p / "timings.json").is_file()}
+
+
+def _writer_alive(tmp: Path) -> bool:
+    """Whether the process that names `.tmp-<scene>-<pid>` still runs (on this machine)."""
+    try:
+        pid = int(tmp.name.rsplit("-", 1)[1])
+    except (IndexError, ValueError):
+        return False
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: list[int]) -> float:
+    """Render the scenes `indices` that are not yet in out/scenes; returns the backend's connect time."""
+    gen = cfg["generate"]
+    n = len(indices)
+    workers = int(gen.get("workers", 1))
     if workers < 1:
         raise ConfigError(f"generate.workers={workers}; set it to at least 1")
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    for stale in scenes_dir.glob(".tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    done = {p.name for p in scenes_dir.iterdir() if p.is_dir() and (p / "timings.json").is_file()}
-    todo = [k for k in range(n) if f"{k:05d}" not in done]
-    if done:
+    for tmp in scenes_dir.glob(".tmp-*"):
+        if not _writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
+            shutil.rmtree(tmp, ignore_errors=True)
+    done = finished_scenes(scenes_dir)
+    todo = [k for k in indices if k not in done]
+    if len(todo) < n:
         log.info("generate: resuming, %d of %d scenes already rendered", n - len(todo), n)
     region = build_region(cfg["region"])
     t_open = time.perf_counter()
@@ -291,6 +348,13 @@ def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dic
             for fut in tqdm(cf.as_completed(futures), total=len(futures), desc="generate", unit="scene"):
                 fut.result()
         connect = 0.0
+    return connect
+
+
+def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
+    n = scene_count(cfg["generate"])
+    connect = render_scenes(cfg, grid, out, list(range(n)))
+    (out / SHARED_WORK).unlink(missing_ok=True)  # complete: no shard writes here any more
     return write_index(out, cfg, grid, n, connect)
 
 
@@ -325,7 +389,7 @@ def write_index(out: Path, cfg: dict[str, Any], grid: ConditionGrid, n: int, con
         "width": cfg["renderer"].get("width"), "height": cfg["renderer"].get("height"),
         "scenes": scenes, "dropped_invalid": dropped,
     }
-    (out / INDEX).write_text(json.dumps(index, indent=2))
+    write_json(out / INDEX, index)
     return {"num_scenes": len(scenes), "dropped_invalid": dropped}
 
 
@@ -338,10 +402,47 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     os.replace(tmp, path)
 
 
-def run(ctx: Context) -> StageResult:
+def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
+    """A shard job renders its scenes straight into the entry's resumable work directory (no stage lock:
+    shards write disjoint per-scene directories, each renamed into place when complete). When every
+    scene is there, None: the caller finalises the entry as an unsharded run would."""
+    num, shard = shard_of(ctx.cfg["generate"])
+    key = stage_hash("generate", VERSION, config, {})
+    final = ctx.cache.path("generate", key)
+    if num == 1 or ctx.cache.is_hit("generate", key):
+        return None
+    if "generate" in ctx.force:
+        raise ConfigError("force=[generate] with generate.shard set would discard other shards' scenes; "
+                          "force the unsharded run (no generate.shard/num_shards) instead")
+    if "generate" not in ctx.stages:
+        raise PairedGTAError(f"generate: no cached output for this configuration ({final}); run it first, "
+                             f"e.g. stages=[generate]")
+    n = scene_count(ctx.cfg["generate"])
+    work = ctx.cache.partial_path("generate", key)
+    mine = list(range(shard, n, num))
+    work.mkdir(parents=True, exist_ok=True)
+    (work / SHARED_WORK).touch()
+    log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
+    render_scenes(ctx.cfg, ctx.grid, work, mine)
+    have = len(finished_scenes(work / "scenes"))
+    if have == n:
+        return None
+    log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
+             "(then run without generate.shard to go on)", have, n)
+    result = GeneratedData("generate", key, work, hit=False)
+    result.complete = False
+    return result
+
+
+def run(ctx: Context) -> GeneratedData:
     cfg = ctx.cfg
     config = hash_config(cfg, ctx.grid)
-    return run_cached(
+    partial = run_shard(ctx, config)
+    if partial is not None:
+        return partial
+    result = run_cached(
         ctx, "generate", VERSION, config, {},
-        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True,
+        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True, result_cls=GeneratedData,
     )
+    assert isinstance(result, GeneratedData)
+    return result

@@ -12,19 +12,40 @@ import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
-from pairedgta.datasets import PairedDataset, load_image, load_label
-from pairedgta.datasets.base import save_png_atomic
+import pandas as pd
+
+from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
-from pairedgta.models import build_segmenter, model_config
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.models import shared_segmenter
+from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "2"  # 2: miou_on_kept in the Cityscapes convention (classes with TP + FP + FN > 0)
 
 
-def label_path(stage_dir: Path, group_id: str) -> Path:
-    return stage_dir / "labels" / f"{group_id}.png"
+class PseudoLabels(StageResult):
+    """The pseudo-label stage's entry: one label map per group, the class histogram, quality vs truth."""
+
+    @property
+    def labels(self) -> LabelMaps:
+        return LabelMaps(self.path)
+
+    def histogram(self) -> pd.DataFrame:
+        return pd.read_csv(self.path / "histogram.csv")
+
+    def index(self) -> pd.DataFrame:
+        """Per group: valid (non-void) and total pixels of its pseudo-label."""
+        return pd.read_csv(self.path / "index.csv", dtype={"group_id": str})
+
+    def reference_model(self) -> str:
+        return str(self.manifest()["config"]["reference_model"]["name"])
+
+    def tau(self) -> float:
+        return float(self.manifest()["config"]["tau"])
+
+    def artifacts(self) -> list[Path]:
+        return [p for p in (self.path / "histogram.csv", self.path / "quality.csv") if p.is_file()]
 
 
 def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
@@ -33,8 +54,8 @@ def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
-    segmenter = build_segmenter(model_cfg)
-    (out / "labels").mkdir()
+    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    maps = LabelMaps(out)
     hist = np.zeros(NUM_CLASSES, dtype=np.int64)
     total = 0
     gt_cm = ConfusionMatrix(NUM_CLASSES)
@@ -51,7 +72,7 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
         probs = segmenter.predict_proba(stack)
         labels = pseudo_label(probs, tau).to(torch.uint8).numpy()
         for (gid, _), lab in zip(pending, labels):
-            save_png_atomic(lab, label_path(out, gid))
+            maps.save(gid, lab)
             valid = lab != IGNORE_INDEX
             hist += np.bincount(lab[valid].astype(np.int64), minlength=NUM_CLASSES)
             total += lab.size
@@ -97,14 +118,25 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
     return extra
 
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str) -> StageResult:
-    tau = float(ctx.cfg["pseudolabel"]["tau"])
+def check_tau(cfg: dict[str, Any]) -> float:
+    tau = float(cfg["pseudolabel"]["tau"])
     if not 0.0 <= tau <= 1.0:
         raise ConfigError(f"pseudolabel.tau={tau} must be in [0, 1]")
-    name = ctx.cfg["reference_model"]
-    model_cfg = model_config(name, device=ctx.cfg.get("device", "cpu"))
-    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference}
-    return run_cached(
-        ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(ctx, dataset, out, model_cfg, tau), label=f"[{name}]",
-    )
+    return tau
+
+
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
+    """`model_cfg`: the reference model's composed config (the run's `reference_model`)."""
+    tau = check_tau(ctx.cfg)
+    threads = inference_threads(ctx.cfg)
+    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
+              "threads": threads}
+
+    def build(out: Path) -> dict[str, Any]:
+        with torch_threads(threads):
+            return compute(ctx, dataset, out, model_cfg, tau)
+
+    result = run_cached(ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key}, build,
+                        label=f"[{model_cfg['name']}]", result_cls=PseudoLabels)
+    assert isinstance(result, PseudoLabels)
+    return result

@@ -1,0 +1,191 @@
+"""Every config value a run reads, checked before any stage runs: a bad value is one ConfigError naming
+the key, its value and what to use, not a traceback hours later (after generation) or a silently wrong
+result (all-NaN intervals, an ignored condition name). Checks that need files (dataset roots, weights)
+stay with the code that opens them; these only need the config.
+
+With `variants`, every pass's config (the run's config with the variant's overrides) is checked too,
+and the error names the variant's key."""
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+from pairedgta.errors import ConfigError
+
+MISSING = "???"
+
+
+def _get(cfg: dict[str, Any], dotted: str) -> Any:
+    node: Any = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _number(value: Any, key: str, kind: type, where: str) -> float | int:
+    """`value` as int/float; bool, strings and non-finite numbers are refused."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if isinstance(value, str):
+            try:
+                value = int(value) if kind is int else float(value)
+            except ValueError:
+                raise ConfigError(f"{where}{key}={value!r} is not a number; {_hint(key)}") from None
+        else:
+            raise ConfigError(f"{where}{key}={value!r} is not a number; {_hint(key)}")
+    if kind is int:
+        if isinstance(value, float) and not value.is_integer():
+            raise ConfigError(f"{where}{key}={value!r} must be an integer; {_hint(key)}")
+        return int(value)
+    if not math.isfinite(float(value)):
+        raise ConfigError(f"{where}{key}={value!r} must be finite; {_hint(key)}")
+    return float(value)
+
+
+# key -> (type, predicate, what to use)
+_HINTS: dict[str, str] = {}
+
+
+def _rule(key: str, kind: type, ok: Callable[[float], bool], use: str, optional: bool = True) -> tuple:
+    _HINTS[key] = use
+    return key, kind, ok, use, optional
+
+
+def _hint(key: str) -> str:
+    return _HINTS.get(key, "fix the value")
+
+
+RULES = [
+    _rule("renderer.width", int, lambda v: v > 0, "use a width in pixels >= 1", optional=False),
+    _rule("renderer.height", int, lambda v: v > 0, "use a height in pixels >= 1", optional=False),
+    _rule("renderer.timeout_s", float, lambda v: v > 0, "use seconds > 0"),
+    _rule("renderer.retries", int, lambda v: v >= 0, "use an integer >= 0"),
+    _rule("renderer.backoff_s", float, lambda v: v >= 0, "use seconds >= 0"),
+    _rule("generate.num_scenes", int, lambda v: v >= 1, "use an integer >= 1", optional=False),
+    _rule("generate.workers", int, lambda v: v >= 1, "use an integer >= 1"),
+    _rule("generate.seed", int, lambda v: True, "use an integer"),
+    _rule("pseudolabel.tau", float, lambda v: 0.0 <= v <= 1.0, "use a softmax threshold in [0, 1]", optional=False),
+    _rule("pseudolabel.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
+    _rule("evaluate.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
+    _rule("threads", int, lambda v: v >= 1, "use the number of CPU threads for inference, >= 1"),
+    _rule("metric.tau_mass", float, lambda v: 0.0 <= v <= 1.0, "use a threshold in [0, 1]"),
+    _rule("metric.rho.m", int, lambda v: v >= 1, "use an integer >= 1"),
+    _rule("metric.bootstrap.resamples", int, lambda v: v >= 0, "use an integer >= 0 (0 = no intervals)"),
+    _rule("metric.bootstrap.confidence", float, lambda v: 0.0 < v < 1.0, "use a level strictly between 0 and 1, e.g. 0.95"),
+    _rule("metric.bootstrap.seed", int, lambda v: True, "use an integer"),
+    _rule("plot.dpi", float, lambda v: v > 0, "use dots per inch > 0, e.g. 150"),
+    _rule("plot.qualitative_groups", int, lambda v: v >= 0, "use an integer >= 0"),
+    _rule("plot.ranking.window", int, lambda v: v >= 1, "use an integer >= 1"),
+]
+
+
+def check_cache_dir(value: Any) -> None:
+    """cache_dir must be (or be creatable as) a writable directory on a real file system."""
+    if value in (None, "", MISSING):
+        raise ConfigError("cache_dir is empty; set cache_dir=PATH (a writable directory)")
+    path = Path(str(value)).expanduser().absolute()
+    resolved = path.resolve()
+    for pseudo in ("/proc", "/sys", "/dev"):
+        if resolved == Path(pseudo) or Path(pseudo) in resolved.parents:
+            raise ConfigError(f"cache_dir={value} is under {pseudo}, a kernel pseudo file system; use a normal directory")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if existing != path and not existing.is_dir():
+        raise ConfigError(f"cache_dir={value}: {existing} is a file, not a directory; use another path")
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"cache_dir={value} is a file, not a directory; use another path")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"cache_dir={value} is not writable ({exc.strerror or exc}); use a writable directory") from None
+
+
+def _merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in overrides.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
+    return out
+
+
+def passes(cfg: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(prefix for error messages, config) of the run and of every variant."""
+    out = [("", cfg)]
+    for i, v in enumerate(cfg.get("variants") or []):
+        if isinstance(v, dict):
+            v = {k: x for k, x in v.items() if k != "label"}
+            out.append((f"variants[{i}].", _merge(cfg, v)))
+    return out
+
+
+def condition_names(cfg: dict[str, Any]) -> list[str]:
+    """Conditions a pass can show: the grid of `conditions`, or ACDC's own for an ACDC dataset."""
+    dataset = cfg.get("dataset") or {}
+    if isinstance(dataset, dict) and dataset.get("kind") == "acdc":
+        from pairedgta.datasets.acdc import acdc_grid
+
+        return list(acdc_grid(str(dataset.get("condition"))).names)
+    from pairedgta.conditions import build_condition_grid
+
+    return list(build_condition_grid(cfg["conditions"]).names)
+
+
+def _known_model(name: Any, key: str) -> None:
+    from pairedgta.models import available_models, model_config
+
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{key}={name!r}; choose one of: {', '.join(available_models())}")
+    try:
+        model_config(name)
+    except ConfigError as exc:
+        raise ConfigError(f"{key}: {exc}") from None
+
+
+def check_plot(cfg: dict[str, Any], names: set[str], where: str) -> None:
+    plot = cfg.get("plot") or {}
+    formats = plot.get("formats")
+    if formats is not None:
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        supported = FigureCanvasBase.get_supported_filetypes()
+        listed = [formats] if isinstance(formats, str) else list(formats)
+        bad = [f for f in listed if str(f).lower() not in supported]
+        if bad or not listed:
+            raise ConfigError(f"{where}plot.formats={listed}: unknown format(s) {bad}; matplotlib writes "
+                              f"{', '.join(sorted(supported))}")
+    wanted = plot.get("qualitative_conditions")
+    if wanted is not None:
+        listed = [wanted] if isinstance(wanted, str) else list(wanted)
+        bad = [c for c in listed if c not in names]
+        if bad:
+            raise ConfigError(f"{where}plot.qualitative_conditions: unknown condition(s) {bad}; known: {', '.join(sorted(names))}")
+    cond = (plot.get("ranking") or {}).get("condition")
+    if cond is not None and cond not in names:
+        raise ConfigError(f"{where}plot.ranking.condition={cond!r} is not a condition of this run; known: {', '.join(sorted(names))}")
+
+
+def check_run_config(cfg: dict[str, Any]) -> None:
+    """Raise one ConfigError for the first bad value of a resolved run config (see the module doc)."""
+    check_cache_dir(cfg.get("cache_dir"))
+    configs = passes(cfg)
+    names: set[str] = set()
+    for where, pcfg in configs:
+        names |= set(condition_names(pcfg))
+    for where, pcfg in configs:
+        for key, kind, ok, use, optional in RULES:
+            value = _get(pcfg, key)
+            if value is None or value == MISSING:
+                if optional or key.split(".")[0] not in pcfg:
+                    continue
+                raise ConfigError(f"{where}{key} is not set; {use}")
+            if not ok(_number(value, key, kind, where)):
+                raise ConfigError(f"{where}{key}={value!r} is out of range; {use}")
+        _known_model(pcfg.get("reference_model"), f"{where}reference_model")
+        check_plot(pcfg, names, where)
+    for i, name in enumerate(cfg.get("models") or []):
+        _known_model(name, f"models[{i}]")

@@ -1,0 +1,61 @@
+"""Where the config tree lives, and reading one option of a config group by name.
+
+A run composes its `model` group through Hydra; the other models it names (`models=[...]`,
+`reference_model`) are read here through the same search path, so inside a running app they come from
+exactly the files `model=<name>` would compose, and outside one (scripts, tests) from the package's own
+tree, `pairedgta/conf` (Hydra's `pkg://pairedgta.conf`), which ships in the wheel."""
+from __future__ import annotations
+
+import contextlib
+import re
+from pathlib import Path
+from typing import Any, Iterator
+
+from omegaconf import OmegaConf
+
+from pairedgta.errors import ConfigError
+
+CONFIG_MODULE = "pairedgta.conf"  # the config tree as a package: found wherever pairedgta is installed
+CONFIG_DIR = Path(__file__).resolve().parent / "conf"
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+
+
+@contextlib.contextmanager
+def _search_path() -> Iterator[None]:
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        yield
+        return
+    with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
+        yield
+
+
+def group_options(group: str) -> list[str]:
+    from hydra.core.global_hydra import GlobalHydra
+
+    with _search_path():
+        return sorted(GlobalHydra.instance().config_loader().get_group_options(group))
+
+
+def group_option(group: str, name: str) -> dict[str, Any]:
+    """The YAML of `<group>/<name>` as a plain dict (interpolations resolved)."""
+    from hydra import compose
+    from hydra.errors import MissingConfigException
+
+    name = str(name)
+    if not _NAME.fullmatch(name) or ".." in name:
+        raise ConfigError(f"{group} name {name!r} is not a config name; choose one of: {', '.join(group_options(group))}")
+    with _search_path():
+        try:
+            cfg = compose(config_name=f"{group}/{name}")
+        except MissingConfigException:
+            raise ConfigError(f"unknown {group} '{name}'; choose one of: {', '.join(group_options(group))}") from None
+    out = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(out, dict)
+    # a group option composed on its own lands under its package (the group name)
+    return dict(out[group]) if set(out) == {group} else out
+
+
+__all__ = ["CONFIG_DIR", "CONFIG_MODULE", "group_option", "group_options"]

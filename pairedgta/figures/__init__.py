@@ -1,0 +1,59 @@
+"""Figure families of the plot stage, one module each, all drawn the same way.
+
+Every family is a function `draw(passes, out, opts) -> (files, metrics)` registered here with the stage
+whose outputs it reads (`needs`) and, where it can read a user-given file instead, the config key that
+names it (`unless`). A pass gives the figures its dataset, grid and the results of its stages, whose
+readers belong to the stages (`p.evaluations[i].xi()`, `p.pseudo.labels.load(group)`, ...): figures
+never name a stage's files and import no stage."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pairedgta.registry import Registry
+
+FIGURES = Registry("figure", "plot.figures")
+FIGURES.register("xi_table", "pairedgta.figures.xi:draw", needs="evaluate")
+FIGURES.register("ranking", "pairedgta.figures.ranking:draw", needs="evaluate")
+FIGURES.register("qualitative", "pairedgta.figures.qualitative:draw", needs="evaluate")
+FIGURES.register("ablation", "pairedgta.figures.ablation:draw", needs="evaluate")
+FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel")
+FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")
+FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv")
+
+
+@dataclass
+class FigureOptions:
+    formats: list[str]
+    dpi: int
+    cfg: dict[str, Any]  # the run's config (the first pass's): plot.*, metric.*, cost.*, device
+    multi: bool = False  # several passes: file stems get the pass label
+    # file name -> the model (and pass) a figure shows alone; the plot stage saves it so each model's
+    # MLflow run can carry its own figures
+    owners: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def own(self, paths: list[Path], model: str, label: str) -> list[Path]:
+        """Record `paths` as figures of one model of one pass; returns them."""
+        for path in paths:
+            self.owners[Path(path).name] = {"model": str(model), "pass": str(label)}
+        return paths
+
+    @property
+    def plot(self) -> dict[str, Any]:
+        return dict(self.cfg.get("plot") or {})
+
+    def stem(self, base: str, label: str) -> str:
+        from pairedgta.figures.common import slug
+
+        return f"{base}_{slug(label)}" if self.multi else base
+
+
+def lookup(cfg: dict[str, Any], dotted: str) -> Any:
+    node: Any = cfg
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return node
+
+
+__all__ = ["FIGURES", "FigureOptions", "lookup"]

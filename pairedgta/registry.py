@@ -1,0 +1,101 @@
+"""One construction style for every configurable object: renderers, regions, datasets, model families,
+figures.
+
+A `Registry` maps a choice (`renderer.backend`, `region.type`, `dataset.kind`, `model.family`, an entry of
+`plot.figures`) to a lazily imported `"module:attr"` target, so optional dependencies (bpy, pyzmq,
+transformers) load only when used. Every target is called as `target(**config, **runtime)` and declares
+the keys it accepts in its keyword signature; `check_keys` rejects an unknown key the same way for all
+of them, naming the config key and the keys that exist.
+"""
+from __future__ import annotations
+
+import importlib
+import inspect
+from typing import Any, Callable, Iterable, Mapping
+
+from pairedgta.errors import ConfigError
+
+
+def accepted_keys(target: Callable[..., Any]) -> set[str] | None:
+    """Keyword names `target` accepts, or None if it takes **kwargs (then it must check them itself)."""
+    params = inspect.signature(target).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return {p.name for p in params if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+            and p.name != "self"}
+
+
+def check_keys(target: Callable[..., Any], keys: Iterable[str], where: str, runtime: Iterable[str] = ()) -> None:
+    """One-line error for keys `target` does not read. `where` is the config node, e.g. `renderer`."""
+    known = accepted_keys(target)
+    if known is None:
+        return
+    known -= set(runtime)
+    unknown = sorted(set(keys) - known)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(sorted(known))}"
+        )
+
+
+def required_keys(target: Callable[..., Any], runtime: Iterable[str] = ()) -> set[str]:
+    params = inspect.signature(target).parameters.values()
+    return {p.name for p in params if p.default is inspect.Parameter.empty and p.name != "self"
+            and p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)} - set(runtime)
+
+
+class Registry:
+    """name -> "module:attr" (+ metadata such as the stage a figure reads)."""
+
+    def __init__(self, kind: str, key: str) -> None:
+        self.kind = kind  # what is built, for messages: "renderer", "figure"
+        self.key = key  # the config key that names the choice: "renderer.backend"
+        self._targets: dict[str, str] = {}
+        self._meta: dict[str, dict[str, Any]] = {}
+
+    def register(self, name: str, target: str, **meta: Any) -> None:
+        if ":" not in target:
+            raise ValueError(f"{self.kind} {name}: target must be 'module:attr', got {target!r}")
+        self._targets[name] = target
+        self._meta[name] = meta
+
+    def names(self) -> list[str]:
+        return sorted(self._targets)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._targets
+
+    def meta(self, name: str) -> dict[str, Any]:
+        self._check_name(name)
+        return self._meta[name]
+
+    def _check_name(self, name: Any) -> None:
+        if name not in self._targets:
+            raise ConfigError(f"{self.key}={name!r} is unknown; choose one of: {', '.join(self.names())}")
+
+    def resolve(self, name: str) -> Callable[..., Any]:
+        self._check_name(name)
+        module_name, attr = self._targets[name].split(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name and exc.name.split(".")[0] == "pairedgta":
+                raise
+            raise ConfigError(
+                f"{self.key}={name} needs the Python package '{exc.name}', which is not installed; "
+                f"install the project as the README says (pip install -e .)"
+            ) from None
+        return getattr(module, attr)
+
+    def build(self, name: str, config: Mapping[str, Any], where: str | None = None, **runtime: Any) -> Any:
+        """`target(**config, **runtime)` after checking that `config` holds only keys the target reads."""
+        target = self.resolve(name)
+        where = where or self.key.split(".")[0]
+        check_keys(target, config, where, runtime=runtime)
+        missing = sorted(required_keys(target, runtime) - set(config))
+        if missing:
+            raise ConfigError(f"{where}: missing key(s) {', '.join(missing)} for {self.key}={name}")
+        return target(**dict(config), **runtime)
+
+
+__all__ = ["Registry", "accepted_keys", "check_keys", "required_keys"]

@@ -1,0 +1,248 @@
+"""Pass planning: what a run computes, over which datasets, with which models.
+
+A run has one or more passes. Without `variants` there is one pass over `dataset`; an experiment can
+list `variants` (each an optional `label` plus config overrides merged into the run's config, e.g. another
+`dataset` or `generate.pairing` level), and every variant runs the data stages on its own, while one
+plot stage draws all of them into shared figures (night_vs_acdc, pairing_ablation).
+
+Models reach a run through one channel: the composed `model` group (with the user's `model.<key>=`
+overrides) serves wherever the run uses that model, evaluated or as reference; every other name in
+`models` or `reference_model` is read from the same config group and `model_overrides.<name>` applies.
+"""
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+from pairedgta.conditions import ConditionGrid, build_condition_grid
+from pairedgta.datasets import DATASETS, PairedDataset, missing_root_message, open_dataset
+from pairedgta.errors import ConfigError
+from pairedgta.models import check_model_config, model_config
+from pairedgta.stages import evaluate, generate
+from pairedgta.stages.common import STAGES, Context, StageResult
+
+log = logging.getLogger("pairedgta")
+MISSING = "???"
+CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
+
+
+@dataclass
+class PassResult:
+    """One dataset variant of the run and its stage results."""
+
+    label: str
+    cfg: dict[str, Any]
+    grid: ConditionGrid
+    dataset: PairedDataset | None = None
+    dataset_key: str | None = None
+    generate: generate.GeneratedData | None = None
+    pseudo: Any = None  # pseudolabel.PseudoLabels
+    evaluations: list[evaluate.EvaluateResult] = field(default_factory=list)
+
+    @property
+    def pairing(self) -> dict[str, float]:
+        return generate.pairing_config(self.cfg.get("generate") or {})
+
+
+@dataclass
+class Plan:
+    stages: list[str]
+    force: set[str]
+    needs: set[str]  # upstream stages the requested figures read
+
+    @property
+    def plotting(self) -> bool:
+        return "plot" in self.stages
+
+    @property
+    def run_pseudo(self) -> bool:
+        return bool({"pseudolabel", "evaluate"} & (set(self.stages) | self.needs))
+
+    @property
+    def run_eval(self) -> bool:
+        return "evaluate" in self.stages or "evaluate" in self.needs
+
+    @property
+    def check_models(self) -> bool:
+        return CHECK_STAGE in self.stages
+
+    table_csv: str | None = None  # plot.table_csv: Table 1 from the authors' per-class CSV, no data stage
+
+
+@dataclass
+class RunModels:
+    evaluated: list[dict[str, Any]]
+    reference: dict[str, Any]
+
+
+def _as_list(value: Any) -> list[str]:
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [value]
+    return [str(v) for v in value]
+
+
+def make_plan(cfg: dict[str, Any]) -> Plan:
+    from pairedgta.stages import plot
+
+    stages, force = _as_list(cfg.get("stages")), set(_as_list(cfg.get("force")))
+    for key, values in (("stages", stages), ("force", force)):
+        bad = [s for s in values if s not in STAGES]
+        if bad:
+            raise ConfigError(f"{key}={bad} names unknown stage(s); stages are {', '.join(STAGES)}")
+    if CHECK_STAGE in stages and len(stages) > 1:
+        raise ConfigError(f"stages={stages}: {CHECK_STAGE} is a model check of its own; run it alone (stages=[{CHECK_STAGE}])")
+    device = str(cfg.get("device"))
+    if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
+        raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
+    table_csv = (cfg.get("plot") or {}).get("table_csv")
+    if table_csv:
+        if set(stages) != {"plot"}:
+            raise ConfigError("plot.table_csv draws Table 1 from a CSV and runs no data stage; use stages=[plot]")
+        return Plan(stages, force, set(), table_csv=str(table_csv))
+    needs = plot.needed_stages(cfg) if "plot" in stages else set()
+    return Plan(stages, force, needs)
+
+
+# -- models -------------------------------------------------------------------------------------------
+def model_group_overridden(task_overrides: list[str] | None) -> bool:
+    """Whether the user chose the `model` group on the command line (`model=x`, also in a sweep)."""
+    for o in task_overrides or []:
+        key = o.split("=", 1)[0].lstrip("+~")
+        if key == "model":
+            return True
+    return False
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def run_models(cfg: dict[str, Any], model_chosen: bool = False) -> RunModels:
+    """The composed config of every model the run evaluates and of its reference model.
+
+    `models=[...]` lists the evaluated models; when the user chose `model=` on the command line (e.g. a
+    sweep `-m model=a,b`), the chosen model replaces that list for this job."""
+    primary = dict(cfg["model"])
+    names = _as_list(cfg.get("models"))
+    if names and model_chosen and names != [primary["name"]]:
+        log.info("model=%s replaces the experiment's models=%s for this job", primary["name"], names)
+        names = [primary["name"]]
+    names = names or [primary["name"]]
+    reference = str(cfg.get("reference_model") or primary["name"])
+    used = list(dict.fromkeys(names + [reference]))
+    overrides = dict(cfg.get("model_overrides") or {})
+    unused = [n for n in overrides if n not in used]
+    if unused:
+        raise ConfigError(
+            f"model_overrides.{unused[0]}: model '{unused[0]}' is not used by this run (it uses {', '.join(used)}); "
+            "remove the override or add the model to models=[...]"
+        )
+    resolved: dict[str, dict[str, Any]] = {}
+    for name in used:
+        base = primary if name == primary["name"] else model_config(name)
+        extra = overrides.get(name) or {}
+        if not isinstance(extra, dict):
+            raise ConfigError(f"model_overrides.{name} must be a mapping of model keys, got {extra!r}")
+        merged = _merge(base, extra)
+        check_model_config(merged, "model" if name == primary["name"] and not extra else f"model_overrides.{name}")
+        resolved[name] = merged
+    return RunModels([resolved[n] for n in names], resolved[reference])
+
+
+# -- passes -------------------------------------------------------------------------------------------
+def _merge_variant(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in overrides.items():
+        out[k] = _merge_variant(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
+    return out
+
+
+def pass_configs(container: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(label, config) per pass: the run's config, or one per entry of `variants` (label + overrides;
+    a variant's `dataset` replaces the dataset node as a whole)."""
+    variants = container.get("variants")
+    if not variants:
+        return [(str(container["dataset"].get("name", "dataset")), container)]
+    out, labels = [], set()
+    for i, v in enumerate(variants):
+        if not isinstance(v, dict):
+            raise ConfigError(f"variants[{i}] must be a mapping (label + config overrides), got {v!r}")
+        v = dict(v)
+        label = str(v.pop("label", None) or f"variant{i}")
+        if label in labels:
+            raise ConfigError(f"variants: duplicate label {label!r}")
+        labels.add(label)
+        cfg = _merge_variant(container, v)
+        cfg.pop("variants", None)
+        out.append((label, cfg))
+    return out
+
+
+def _root_key(container: dict[str, Any], dataset: dict[str, Any], variant: bool) -> str:
+    """The config key a user sets to fill a dataset's root: dataset.root, or the top-level node a
+    variant's dataset interpolates (e.g. acdc.root)."""
+    if variant:
+        for k, v in container.items():
+            if k not in ("dataset", "variants") and isinstance(v, dict) and v == dataset:
+                return f"{k}.root"
+    return "dataset.root"
+
+
+def check_roots(container: dict[str, Any]) -> None:
+    """Every dataset a pass reads needs a root, before anything is computed: one line naming the key."""
+    for _label, cfg in pass_configs(container):
+        d = cfg["dataset"]
+        if d.get("root") == MISSING:
+            key = _root_key(container, d, bool(container.get("variants")))
+            raise ConfigError(missing_root_message(d, key))
+
+
+def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> PassResult:
+    """The pass's dataset: generated by the generate stage when `dataset.root` is null, else read."""
+    cfg, grid = ctx.cfg, ctx.grid
+    dcfg = dict(cfg["dataset"])
+    if not DATASETS.meta(dcfg.get("kind")).get("paired"):
+        raise ConfigError(
+            f"dataset={dcfg.get('name')} is not a paired dataset: it feeds the model check "
+            f"(+experiment=cityscapes_val_check, stages=[{CHECK_STAGE}]), not {', '.join(plan.stages)}"
+        )
+    if dcfg.get("root") is None:
+        if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
+            return PassResult(label, cfg, grid)  # e.g. the cost figure from a given CSV
+        gen = generate.run(ctx)
+        results["generate"] = gen
+        if not gen.complete:  # a shard job: other shards still have scenes to render
+            if {"pseudolabel", "evaluate"} & (plan.needs | set(plan.stages)) or plan.plotting:
+                raise ConfigError(
+                    "generate.shard is set and other shards' scenes are still missing: run the remaining shards, "
+                    "then the later stages without generate.shard/num_shards"
+                )
+            return PassResult(label, cfg, grid)
+        dataset = open_dataset(dcfg, grid, root=gen.path)
+        return PassResult(label, cfg, dataset.grid or grid, dataset, f"generate:{gen.key}", generate=gen)
+    if "generate" in plan.stages:
+        log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))
+    dataset = open_dataset(dcfg, grid)
+    return PassResult(label, cfg, dataset.grid or grid, dataset, f"external:{dataset.fingerprint()}")
+
+
+def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any]) -> Context:
+    return Context(cfg=cfg, grid=build_condition_grid(cfg["conditions"]), cache=cache, stages=plan.stages,
+                   force=plan.force, results=results)
+
+
+def collect_cached(ctx: Context, p: PassResult) -> list[StageResult]:
+    """Cached evaluations of this pass's dataset by models this run did not evaluate (multirun aggregate)."""
+    assert p.dataset is not None and p.pseudo is not None and p.dataset_key is not None
+    return evaluate.find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
+
+
+__all__ = ["PassResult", "Plan", "RunModels", "make_plan", "run_models", "model_group_overridden", "pass_configs",
+           "check_roots", "open_pass", "pass_context", "collect_cached"]

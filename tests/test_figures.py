@@ -1,0 +1,125 @@
+"""Figure conventions: one naming of conditions, a xi heatmap per model with a colour bar, qualitative
+grids whose colours are all explained, a progress bar over figures, and every model loaded once per run."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+import pairedgta.figures.qualitative as qualitative
+import pairedgta.figures.xi as xi_figure
+import pairedgta.models as models
+from pairedgta.app import run
+from pairedgta.conditions import WEATHER_DISPLAY, condition_display
+from pairedgta.testing.cli import compose_cfg, fast_overrides
+
+PKG = Path(__file__).resolve().parents[1] / "pairedgta"
+
+
+def test_one_naming_of_conditions():
+    assert condition_display("Day-EXTRASUNNY") == "Day-Sunny"
+    assert condition_display("Night-FOGGY") == "Night-Foggy"
+    assert condition_display("fog_0.5") == "fog_0.5"
+    from pairedgta.figures import common
+
+    assert common.condition_display is condition_display
+    # no second mapping of GTA weathers to display names anywhere in figures or stages
+    for path in [*(PKG / "figures").glob("*.py"), *(PKG / "stages").glob("*.py")]:
+        assert not re.search(r"[\"']EXTRASUNNY[\"']\s*:", path.read_text()), path
+    assert set(WEATHER_DISPLAY) >= {"EXTRASUNNY", "RAIN", "FOGGY"}
+
+
+def _xi_rows(models_: list[str], conditions: list[str], classes: list[str]) -> pd.DataFrame:
+    rows = []
+    rng = np.random.default_rng(0)
+    for m in models_:
+        for c in conditions:
+            for k, cls in enumerate(classes + ["mean"]):
+                rows.append({"model": m, "reference_model": "ref", "condition": c, "class_id": k if cls != "mean" else -1,
+                             "class_name": cls, "xi": rng.uniform() if c != "Day-EXTRASUNNY" else 1.0})
+    return pd.DataFrame(rows)
+
+
+def test_xi_heatmap_is_one_conditions_by_classes_figure_per_model_with_a_colour_bar(tmp_path, monkeypatch):
+    drawn = {}
+    save = xi_figure.save
+
+    def keep(fig, out, stem, formats, dpi):
+        axes = fig.get_axes()
+        drawn[stem] = {"n_axes": len(axes), "rows": [t.get_text() for t in axes[0].get_yticklabels()],
+                       "cols": [t.get_text() for t in axes[0].get_xticklabels()], "cbar": axes[1].get_ylabel(),
+                       "cells": [t.get_text() for t in axes[0].texts]}
+        return save(fig, out, stem, formats, dpi)
+
+    monkeypatch.setattr(xi_figure, "save", keep)
+    conds = ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"]
+    frame = _xi_rows(["segformer_b5", "ddrnet_23"], conds, ["road", "car"])
+    files = xi_figure.heatmap_figures(frame, "Day-EXTRASUNNY", tmp_path, ["png"], 40)
+    assert {m: [p.name for p in f] for m, f in files.items()} == {
+        "segformer_b5": ["xi_table_segformer_b5.png"], "ddrnet_23": ["xi_table_ddrnet_23.png"]}
+    assert all(p.is_file() for f in files.values() for p in f)
+    fig = drawn["xi_table_ddrnet_23"]
+    assert fig["n_axes"] == 2 and fig["cbar"] == "\u03be (%)"  # heatmap + colour bar
+    assert fig["rows"] == ["Day-Rain", "Night-Sunny"]  # the paper's names, the reference left out
+    assert fig["cols"] == ["road", "car", "Mean"]
+    part = frame[(frame.model == "ddrnet_23") & (frame.condition == "Night-EXTRASUNNY")].set_index("class_name")
+    assert f"{100 * part.at['car', 'xi']:.1f}" == fig["cells"][4]  # row 2, column 2
+
+
+def test_disagreement_overlay_uses_the_legend_colours():
+    image = np.full((2, 3, 3), 128, dtype=np.uint8)  # dims to the legend's mid grey
+    pseudo = np.array([[1, 1, 255], [2, 2, 255]])
+    pred = np.array([[1, 0, 4], [2, 2, 2]])
+    out = qualitative.disagreement_overlay(image, pred, pseudo).astype(float)
+    legend = dict(qualitative.LEGEND)
+    assert len(legend) == 3
+    red = next(c for t, c in legend.items() if t.startswith("disagrees"))
+    green = next(c for t, c in legend.items() if t.startswith("agrees"))
+    grey = next(c for t, c in legend.items() if t.startswith("void"))
+    np.testing.assert_allclose(out[0, 1], red, atol=1)
+    np.testing.assert_allclose(out[0, 0], green, atol=1)
+    np.testing.assert_allclose(out[0, 2], grey, atol=1)
+    np.testing.assert_allclose(out[1, 2], grey, atol=1)
+
+
+def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progress(tmp_path, monkeypatch, capsys):
+    built: list[str] = []
+    build = models.build_segmenter
+
+    def counting(model, device=None, **kw):
+        built.append(dict(model)["name"] if not isinstance(model, str) else model)
+        return build(model, device=device, **kw)
+
+    monkeypatch.setattr(models, "build_segmenter", counting)
+    grids = {}
+    save = qualitative.save
+
+    def keep(fig, out, stem, formats, dpi):
+        grids[stem] = {"legend": [t.get_text() for lg in fig.legends for t in lg.get_texts()],
+                       "labels": [a.get_xlabel() or a.get_ylabel() for a in fig.get_axes()]}
+        return save(fig, out, stem, formats, dpi)
+
+    monkeypatch.setattr(qualitative, "save", keep)
+    over = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_pidnet]", "plot.figures=[xi_table,qualitative]",
+                                       "plot.qualitative_groups=1"]
+    summary = run(compose_cfg(over))
+    # pseudo-labels, evaluation and the qualitative figure share one model each
+    assert sorted(built) == ["tiny_pidnet", "tiny_segformer"]
+    assert set(grids) == {"qualitative_tiny_segformer", "qualitative_tiny_pidnet"}
+    for g in grids.values():
+        assert [t for t in g["legend"]] == [t for t, _ in qualitative.LEGEND]
+        assert "max softmax probability" in g["labels"]  # the confidence column's colour bar
+    err = capsys.readouterr().err
+    assert re.search(r"plot: 100%\|[^\n\r]*\| 2/2", err), err[-1500:]
+    owners = pd.read_json(Path(summary["plot"]) / "owners.json", orient="index")
+    assert sorted(owners.index) == sorted(["xi_table_tiny_segformer.png", "xi_table_tiny_pidnet.png",
+                                           "qualitative_tiny_segformer.png", "qualitative_tiny_pidnet.png"])
+    assert all(name.endswith(f"_{m}.png") for name, m in owners["model"].items())
+
+    # outside a run every call builds a fresh model (nothing is kept between runs)
+    built.clear()
+    cfg = models.model_config("tiny_segformer")
+    assert models.shared_segmenter(cfg) is not models.shared_segmenter(cfg)
+    assert built == ["tiny_segformer", "tiny_segformer"]

@@ -1,0 +1,107 @@
+"""A normal (non-editable) install runs: the wheel carries the config tree and the demo weights, and the
+installed package composes, builds models and runs the smoke experiment from a directory that is not the
+checkout. Also the Hydra surface a user sees: the job's name and the launcher presets."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import venv
+import zipfile
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from pairedgta.configs import CONFIG_DIR
+from pairedgta.testing.cli import OFFLINE, compose_cfg, run_cli
+
+CHECKOUT = Path(__file__).resolve().parents[1]
+# the names the launcher plugins register in Hydra's ConfigStore (a YAML of the same name shadows the schema)
+PLUGIN_LAUNCHERS = {"basic", "joblib", "submitit_local", "submitit_slurm"}
+
+
+def _build_wheel(tmp: Path) -> Path:
+    """Build from a copy of the sources, so the checkout gets no build/ or egg-info."""
+    src = tmp / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(CHECKOUT / name, src / name)
+    shutil.copytree(CHECKOUT / "pairedgta", src / "pairedgta", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    dist = tmp / "dist"
+    env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
+                           str(dist), str(src)], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (wheel,) = dist.glob("pairedgta-*.whl")
+    return wheel
+
+
+def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
+    wheel = _build_wheel(tmp_path)
+    names = set(zipfile.ZipFile(wheel).namelist())
+    shipped_yaml = {f"pairedgta/conf/{p.relative_to(CONFIG_DIR).as_posix()}" for p in CONFIG_DIR.rglob("*.yaml")}
+    assert shipped_yaml and shipped_yaml <= names, sorted(shipped_yaml - names)
+    weights = CONFIG_DIR.parent / "models" / "weights" / "demo_segformer"
+    assert {f"pairedgta/models/weights/demo_segformer/{p.name}" for p in weights.iterdir()} <= names
+
+    # a fresh environment: the shared site-packages give the dependencies (no downloads), the wheel gives
+    # pairedgta; the checkout is neither the working directory nor on sys.path
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    py = env_dir / "bin" / "python"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env.update(OFFLINE, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PYTHONWARNINGS="ignore")
+    proc = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+
+    probe = ("import pairedgta, sys; from pairedgta.models import available_models, build_segmenter; "
+             "print(pairedgta.__file__); print(any(p and p.startswith(sys.argv[1]) for p in sys.path)); "
+             "print(','.join(available_models())); print(build_segmenter('tiny_segformer').name)")
+    proc = subprocess.run([str(py), "-c", probe, str(CHECKOUT)], cwd=work, capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    where, checkout_on_path, models, built = proc.stdout.strip().splitlines()[-4:]
+    assert Path(where).resolve().is_relative_to(env_dir.resolve()), where  # the wheel's copy, not the checkout
+    assert checkout_on_path == "False"
+    assert "tiny_segformer" in models.split(",") and "demo_segformer" in models.split(",")
+    assert built == "tiny_segformer"
+
+    run_dir = tmp_path / "run"
+    cache = tmp_path / "cache"
+    proc = subprocess.run(
+        [str(py), "-m", "pairedgta", "+experiment=smoke", "tracking.enabled=false", f"cache_dir={cache}",
+         "renderer.width=48", "renderer.height=32", "generate.num_scenes=2", "metric.bootstrap.resamples=20",
+         "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY]", "plot.formats=[png]", "plot.dpi=40",
+         "plot.figures=[xi_table]", f"hydra.run.dir={run_dir}"],
+        cwd=work, capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"results: {cache / 'plot'}" in proc.stdout
+    plots = [p for p in (cache / "plot").iterdir() if not p.name.startswith(".")]
+    assert len(plots) == 1 and any(f.name.startswith("xi_") and f.suffix == ".png" for f in plots[0].iterdir())
+    # Hydra's job is named pairedgta (not __main__), and its log file ends with where the results are
+    log_text = (run_dir / "pairedgta.log").read_text()
+    assert f"results: {plots[0]}" in log_text
+    assert not (work / "mlruns").exists()
+
+
+def test_help_names_the_app(tmp_path):
+    proc = run_cli(["--help"], tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "pairedgta is powered by Hydra" in proc.stdout and "__main__" not in proc.stdout
+
+
+def test_launcher_presets_extend_the_plugins_instead_of_shadowing_them():
+    """A YAML named like a plugin's schema (joblib, submitit_slurm) makes Hydra warn on every job of a
+    sweep; the project's presets have their own names and start from the plugin's config."""
+    presets = sorted((CONFIG_DIR / "hydra" / "launcher").glob("*.yaml"))
+    assert presets
+    for path in presets:
+        assert path.stem not in PLUGIN_LAUNCHERS, path
+        defaults = OmegaConf.load(path).get("defaults")
+        assert defaults and defaults[0] in PLUGIN_LAUNCHERS and defaults[-1] == "_self_", path
+    # and the run's own config composes without any launcher plugin installed
+    assert compose_cfg([]).name == "default"

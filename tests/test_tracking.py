@@ -1,0 +1,156 @@
+"""The MLflow record: runs that say what ran on what, artifacts next to the database, per-model runs
+that carry their own table, figures, dataset and config, and cache-hit reruns that link instead of
+uploading the same files again. Disabled tracking touches nothing."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+from pairedgta.app import run
+from pairedgta.testing.cli import compose_cfg, fast_overrides
+from pairedgta.tracking import artifact_location, bundle, dataset_label, run_name
+
+SEP = " \u00b7 "
+
+
+def _tracked(tmp: Path, db: Path, extra: list[str] = ()) -> list[str]:
+    over = [o for o in fast_overrides(tmp) if not o.startswith(("tracking.", "plot.formats"))]
+    return over + [f"tracking.uri=sqlite:///{db}", "tracking.enabled=true", "name=trk", "plot.formats=[png]",
+                   "models=[tiny_segformer,tiny_deeplabv3plus]", "plot.figures=[xi_table,qualitative,ranking]",
+                   "plot.qualitative_groups=1", *extra]
+
+
+def _artifacts(client, run_id: str, path: str = "") -> set[str]:
+    out = set()
+    for a in client.list_artifacts(run_id, path or None):
+        out |= _artifacts(client, run_id, a.path) if a.is_dir else {a.path}
+    return out
+
+
+def _runs(client, exp_id: str):
+    runs = client.search_runs([exp_id], order_by=["attributes.start_time ASC"])
+    parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    nested = [r for r in runs if r.data.tags.get("mlflow.parentRunId")]
+    return parents, nested
+
+
+def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch):
+    import mlflow
+
+    monkeypatch.chdir(tmp_path)  # anything written to ./mlruns would land here
+    db = tmp_path / "store" / "mlflow.db"
+    first = run(compose_cfg(_tracked(tmp_path, db)))
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
+    exp = client.get_experiment_by_name("trk")
+    assert exp.artifact_location == (db.parent / "mlartifacts" / "trk").as_uri()
+    assert not (tmp_path / "mlruns").exists()
+
+    gen_key = next(p.name for p in (tmp_path / "cache" / "generate").iterdir() if not p.name.startswith("."))
+    data = f"generated@{gen_key[:8]}"
+    (parent,), nested = _runs(client, exp.experiment_id)
+    assert parent.info.run_name == SEP.join(["trk", "tiny_segformer, tiny_deeplabv3plus", data])
+    by_model = {r.data.tags["model"]: r for r in nested}
+    assert set(by_model) == {"tiny_segformer", "tiny_deeplabv3plus"}
+    plot_dir = Path(first["plot"])
+    owners = json.loads((plot_dir / "owners.json").read_text())
+    for model, r in by_model.items():
+        assert r.info.run_name == SEP.join(["trk", model, data])
+        arts = _artifacts(client, r.info.run_id)
+        assert {"evaluate/xi.csv", "xi_table.json", "config.yaml", f"figures/xi_table_{model}.png",
+                f"figures/qualitative_{model}.png"} <= arts
+        other = next(m for m in by_model if m != model)
+        assert not any(other in a for a in arts)  # only its own figures
+        assert {Path(a).name for a in arts if a.startswith("figures/")} == {n for n, o in owners.items() if o["model"] == model}
+        # the xi table as MLflow lines it up: exactly the evaluate stage's numbers
+        table = mlflow.load_table("xi_table.json", run_ids=[r.info.run_id])
+        xi = pd.read_csv(Path(first["evaluate"][model]) / "xi.csv")
+        assert list(table.columns[:7]) == ["model", "reference", "condition", "class", "xi", "ci_low", "ci_high"]
+        assert len(table) == len(xi) and set(table["model"]) == {model}
+        pd.testing.assert_series_equal(table["xi"].astype(float), xi["xi"].astype(float), check_names=False)
+        # the dataset it read, with the generate hash as digest
+        (inp,) = r.inputs.dataset_inputs
+        assert inp.dataset.name == "generated" and inp.dataset.digest == gen_key
+        assert str(tmp_path / "cache" / "generate" / gen_key) in inp.dataset.source
+        config = yaml.safe_load(Path(mlflow.artifacts.download_artifacts(f"{r.info.artifact_uri}/config.yaml",
+                                                                          dst_path=str(tmp_path / "dl" / model))).read_text())
+        assert config["model"]["name"] == model and config["metric"]["bootstrap"]["resamples"] == 50
+    parent_arts = _artifacts(client, parent.info.run_id)
+    assert {"figures/ranking.png", "figures/table1_xi.csv", "pseudolabel/histogram.csv", "config.yaml"} <= parent_arts
+    assert not any(a.startswith("figures/") and a.split("/")[1] in owners for a in parent_arts)
+    first_files = sorted(p.relative_to(db.parent) for p in (db.parent / "mlartifacts").rglob("*") if p.is_file())
+
+    # a rerun is a cache hit everywhere: it links the runs that hold the files and uploads none of them
+    run(compose_cfg(_tracked(tmp_path, db)))
+    parents, nested2 = _runs(client, exp.experiment_id)
+    assert len(parents) == 2 and len(nested2) == 4
+    again = parents[1]
+    assert again.info.run_name == parent.info.run_name
+    assert again.data.tags["pairedgta.reused_run"] == parent.info.run_id
+    assert parent.info.run_id in again.data.tags["pairedgta.reused_link"]
+    assert parent.info.run_id in again.data.tags["mlflow.note.content"]
+    assert _artifacts(client, again.info.run_id) == {"config.yaml"}
+    for r in nested2[2:]:
+        earlier = by_model[r.data.tags["model"]]
+        assert r.data.tags["pairedgta.reused_run"] == earlier.info.run_id
+        assert _artifacts(client, r.info.run_id) == {"config.yaml"}
+        assert r.data.metrics == earlier.data.metrics  # the numbers stay comparable
+        assert r.inputs.dataset_inputs[0].dataset.digest == gen_key
+    new_files = sorted(p.relative_to(db.parent) for p in (db.parent / "mlartifacts").rglob("*") if p.is_file())
+    assert len(new_files) == len(first_files) + 3  # three config.yaml, nothing else
+
+    # recomputed figures (force) are new files: uploaded again
+    run(compose_cfg(_tracked(tmp_path, db, ["force=[plot]"])))
+    parents, nested3 = _runs(client, exp.experiment_id)
+    assert "figures/ranking.png" in _artifacts(client, parents[2].info.run_id)
+    assert "pairedgta.reused.plot." + Path(first["plot"]).name not in parents[2].data.tags
+    assert all(any(a.startswith("figures/") for a in _artifacts(client, r.info.run_id)) for r in nested3[4:])
+    assert all("evaluate/xi.csv" not in _artifacts(client, r.info.run_id) for r in nested3[4:])  # evaluate was a hit
+
+
+def test_disabled_tracking_imports_and_writes_nothing(tmp_path):
+    code = (
+        "import sys; from pathlib import Path; from pairedgta.tracking import Tracker\n"
+        "t = Tracker('sqlite:///' + sys.argv[1] + '/db/mlflow.db', 'x', enabled=False)\n"
+        "with t.run('r'):\n"
+        "    t.params({'a': 1}); t.metrics({'m': 1.0}); t.config({'a': 1}); t.hydra_config()\n"
+        "    t.dataset('d', '/nowhere', 'abc'); assert t.stage_files('evaluate.k', True, [Path(sys.argv[0])]) is None\n"
+        "print('mlflow' in sys.modules)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "False"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_names_locations_and_bundles():
+    assert run_name("smoke", ["a", "b"], ["generated@1234abcd"]) == "smoke \u00b7 a, b \u00b7 generated@1234abcd"
+    assert dataset_label("generated", "generate:1234abcd5678") == "generated@1234abcd"
+    assert dataset_label("acdc", None) == "acdc"
+    assert artifact_location("sqlite:////data/runs/mlflow.db", "paper table") == "file:///data/runs/mlartifacts/paper_table"
+    assert artifact_location("http://127.0.0.1:5000", "x") is None  # a server keeps its own
+    assert bundle("plot", "abc", "night vs/acdc", "segformer_b5") == "plot.abc.night_vs_acdc.segformer_b5"
+
+
+@pytest.mark.parametrize("uri", ["sqlite:///{tmp}/a/mlflow.db", "sqlite:///{tmp}/b/other.db"])
+def test_a_user_given_store_gets_the_artifacts_next_to_it(tmp_path, monkeypatch, uri):
+    import mlflow
+
+    from pairedgta.tracking import Tracker
+
+    monkeypatch.chdir(tmp_path)
+    uri = uri.format(tmp=tmp_path)
+    t = Tracker(uri, "exp")
+    with t.run("r"):
+        t.config({"k": 1})
+    db = Path(uri[len("sqlite:///"):])
+    (run_dir,) = [p for p in (db.parent / "mlartifacts" / "exp").iterdir()]
+    assert (run_dir / "artifacts" / "config.yaml").is_file()
+    assert mlflow.get_experiment_by_name("exp").artifact_location.startswith(db.parent.as_uri())
+    assert not (tmp_path / "mlruns").exists()
