@@ -45,7 +45,8 @@ def test_demo_model_on_fresh_held_out_scenes():
             rng = np.random.default_rng(seed)
             loc = region.sample_location(rng)
             objects, _ = place_objects(rng, loc, region, PlacementConfig.from_cfg(card["data"].get("objects", {"min": 1, "max": 3})))
-            d = SceneDescriptor(scene_id=f"t{k}", seed=seed, location=loc, objects=objects, region=region.name)
+            d = region.populate(SceneDescriptor(scene_id=f"t{k}", seed=seed, location=loc, objects=objects,
+                                                region=region.name))  # traffic and pedestrians, as generate does
             renderer.prepare(d)
             out = {c.name: renderer.render(d, c) for c in grid}
             labels, _ = seg.predict(np.stack([out[c].image for c in grid.names]))

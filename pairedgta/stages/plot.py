@@ -127,9 +127,10 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
 
 
 # -- Table 1 from the authors' released per-class results (plot.table_csv) -----------------------------
-def run_table_csv(ctx: Context) -> Figures:
+def run_table_csv(ctx: Context, tracker: Any) -> Figures:
     """The plot stage on its own: Table 1 from plot.table_csv under the run's metric convention (cached
-    by the file's content, the filters and the convention). Logic in pairedgta.figures.paper_table."""
+    by the file's content, the filters and the convention), logged to the open MLflow run. Logic in
+    pairedgta.figures.paper_table."""
     from pairedgta.figures.paper_table import paper_table
     from pairedgta.metrics.conventions import convention_from_config
 
@@ -153,4 +154,6 @@ def run_table_csv(ctx: Context) -> Figures:
     result = run_cached(ctx, "plot", VERSION, config, {"table_csv": sha256_file(path)[:16]}, build, label="[table_csv]",
                         result_cls=Figures)
     assert isinstance(result, Figures)
+    tracker.stage_files(f"plot.{result.key}", result.hit, result.files(), "figures")
+    tracker.metrics(result.metrics())
     return result
