@@ -118,8 +118,8 @@ def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
     adverse = int((g["adv_count"] > 0).sum())
     top.set_title(title, fontsize=6)
     top.axis("off")
-    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class is predicted in {clean} of {n} clean\n"
-             f"and {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
+    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class has \u03c6 > 0 (pixels predicted with\n"
+             f"confidence \u2265 \u03c4_mass) in {clean} of {n} clean\nand {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
              transform=top.transAxes, wrap=True)
     bottom.axis("off")
     bottom.text(0.5, 0.6, "needs \u2265 2 frames with differing\nclean counts (more scenes that show it)",

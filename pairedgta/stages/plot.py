@@ -28,7 +28,7 @@ from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
-VERSION = "4"  # 4: one xi heatmap per model, owners.json
+VERSION = "5"  # 5: the ranking figure says why a class has no rho_valid in terms of phi
 DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
 
 
