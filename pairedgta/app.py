@@ -32,7 +32,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     tracking = container.get("tracking") or {}
     experiment = str(tracking.get("experiment_name") or container.get("name", "default"))
     tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)))
-    model_names = [m["name"] for m in models.evaluated]
+    model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once():
         return _run(container, plan, models, cache, tracker, experiment, model_names)
 
@@ -48,15 +48,6 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
          tracker: Tracker, experiment: str, model_names: list[str]) -> dict[str, Any]:
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
-
-    if plan.table_csv:  # Table 1 from the authors' per-class results: the plot stage alone
-        ctx = planning.pass_context(container, cache, plan, results)
-        with tracker.run(run_name(experiment, [], ["table_csv"])):
-            _log_invocation(tracker, container)
-            figures = plot.run_table_csv(ctx)
-            tracker.stage_files(bundle("plot", figures.key), figures.hit, figures.files(), "figures")
-            tracker.metrics(figures.metrics())
-        return {**summary, "plot": str(figures.path)}
 
     if plan.check_models:  # Cityscapes val: a check of the models themselves, not a paired run
         from pairedgta.stages import cityscapes_val
