@@ -58,7 +58,7 @@ from pairedgta.stages.common import (
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "2"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0
+VERSION = "3"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 GT = "ground_truth"
 
 
