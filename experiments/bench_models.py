@@ -9,15 +9,14 @@ what an evaluation run pays per image.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-try:
-    import pairedgta  # noqa: F401
-except ModuleNotFoundError:  # run from a checkout without installing the package
+if importlib.util.find_spec("pairedgta") is None:  # run from a checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pairedgta.models import build_segmenter

@@ -32,12 +32,14 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     tracking = container.get("tracking") or {}
     experiment = str(tracking.get("experiment_name") or container.get("name", "default"))
     tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)))
+    model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once():
-        return _run(container, plan, models, cache, tracker, experiment, [m["name"] for m in models.evaluated])
+        return _run(container, plan, models, cache, tracker, experiment, model_names)
 
 
 def _log_invocation(tracker: Tracker, container: dict[str, Any]) -> None:
-    tracker.params(config := {k: v for k, v in container.items() if k != "hydra"})
+    config = {k: v for k, v in container.items() if k != "hydra"}
+    tracker.params(config)
     tracker.config(config)
     tracker.hydra_config()
 
@@ -47,14 +49,12 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 
-    if plan.table_csv or plan.check_models:  # no paired data: Table 1 from the authors' CSV, or a model check
+    if plan.check_models:  # Cityscapes val: a check of the models themselves, not a paired run
         from pairedgta.stages import cityscapes_val
+
         ctx = planning.pass_context(container, cache, plan, results)
-        source = "table_csv" if plan.table_csv else str(container["dataset"].get("name"))
-        with tracker.run(run_name(experiment, [] if plan.table_csv else model_names, [source])):
+        with tracker.run(run_name(experiment, model_names, [str(container["dataset"].get("name"))])):
             _log_invocation(tracker, container)
-            if plan.table_csv:
-                return {**summary, "plot": str(plot.run_table_csv(ctx, tracker).path)}
             return cityscapes_val.run(ctx, models.evaluated, tracker)
 
     passes = []

@@ -71,6 +71,7 @@ RULES = [
     _rule("pseudolabel.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("evaluate.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("threads", int, lambda v: v >= 1, "use the number of CPU threads for inference, >= 1"),
+    _rule("evaluate.sampling_seed", int, lambda v: True, "use an integer"),
     _rule("metric.tau_mass", float, lambda v: 0.0 <= v <= 1.0, "use a threshold in [0, 1]"),
     _rule("metric.rho.m", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("metric.bootstrap.resamples", int, lambda v: v >= 0, "use an integer >= 0 (0 = no intervals)"),
@@ -169,6 +170,52 @@ def check_plot(cfg: dict[str, Any], names: set[str], where: str) -> None:
         raise ConfigError(f"{where}plot.ranking.condition={cond!r} is not a condition of this run; known: {', '.join(sorted(names))}")
 
 
+REFERENCE_SOURCES = ("pseudo_label", "ground_truth", "both")
+_HINTS["plot.table_filter.conf_threshold"] = "use the confidence threshold as the CSV writes it, e.g. 0.6"
+
+
+def check_metric(cfg: dict[str, Any], where: str) -> None:
+    """The metric convention (metric.convention, absent, mean_exclude, agreement, rho.selections,
+    rho.headline) parsed as the evaluate stage will parse it, and the reference source."""
+    metric = cfg.get("metric")
+    if not isinstance(metric, dict):
+        return
+    from pairedgta.metrics.conventions import convention_from_config
+
+    try:
+        convention_from_config(metric)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}{exc}") from None
+    reference = metric.get("reference")
+    if reference is not None and reference not in REFERENCE_SOURCES:
+        raise ConfigError(f"{where}metric.reference={reference!r}; use one of {', '.join(REFERENCE_SOURCES)}")
+
+
+def check_evaluate(cfg: dict[str, Any], where: str) -> None:
+    from pairedgta.stages.evaluate import SAMPLINGS
+
+    sampling = (cfg.get("evaluate") or {}).get("sampling")
+    if sampling is not None and sampling not in SAMPLINGS:
+        raise ConfigError(f"{where}evaluate.sampling={sampling!r}; use one of {', '.join(SAMPLINGS)} (all = every adverse "
+                          "condition per group, random_one = one drawn per group, the authors' loader)")
+
+
+def check_table_filter(plot: dict[str, Any], where: str) -> None:
+    """plot.table_filter picks rows of the authors' CSV (plot.table_csv) by these columns only."""
+    from pairedgta.figures.paper_table import FILTERS
+
+    filters = plot.get("table_filter")
+    if filters is None:
+        return
+    if not isinstance(filters, dict):
+        raise ConfigError(f"{where}plot.table_filter={filters!r} must be a mapping with the keys {', '.join(FILTERS)}")
+    unknown = sorted(set(filters) - set(FILTERS))
+    if unknown:
+        raise ConfigError(f"{where}plot.table_filter: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(FILTERS)}")
+    if filters.get("conf_threshold") is not None:
+        _number(filters["conf_threshold"], "plot.table_filter.conf_threshold", float, where)
+
+
 def check_run_config(cfg: dict[str, Any]) -> None:
     """Raise one ConfigError for the first bad value of a resolved run config (see the module doc)."""
     check_cache_dir(cfg.get("cache_dir"))
@@ -187,5 +234,8 @@ def check_run_config(cfg: dict[str, Any]) -> None:
                 raise ConfigError(f"{where}{key}={value!r} is out of range; {use}")
         _known_model(pcfg.get("reference_model"), f"{where}reference_model")
         check_plot(pcfg, names, where)
+        check_table_filter(pcfg.get("plot") or {}, where)
+        check_metric(pcfg, where)
+        check_evaluate(pcfg, where)
     for i, name in enumerate(cfg.get("models") or []):
         _known_model(name, f"models[{i}]")

@@ -162,6 +162,14 @@ BAD_CONFIG = {
                                       "plot.qualitative_conditions: unknown condition(s) ['Night-HAIL']"),
     "unknown_ranking_condition": (["plot.ranking.condition=Dusk-RAIN"], "plot.ranking.condition='Dusk-RAIN' is not a condition"),
     "zero_threads": (["threads=0"], "threads=0 is out of range"),
+    "unknown_sampling": (["evaluate.sampling=one"], "evaluate.sampling='one'; use one of all, random_one"),
+    "sampling_seed_not_a_number": (["evaluate.sampling_seed=abc"], "evaluate.sampling_seed='abc' is not a number"),
+    "unknown_convention": (["metric.convention=lenient"], "metric.convention='lenient'; use one of paper, strict"),
+    "unknown_absent_policy": (["metric.absent=skip"], "metric.absent='skip'; use one of nan, zero"),
+    "unknown_agreement": (["metric.agreement=median"], "metric.agreement='median'; use one of pooled, per_image"),
+    "unknown_mean_exclude_class": (["metric.mean_exclude=[tram]"], "metric.mean_exclude: unknown class(es) ['tram']"),
+    "headline_not_selected": (["metric.rho.headline=nonzero", "metric.rho.selections=[top_m]"],
+                              "metric.rho.headline='nonzero' is not among metric.rho.selections=['top_m']"),
 }
 
 

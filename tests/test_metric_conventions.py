@@ -91,10 +91,24 @@ def test_random_one_sampling_draws_one_adverse_condition_per_group(tmp_path):
     assert summary["sampling"] == "random_one" and summary["sampling_seed"] == 3
     assert summary["n_pairs"]["Day-EXTRASUNNY"] == 5
     assert summary["n_pairs"].get("Day-RAIN", 0) + summary["n_pairs"].get("Night-EXTRASUNNY", 0) == 5
+    # groups_per_condition counts the groups that drew each condition, not those that have its image
+    assert summary["groups_per_condition"] == {c: summary["n_pairs"].get(c, 0) for c in conds}
     other = evaluate_dir(run(compose_cfg(base[:-1] + ["evaluate.sampling_seed=4"])))
     assert other != d  # the seed is in the evaluate hash
     with pytest.raises(ConfigError, match="evaluate.sampling='one'"):
         run(compose_cfg(base[:-2] + ["evaluate.sampling=one"]))
+
+
+def test_each_metric_config_names_its_convention():
+    from omegaconf import OmegaConf
+
+    from pairedgta.metrics.conventions import CONVENTIONS, convention_from_config
+    from pairedgta.testing.cli import CONF
+
+    names = {p.stem: OmegaConf.load(p).convention for p in (CONF / "metric").glob("*.yaml")}
+    assert names == {c: c for c in CONVENTIONS}
+    with pytest.raises(ConfigError, match="metric.rho.selections: unknown \\['best'\\]"):
+        convention_from_config({"convention": "strict", "rho": {"selections": ["best"]}})
 
 
 def test_sampled_conditions_are_deterministic_and_cover_the_conditions():

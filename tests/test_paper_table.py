@@ -201,6 +201,41 @@ def test_cli_writes_table1_from_the_csv_without_data_stages(tmp_path):
     assert np.isfinite(metrics["table/authors/xi_mean/Night-EXTRASUNNY/ddrnet_23"])
 
 
+def test_table_from_the_csv_is_a_registered_figure_keyed_by_content(tmp_path):
+    """authors_table is a figure of the registry drawn by the plot stage's one loop: the entry is keyed by
+    the file's content, filters and convention (the same file elsewhere is a cache hit), the figure is
+    drawn alone when plot.table_csv is set, and asking for it without the file or with data stages is one
+    line before anything runs."""
+    from pairedgta.app import run
+    from pairedgta.figures import FIGURES
+    from pairedgta.testing.cli import base_overrides, compose_cfg
+
+    assert FIGURES.meta("authors_table") == {"needs": None, "source": "plot.table_csv"}
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    csv = small_csv(tmp_path / "a" / "results.csv")
+    moved = tmp_path / "b" / "renamed.csv"
+    moved.write_bytes(csv.read_bytes())
+    base = base_overrides(tmp_path) + ["+experiment=paper_table", "stages=[plot]", "plot.formats=[png]", "plot.dpi=60",
+                                       "tracking.enabled=false"]
+    first = run(compose_cfg(base + [f"plot.table_csv={csv}"]))
+    again = run(compose_cfg(base + [f"plot.table_csv={moved}"]))
+    assert first["plot"] == again["plot"] and first["evaluate"] == {} and first["dataset"] is None
+    assert {p.name for p in (tmp_path / "cache").iterdir() if not p.name.startswith(".")} == {"plot"}
+    strict = run(compose_cfg(base + [f"plot.table_csv={moved}", "metric=strict"]))
+    filtered = run(compose_cfg(base + [f"plot.table_csv={moved}", "plot.table_filter.conf_threshold=0.6"]))
+    assert len({first["plot"], strict["plot"], filtered["plot"]}) == 3  # convention and filters are in the key
+    drawn = {p.name for p in Path(first["plot"]).iterdir()}
+    assert "table1_xi.tex" in drawn and not any(n.startswith(("xi_table", "qualitative")) for n in drawn)
+
+    with pytest.raises(ConfigError, match=r"plot.table_csv draws authors_table .* use stages=\[plot\]"):
+        run(compose_cfg(base[:-4] + [f"plot.table_csv={csv}", "stages=[evaluate,plot]", "tracking.enabled=false"]))
+    with pytest.raises(ConfigError, match=r"plot.figures: authors_table .* set plot.table_csv=PATH"):
+        run(compose_cfg(base + ["plot.figures=[authors_table]"]))
+    with pytest.raises(ConfigError, match=r"plot.table_filter: unknown key\(s\) threshold; known keys: reference_model"):
+        run(compose_cfg(base + [f"plot.table_csv={csv}", "+plot.table_filter.threshold=0.6"]))
+    assert not (tmp_path / "cache" / "generate").exists()
+
+
 def test_printed_table_as_results_round_trips_the_published_means(tmp_path):
     from pairedgta.figures.paper_table import printed_table_as_results
 

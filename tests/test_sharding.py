@@ -97,3 +97,28 @@ def test_a_complete_set_of_shards_finalises_the_entry(tmp_path):
         proc = run_cli(data + ["evaluate.num_shards=2", f"evaluate.shard={shard}"], tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
     assert set(evaluations(tmp_path / "cache")) == {"tiny_segformer"}
+
+
+def test_sharded_evaluation_under_the_paper_convention_and_random_one_sampling(tmp_path):
+    """The authors' settings (absent class = 0, per-image agreement, one random adverse condition per
+    group) merge from shards to the unsharded bytes too: the draw depends on the group, not the shard."""
+    one, many = tmp_path / "one", tmp_path / "many"
+    one.mkdir(), many.mkdir()
+    data = SMALL + ["stages=[generate,pseudolabel,evaluate]", "metric.bootstrap.resamples=20", "models=[tiny_segformer]",
+                    "metric=paper", "evaluate.sampling=random_one", "evaluate.sampling_seed=5"]
+    proc = run_cli(data + base_overrides(one), one)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = run_cli(data + base_overrides(many) + ["evaluate.num_shards=2", "evaluate.shard=1"], many)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = run_cli(data + base_overrides(many), many)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "merging" in proc.stdout + proc.stderr
+    (a,), (b,) = evaluations(one / "cache").values(), evaluations(many / "cache").values()
+    assert a.name == b.name
+    for name in EVAL_FILES:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    summary = json.loads((a / "summary.json").read_text())
+    assert summary["convention"]["name"] == "paper" and summary["sampling"] == "random_one"
+    adverse = {c: n for c, n in summary["groups_per_condition"].items() if c != "Day-EXTRASUNNY"}
+    assert sum(adverse.values()) == 5  # one adverse condition per group
+    assert summary["groups_per_condition"] == {c: summary["n_pairs"].get(c, 0) for c in summary["groups_per_condition"]}

@@ -2,7 +2,8 @@
 
 Every family is a function `draw(passes, out, opts) -> (files, metrics)` registered here with the stage
 whose outputs it reads (`needs`) and, where it can read a user-given file instead, the config key that
-names it (`unless`). A pass gives the figures its dataset, grid and the results of its stages, whose
+names it (`unless`). A figure drawn only from a file the user gives (`source`, e.g. Table 1 from the
+authors' per-class CSV at plot.table_csv) reads no stage: when its key is set it is the run's only figure. A pass gives the figures its dataset, grid and the results of its stages, whose
 readers belong to the stages (`p.evaluations[i].xi()`, `p.pseudo.labels.load(group)`, ...): figures
 never name a stage's files and import no stage."""
 from __future__ import annotations
@@ -21,6 +22,7 @@ FIGURES.register("ablation", "pairedgta.figures.ablation:draw", needs="evaluate"
 FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel")
 FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")
 FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv")
+FIGURES.register("authors_table", "pairedgta.figures.paper_table:draw", needs=None, source="plot.table_csv")
 
 
 @dataclass

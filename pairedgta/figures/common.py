@@ -16,7 +16,9 @@ import pandas as pd
 import seaborn as sns
 
 from pairedgta.cityscapes import CLASS_NAMES, PALETTE
-from pairedgta.conditions import condition_display  # noqa: F401  (the one naming of conditions, re-exported)
+from pairedgta import conditions
+
+condition_display = conditions.condition_display  # the one naming of conditions, re-exported
 
 # paper widths (inches): one column of a two-column layout, and the full text width
 COLUMN_WIDTH = 3.4

@@ -7,10 +7,11 @@ The rows become the project's xi.csv schema under a metric convention (a class w
 `mass_reference_masked` is 0 is absent: xi = 0 under the paper's convention, NaN under the strict
 one), and the same writers as the plot stage's xi_table make the CSV, Markdown and LaTeX tables and the
 heatmap, so a table from the authors' numbers and one from this project's evaluation are comparable
-cell by cell. Nothing is generated or evaluated."""
+cell by cell. Nothing is generated or evaluated: registered as the figure `authors_table`, drawn
+alone when plot.table_csv is set (`python -m pairedgta +experiment=paper_table stages=[plot]
+plot.table_csv=PATH`)."""
 from __future__ import annotations
 
-import hashlib
 import logging
 import re
 from pathlib import Path
@@ -21,9 +22,11 @@ import pandas as pd
 
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
+from pairedgta.figures import FigureOptions
 from pairedgta.figures import xi as xi_fig
 from pairedgta.figures.common import MODEL_DISPLAY, slug
-from pairedgta.metrics.conventions import Convention
+from pairedgta.filehash import sha256_file
+from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics.reference_consistency import class_mean
 
 log = logging.getLogger("pairedgta.plot")
@@ -186,7 +189,7 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
     out.mkdir(parents=True, exist_ok=True)
     paths = xi_fig.write_tables(xi, REFERENCE, out, stem=stem)
     md = out / f"{stem}.md"
-    digest = hashlib.sha256(csv_path.read_bytes()).hexdigest()[:16]
+    digest = sha256_file(csv_path)[:16]
     excluded = ", ".join(convention.mean_exclude) or "none"
     md.write_text(md.read_text() + (
         f"\nSource: `{csv_path.name}` (sha256 {digest}), rows {used}. Convention `{convention.name}`: a class without "
@@ -202,6 +205,33 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
     log.info("Table 1 from %s (%s convention): %d models x %d conditions", csv_path.name, convention.name,
              xi["model"].nunique(), xi.loc[xi["condition"] != REFERENCE, "condition"].nunique())
     return paths, xi
+
+
+# -- the registered figure `authors_table` (plot.table_csv=PATH, stages=[plot]) ---------------------------
+def _options(opts: FigureOptions) -> tuple[Path, Convention, dict[str, Any]]:
+    plot = opts.plot
+    if not plot.get("table_csv"):
+        raise ConfigError("plot.figures: authors_table draws Table 1 from the authors' per-class results; "
+                          "set plot.table_csv=PATH (their results_class_retention_by_condition.csv)")
+    filters = {k: v for k, v in dict(plot.get("table_filter") or {}).items() if v is not None}
+    return Path(str(plot["table_csv"])), convention_from_config(opts.cfg.get("metric") or {}), filters
+
+
+def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+    """The plot entry depends on the file's content (not its path), the filters and the convention."""
+    path, convention, filters = _options(opts)
+    if not path.is_file():
+        raise ConfigError(f"plot.table_csv={path}: no such file; give the authors' results_class_retention_by_condition.csv")
+    return {"filter": filters, "convention": convention.as_dict()}, {"table_csv": sha256_file(path)[:16]}
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    """Table 1 (CSV/Markdown/LaTeX, a heatmap per model) from plot.table_csv under the run's metric
+    convention; the metrics are every Mean, `table/authors/xi_mean/<condition>/<model>`."""
+    path, convention, filters = _options(opts)
+    paths, xi = paper_table(path, out, convention, filters, opts.formats, opts.dpi)
+    means = xi[xi["class_name"] == "mean"]
+    return paths, {f"table/authors/xi_mean/{r.condition}/{r.model}": float(r.xi) for r in means.itertuples()}
 
 
 def printed_table_as_results(out_csv: str | Path, table: str | Path | None = None) -> Path:

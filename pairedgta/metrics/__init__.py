@@ -1,6 +1,6 @@
 """The paper's metrics, one module each: xi, phi, rho_valid, agreement, GT IoU, bootstrap. Where the
 authors' code and the project's strict reading differ (absent classes, agreement over images, the
-rho_valid frame selection), the convention is a parameter of the metric, set by conf/metric/*.yaml."""
+rho_valid frame selection), the convention is a parameter of the metric, set by pairedgta/conf/metric/*.yaml."""
 from pairedgta.metrics.agreement import AGREEMENT_MODES, aggregate_agreement, pixel_agreement
 from pairedgta.metrics.bootstrap import ratio_ci, spearman_ci
 from pairedgta.metrics.prediction_mass import prediction_mass, prediction_mass_from_labels

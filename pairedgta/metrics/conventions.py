@@ -1,4 +1,4 @@
-"""The metric convention of a run (conf/metric/<name>.yaml): how absent classes score, which classes
+"""The metric convention of a run (pairedgta/conf/metric/<name>.yaml): how absent classes score, which classes
 the class-wise mean covers, how pixel agreement aggregates over images and which rho_valid selection is
 the headline. Parsed and checked once here; the metric modules take the values as parameters, and every
 output records the convention that made it."""
@@ -12,6 +12,8 @@ from pairedgta.errors import ConfigError
 from pairedgta.metrics.agreement import AGREEMENT_MODES
 from pairedgta.metrics.ranking import SELECTIONS
 from pairedgta.metrics.reference_consistency import ABSENT_POLICIES, mean_mask
+
+CONVENTIONS = ("paper", "strict")  # the metric configs (metric=paper|strict); the name every output records
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,9 @@ class Convention:
 def convention_from_config(metric: dict[str, Any], selections: list[str] | None = None) -> Convention:
     """metric: the `metric` config node; selections: the rho_valid selections the run computes."""
     name = str(metric.get("convention") or "strict")
+    if name not in CONVENTIONS:
+        raise ConfigError(f"metric.convention={name!r}; use one of {', '.join(CONVENTIONS)} (the metric configs: metric=paper "
+                          "or metric=strict, whose keys can then be overridden one by one)")
     absent = str(metric.get("absent", "nan"))
     if absent not in ABSENT_POLICIES:
         raise ConfigError(f"metric.absent={absent!r}; use one of {', '.join(ABSENT_POLICIES)}")
@@ -47,6 +52,9 @@ def convention_from_config(metric: dict[str, Any], selections: list[str] | None 
         raise ConfigError(f"metric.agreement={agreement!r}; use one of {', '.join(AGREEMENT_MODES)}")
     rho = metric.get("rho") or {}
     selections = list(selections or rho.get("selections") or SELECTIONS)
+    bad = [s for s in selections if s not in SELECTIONS]
+    if bad:
+        raise ConfigError(f"metric.rho.selections: unknown {bad}; use {list(SELECTIONS)}")
     headline = str(rho.get("headline") or selections[0])
     if headline not in selections:
         raise ConfigError(f"metric.rho.headline={headline!r} is not among metric.rho.selections={selections}")

@@ -58,7 +58,7 @@ from pairedgta.stages.common import (
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "2"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0
+VERSION = "3"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 GT = "ground_truth"
 
 
@@ -433,20 +433,26 @@ def compute(
                                    "agreement_clean": row["agree_clean_pixels"] / n if n else math.nan})
         count_rows += r["counts"]
     return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
-                         coverage(dataset, conditions, s["clean"], model))
+                         coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"]))
 
 
-def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str) -> dict[str, Any]:
-    """How many groups each condition's numbers average over; a warning when they differ."""
+def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",
+             sampling_seed: int = 0) -> dict[str, Any]:
+    """How many groups each condition's numbers average over (under evaluate.sampling=random_one, the
+    groups that drew it); a warning when missing images make the conditions' groups differ."""
     groups = {c: 0 for c in conditions}
+    available = dict(groups)
     without_clean = 0
     for g in dataset.groups:
         if clean not in g.images:
             without_clean += 1
             continue
-        for c in conditions:
-            groups[c] += c in g.images
-    if without_clean or len(set(groups.values())) > 1:
+        present = [c for c in conditions if c in g.images]
+        for c in present:
+            available[c] += 1
+        for c in sampled_conditions(g.group_id, [clean] + [c for c in present if c != clean], clean, sampling, sampling_seed):
+            groups[c] += c in groups
+    if without_clean or len(set(available.values())) > 1:
         log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
                     "leaves its group out of that condition only; see summary.json groups_per_condition)",
                     model, ", ".join(f"{c} {n}" for c, n in groups.items()),

@@ -68,8 +68,6 @@ class Plan:
     def check_models(self) -> bool:
         return CHECK_STAGE in self.stages
 
-    table_csv: str | None = None  # plot.table_csv: Table 1 from the authors' per-class CSV, no data stage
-
 
 @dataclass
 class RunModels:
@@ -98,11 +96,10 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     device = str(cfg.get("device"))
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
         raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
-    table_csv = (cfg.get("plot") or {}).get("table_csv")
-    if table_csv:
-        if set(stages) != {"plot"}:
-            raise ConfigError("plot.table_csv draws Table 1 from a CSV and runs no data stage; use stages=[plot]")
-        return Plan(stages, force, set(), table_csv=str(table_csv))
+    sourced = plot.sourced(cfg)
+    if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
+        raise ConfigError(f"{', '.join(sorted(set(sourced.values())))} draws {', '.join(sourced)} from that file and runs no "
+                          f"data stage; use stages=[plot] (stages={stages})")
     needs = plot.needed_stages(cfg) if "plot" in stages else set()
     return Plan(stages, force, needs)
 

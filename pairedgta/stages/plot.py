@@ -3,8 +3,9 @@
 families registered in pairedgta.figures (xi_table, ranking, qualitative, ablation, distribution,
 contact_sheet, cost); each draws itself from the passes.
 
-With plot.table_csv=PATH (and stages=[plot]) the stage draws only Table 1, from the authors' released
-per-class results CSV (`run_table_csv`, logic in pairedgta.figures.paper_table).
+A figure registered with a `source` key (authors_table: Table 1 from the authors' released per-class
+results, plot.table_csv=PATH) is drawn from that file alone: when the key is set it is the only figure
+and no stage runs before the plot (stages=[plot]).
 
 Every output is written into the stage's cache directory; `metrics.json` holds the numbers the run logs
 to MLflow (so a cache hit logs them too) and `owners.json` which figures show one model alone (those
@@ -22,7 +23,6 @@ from tqdm import tqdm
 
 from pairedgta.cache import require_intact
 from pairedgta.errors import ConfigError
-from pairedgta.filehash import sha256_file
 from pairedgta.figures import FIGURES, FigureOptions, lookup
 from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
@@ -59,10 +59,21 @@ class Figures(StageResult):
         return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def sourced(cfg: dict[str, Any]) -> dict[str, str]:
+    """figure -> the config key of the file it is drawn from, for the figures whose key is set."""
+    keys = {name: FIGURES.meta(name).get("source") for name in FIGURES.names()}
+    return {name: key for name, key in keys.items() if key and lookup(cfg, key)}
+
+
 def figures_of(cfg: dict[str, Any]) -> list[str]:
+    given = sourced(cfg)
+    if given:  # a user-given file replaces the run's data: only the figures drawn from it
+        return list(given)
     figures = list((cfg.get("plot") or {}).get("figures") or DEFAULT_FIGURES)
     for f in figures:
-        FIGURES.meta(f)  # unknown names: one line listing the known ones
+        source = FIGURES.meta(f).get("source")  # an unknown name: one line listing the known ones
+        if source:
+            raise ConfigError(f"plot.figures: {f} is drawn from a file of yours; set {source}=PATH (with stages=[plot])")
     return figures
 
 
@@ -71,7 +82,7 @@ def needed_stages(cfg: dict[str, Any]) -> set[str]:
     needs = set()
     for f in figures_of(cfg):
         meta = FIGURES.meta(f)
-        if meta.get("unless") and lookup(cfg, meta["unless"]):
+        if not meta.get("needs") or (meta.get("unless") and lookup(cfg, meta["unless"])):
             continue
         needs.add(meta["needs"])
     return needs
@@ -103,8 +114,10 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
     figures = figures_of(ctx.cfg)
     for e in (e for p in passes for e in p.evaluations):
         require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
-    config: dict[str, Any] = {"plot": ctx.cfg["plot"], "reference": [p.grid.reference for p in passes],
-                              "pairing": [p.pairing for p in passes]}
+    # a figure's own input file enters the key by its content (its cache_key), not by its path
+    paths = {key.split(".", 1)[1] for key in sourced(ctx.cfg).values() if key.startswith("plot.")}
+    config: dict[str, Any] = {"plot": {k: v for k, v in ctx.cfg["plot"].items() if k not in paths},
+                              "reference": [p.grid.reference for p in passes], "pairing": [p.pairing for p in passes]}
     inputs: dict[str, str] = {}
     for i, p in enumerate(passes):
         tag = f"{i}:{p.label}"
@@ -123,37 +136,4 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
     result = run_cached(ctx, "plot", VERSION, config, inputs, lambda out: make_plots(ctx, passes, out),
                         result_cls=Figures)
     assert isinstance(result, Figures)
-    return result
-
-
-# -- Table 1 from the authors' released per-class results (plot.table_csv) -----------------------------
-def run_table_csv(ctx: Context, tracker: Any) -> Figures:
-    """The plot stage on its own: Table 1 from plot.table_csv under the run's metric convention (cached
-    by the file's content, the filters and the convention), logged to the open MLflow run. Logic in
-    pairedgta.figures.paper_table."""
-    from pairedgta.figures.paper_table import paper_table
-    from pairedgta.metrics.conventions import convention_from_config
-
-    pcfg = ctx.cfg.get("plot") or {}
-    path = Path(str(pcfg["table_csv"]))
-    if not path.is_file():
-        raise ConfigError(f"plot.table_csv={path}: no such file; give the authors' results_class_retention_by_condition.csv")
-    conv = convention_from_config(ctx.cfg.get("metric") or {})
-    filters = dict(pcfg.get("table_filter") or {})
-    formats, dpi = list(pcfg.get("formats", ["png"])), int(pcfg.get("dpi", 150))
-    config = {"table_csv": path.name, "filter": filters, "convention": conv.as_dict(), "formats": formats, "dpi": dpi}
-
-    def build(out: Path) -> dict[str, Any]:
-        paths, xi = paper_table(path, out, conv, filters, formats, dpi)
-        means = xi[xi["class_name"] == "mean"]
-        metrics = {f"table/authors/xi_mean/{r.condition}/{r.model}": float(r.xi) for r in means.itertuples()
-                   if not math.isnan(float(r.xi))}
-        write_json(out / "metrics.json", metrics, sort_keys=True)
-        return {"figures": [p.name for p in paths], "metrics": metrics}
-
-    result = run_cached(ctx, "plot", VERSION, config, {"table_csv": sha256_file(path)[:16]}, build, label="[table_csv]",
-                        result_cls=Figures)
-    assert isinstance(result, Figures)
-    tracker.stage_files(f"plot.{result.key}", result.hit, result.files(), "figures")
-    tracker.metrics(result.metrics())
     return result
