@@ -1,5 +1,6 @@
 """The shipped demo model: loads offline from the package, segments freshly rendered held-out
-daytime scenes above the floor in its model card, and degrades more at night than in daytime rain."""
+daytime scenes above the floor in its model card, and degrades gradually: less at a clear sunset than
+at a clear night, and most at a foggy night."""
 from __future__ import annotations
 
 import json
@@ -34,11 +35,12 @@ def test_shipped_weights_load_offline_and_are_small():
 def test_demo_model_on_fresh_held_out_scenes():
     card = json.loads((WEIGHTS / "model_card.json").read_text())
     cfg = OmegaConf.to_container(compose_cfg(["renderer=blender", "region=procedural_town"]), resolve=True)
-    grid = build_condition_grid({**cfg["conditions"], "only": ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"]})
+    grid = build_condition_grid({**cfg["conditions"], "only": ["Day-EXTRASUNNY", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY",
+                                                              "Night-FOGGY"]})
     region = build_region(cfg["region"])
     seg = build_segmenter("demo_segformer")
     gt_cm = ConfusionMatrix()
-    xi = {c: ReferenceConsistency() for c in ("Day-RAIN", "Night-EXTRASUNNY")}
+    xi = {c: ReferenceConsistency() for c in ("Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")}
     with build_renderer(cfg["renderer"]) as renderer:
         for k in range(2):
             seed = 300_000 + k  # disjoint from training (100000+), validation (200000+) and evaluation seeds
@@ -56,4 +58,4 @@ def test_demo_model_on_fresh_held_out_scenes():
             for c, m in xi.items():
                 m.update(ref, pred[c])
     assert gt_cm.miou() >= card["test_floor_miou"], (gt_cm.miou(), card["test_floor_miou"])
-    assert xi["Night-EXTRASUNNY"].mean() < xi["Day-RAIN"].mean()
+    assert xi["Sunset-EXTRASUNNY"].mean() > xi["Night-EXTRASUNNY"].mean() > xi["Night-FOGGY"].mean()
