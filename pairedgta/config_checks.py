@@ -107,10 +107,11 @@ def check_cache_dir(value: Any) -> None:
         raise ConfigError(f"cache_dir={value} is not writable ({exc.strerror or exc}); use a writable directory") from None
 
 
-def _merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+def merge_variant(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """A variant's config: `overrides` merged into `base`, except that a `dataset` node replaces the whole."""
     out = dict(base)
     for k, v in overrides.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
+        out[k] = merge_variant(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
     return out
 
 
@@ -120,7 +121,7 @@ def passes(cfg: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     for i, v in enumerate(cfg.get("variants") or []):
         if isinstance(v, dict):
             v = {k: x for k, x in v.items() if k != "label"}
-            out.append((f"variants[{i}].", _merge(cfg, v)))
+            out.append((f"variants[{i}].", merge_variant(cfg, v)))
     return out
 
 

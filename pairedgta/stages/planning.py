@@ -16,6 +16,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+from pairedgta.config_checks import merge_variant
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets import DATASETS, PairedDataset, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
@@ -154,13 +155,6 @@ def run_models(cfg: dict[str, Any], model_chosen: bool = False) -> RunModels:
 
 
 # -- passes -------------------------------------------------------------------------------------------
-def _merge_variant(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in overrides.items():
-        out[k] = _merge_variant(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
-    return out
-
-
 def pass_configs(container: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """(label, config) per pass: the run's config, or one per entry of `variants` (label + overrides;
     a variant's `dataset` replaces the dataset node as a whole)."""
@@ -176,7 +170,7 @@ def pass_configs(container: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
         if label in labels:
             raise ConfigError(f"variants: duplicate label {label!r}")
         labels.add(label)
-        cfg = _merge_variant(container, v)
+        cfg = merge_variant(container, v)
         cfg.pop("variants", None)
         out.append((label, cfg))
     return out
