@@ -97,6 +97,15 @@ class Entity:
     color: tuple[int, int] = (-1, -1)
 
 
+def _object_or_null(value: Any, name: str) -> dict[str, Any]:
+    """A start/config section as the plugin reads it: null means empty, anything but an object is refused."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise BadMessage(f"{name} is not an object or null")
+    return value
+
+
 @dataclass
 class GameState:
     running: bool = False
@@ -323,10 +332,7 @@ class Plugin:
     # ------------------------------------------------------------ start/config parsing
     def _parse_scenario(self, sc: Any, defaults: bool) -> dict[str, Any]:
         out: dict[str, Any] = {}
-        if sc is None:
-            sc = {}
-        if not isinstance(sc, dict):
-            raise BadMessage("scenario is not an object or null")
+        sc = _object_or_null(sc, "scenario")
         loc = sc.get("location")
         if isinstance(loc, list):
             if len(loc) < 2:
@@ -374,10 +380,7 @@ class Plugin:
 
     def _parse_dataset(self, dc: Any, defaults: bool) -> dict[str, Any]:
         out: dict[str, Any] = {}
-        if dc is None:
-            dc = {}
-        if not isinstance(dc, dict):
-            raise BadMessage("dataset is not an object or null")
+        dc = _object_or_null(dc, "dataset")
         if dc.get("rate") is not None:
             rate = _num(dc["rate"], "dataset.rate")
             if rate <= 0:
