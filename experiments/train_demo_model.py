@@ -8,7 +8,7 @@ scenes), rendered once through the cached generate stage; validation on held-out
 model never sees rain, fog, sunset or night. Recipe: random resize 0.5-2.0, random crop (with the
 category-ratio re-draw), horizontal flip, photometric distortion as MMSegmentation's
 PhotoMetricDistortion (brightness, contrast, saturation, hue), AdamW with warm-up and poly decay.
-Every `checkpoint_every` steps the full training state goes to outputs/train_demo/<hash>/checkpoint.pt,
+Every `checkpoint_every` steps the full training state goes to <work_dir>/<hash>/checkpoint.pt,
 and a rerun with the same settings continues from it. Progress is a tqdm bar; MLflow records params,
 loss, learning rate and validation IoU. The result: safetensors weights, config, preprocessor config,
 model card (per-class IoU, wall times) and README in pairedgta/models/weights/demo_segformer.
@@ -141,6 +141,23 @@ def miou(cm: ConfusionMatrix) -> float:
 
 
 # -- training -----------------------------------------------------------------------------------------
+def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, thresh: float | None, min_kept: int) -> torch.Tensor:
+    """Online hard example mining as the real-time Cityscapes recipes (BiSeNet, DDRNet, PIDNet) train:
+    the mean loss over pixels whose true-class probability is below `thresh`, and at least the
+    `min_kept` hardest labelled pixels, so thin and rare classes are not drowned by road and sky."""
+    loss = F.cross_entropy(logits, target, ignore_index=IGNORE_INDEX, reduction="none").flatten()
+    valid = target.flatten() != IGNORE_INDEX
+    if thresh is None or not valid.any():
+        return loss[valid].mean() if valid.any() else loss.sum() * 0.0
+    loss = loss[valid]
+    prob = torch.exp(-loss.detach())  # the softmax probability of the true class
+    keep = prob < thresh
+    if int(keep.sum()) < min(min_kept, loss.numel()):
+        keep = torch.zeros_like(keep)
+        keep[torch.topk(loss.detach(), min(min_kept, loss.numel())).indices] = True
+    return loss[keep].mean()
+
+
 def lr_factor(step: int, t: dict) -> float:
     warm = min(1.0, (step + 1) / max(1, t["warmup"]))
     return warm * (1 - min(step, t["steps"]) / (t["steps"] + 1)) ** t["poly_power"]
@@ -148,7 +165,7 @@ def lr_factor(step: int, t: dict) -> float:
 
 def state_key(cfg: dict) -> str:
     """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
-    keep = {k: cfg[k] for k in ("data", "arch", "augment", "seed", "renderer", "region")}
+    keep = {k: cfg[k] for k in ("data", "arch", "augment", "loss", "seed", "renderer", "region")}
     keep["train"] = {k: v for k, v in cfg["train"].items() if k not in ("steps", "threads", "eval_every", "checkpoint_every")}
     return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:12]
 
@@ -190,7 +207,7 @@ def main(dcfg: DictConfig) -> None:
     opt = torch.optim.AdamW(model.parameters(), lr=t["lr"], weight_decay=t["weight_decay"])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, t))
     rng = np.random.default_rng(cfg["seed"])
-    work = ROOT / "outputs" / "train_demo" / state_key(cfg)
+    work = ROOT / cfg["work_dir"] / state_key(cfg)
     work.mkdir(parents=True, exist_ok=True)
     ckpt = work / "checkpoint.pt"
     start, history, elapsed = 0, [], 0.0
@@ -220,7 +237,7 @@ def main(dcfg: DictConfig) -> None:
         x, y = batch(train_x, train_y, rng, a, t["batch_size"])
         logits = model(pixel_values=(x - MEAN) / STD).logits
         logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
-        loss = F.cross_entropy(logits, y, ignore_index=IGNORE_INDEX)
+        loss = ohem_cross_entropy(logits, y, cfg["loss"]["ohem_thresh"], cfg["loss"]["ohem_min_kept"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -260,7 +277,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
                  "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]], "train_images": n_train,
                  "val_images": n_val, **{k: v for k, v in d.items() if k not in ("objects", "camera", "workers")}},
-        "augment": cfg["augment"], "train": t, "seed": cfg["seed"],
+        "augment": cfg["augment"], "loss": cfg["loss"], "train": t, "seed": cfg["seed"],
         "val_miou": m, "val_miou_convention": "mean over classes with TP+FP+FN > 0 (cityscapesScripts)",
         "val_pixel_accuracy": cm.accuracy(),
         "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if not np.isnan(iou[c])},

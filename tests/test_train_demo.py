@@ -1,0 +1,110 @@
+"""experiments/train_demo_model.py: the recipe's pieces, and a tiny run from the CLI that resumes."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pairedgta.cityscapes import IGNORE_INDEX
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+import train_demo_model as tdm  # noqa: E402
+
+IDENTITY = {"brightness_delta": 0, "contrast_range": [1.0, 1.0], "saturation_range": [1.0, 1.0], "hue_delta": 0}
+
+
+def test_ohem_keeps_the_hard_pixels_and_at_least_min_kept():
+    target = torch.tensor([[[0, 1, 2, IGNORE_INDEX]]])  # 1 x 1 x 4
+    logits = torch.full((1, 3, 1, 4), -10.0)
+    logits[0, 0, 0, 0] = 10.0  # pixel 0: confident and right (easy)
+    logits[0, 0, 0, 1] = 10.0  # pixel 1: confident and wrong (hard)
+    logits[0, :, 0, 2] = 0.0   # pixel 2: uniform, p = 1/3 (hard)
+    per_pixel = F.cross_entropy(logits, target, ignore_index=IGNORE_INDEX, reduction="none")[0, 0]
+    plain = tdm.ohem_cross_entropy(logits, target, None, 0)
+    assert plain == pytest.approx(float(per_pixel[:3].mean()))
+    assert plain == pytest.approx(float(F.cross_entropy(logits, target, ignore_index=IGNORE_INDEX)))
+    hard = tdm.ohem_cross_entropy(logits, target, 0.7, 1)
+    assert hard == pytest.approx(float(per_pixel[1:3].mean()))  # the easy pixel and the ignored one are out
+    only_hardest = tdm.ohem_cross_entropy(logits, target, 1e-12, 1)  # nothing under thresh: the min_kept hardest
+    assert only_hardest == pytest.approx(float(per_pixel[1]))
+    everything = tdm.ohem_cross_entropy(logits, target, 0.7, 10)  # min_kept above the labelled count: all of them
+    assert everything == pytest.approx(float(per_pixel[:3].mean()))
+    empty = tdm.ohem_cross_entropy(logits.requires_grad_(), torch.full_like(target, IGNORE_INDEX), 0.7, 1)
+    assert float(empty.detach()) == 0.0 and empty.requires_grad  # an all-ignore batch still backpropagates (zero)
+
+
+def test_sample_crops_flips_and_pads_with_ignore():
+    rng = np.random.default_rng(0)
+    h, w = 32, 64
+    label = np.repeat((np.arange(w) // 16).astype(np.uint8)[None], h, axis=0)  # 4 vertical bands 0..3
+    image = np.stack([label * 60, label * 0, label * 0], axis=-1).astype(np.uint8)  # red encodes the band
+    aug = {"scale_range": [1.0, 1.0], "crop": [16, 32], "cat_max_ratio": 1.0, "flip": 0.5, "photometric": IDENTITY}
+    for _ in range(10):
+        x, y = tdm.sample(image, label, rng, aug)
+        assert x.shape == (3, 16, 32) and y.shape == (16, 32)
+        assert torch.equal((x[0] * 255 / 60).round().long(), y)  # image and label stay aligned through the flip
+    small = {**aug, "scale_range": [0.5, 0.5], "crop": [24, 48]}
+    x, y = tdm.sample(image, label, rng, small)
+    assert x.shape == (3, 24, 48) and (y[16:] == IGNORE_INDEX).all() and (x[:, 16:] == 0).all()
+
+
+def test_photometric_distortion_stays_in_range_and_changes_colour():
+    rng = np.random.default_rng(1)
+    img = torch.rand(3, 8, 8)
+    p = {"brightness_delta": 32, "contrast_range": [0.5, 1.5], "saturation_range": [0.5, 1.5], "hue_delta": 18}
+    outs = [tdm.photometric(img.clone(), rng, p) for _ in range(20)]
+    assert all(o.min() >= 0 and o.max() <= 1 for o in outs)
+    assert sum(not torch.allclose(o, img) for o in outs) >= 15  # each step with p = 0.5: almost never all four off
+    assert torch.allclose(tdm.photometric(img.clone(), rng, IDENTITY), img, atol=1e-5)
+
+
+def test_learning_rate_warms_up_then_decays_to_zero():
+    t = {"steps": 100, "warmup": 10, "poly_power": 1.0}
+    f = [tdm.lr_factor(s, t) for s in range(101)]
+    assert f[0] == pytest.approx(0.1, abs=0.01) and max(f) == f[9]
+    assert all(a >= b for a, b in zip(f[9:], f[10:])) and f[100] < 0.01
+
+
+def test_state_key_ignores_run_length_but_not_the_recipe():
+    cfg = {"data": {"a": 1}, "arch": {}, "augment": {}, "loss": {"ohem_thresh": 0.7}, "seed": 0, "renderer": {},
+           "region": {}, "train": {"steps": 10, "lr": 1e-3, "threads": 2, "eval_every": 5, "checkpoint_every": 1}}
+    longer = {**cfg, "train": {**cfg["train"], "steps": 20, "threads": 1}}
+    plain = {**cfg, "loss": {"ohem_thresh": None}}
+    assert tdm.state_key(cfg) == tdm.state_key(longer) != tdm.state_key(plain)
+
+
+def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
+    """Two towns, three steps, then a longer rerun that continues from the checkpoint."""
+    out = tmp_path / "model"
+    args = [sys.executable, str(ROOT / "experiments" / "train_demo_model.py"),
+            f"cache_dir={tmp_path / 'cache'}", f"out_dir={out}", f"work_dir={tmp_path / 'work'}",
+            f"hydra.run.dir={tmp_path / 'run'}", "tracking.enabled=false",
+            "renderer.width=128", "renderer.height=64", "renderer.samples=1", "renderer.denoise=false",
+            "data.train_towns=2", "data.train_scenes_per_town=1", "data.val_towns=1", "data.val_scenes_per_town=1",
+            "augment.crop=[32,64]", "arch.hidden_sizes=[8,8,16,16]", "arch.num_attention_heads=[1,1,1,1]",
+            "arch.depths=[1,1,1,1]", "arch.decoder_hidden_size=16", "loss.ohem_min_kept=100",
+            "train.batch_size=2", "train.warmup=1", "train.eval_every=2", "train.checkpoint_every=1"]
+    first = subprocess.run([*args, "train.steps=3"], capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr[-2000:]
+    card = json.loads((out / "model_card.json").read_text())
+    assert card["train"]["steps"] == 3 and card["data"]["train_images"] == 2 and card["loss"]["ohem_thresh"] == 0.7
+    assert [h["step"] for h in card["history"]] == [2, 3] and 0.0 <= card["val_miou"] <= 1.0
+    assert (out / "model.safetensors").stat().st_size > 0 and (out / "README.md").is_file()
+    second = subprocess.run([*args, "train.steps=5"], capture_output=True, text=True, timeout=600)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "at step 3" in second.stderr + second.stdout
+    card = json.loads((out / "model_card.json").read_text())
+    assert [h["step"] for h in card["history"]] == [2, 3, 4, 5]
+
+    from pairedgta.models import build_segmenter
+
+    model = build_segmenter("demo_segformer", path=str(out))
+    probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
+    assert probs.shape[-2:] == (64, 128) and probs.shape[-3] == 19
