@@ -45,9 +45,12 @@ STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
 
 
 # -- data ---------------------------------------------------------------------------------------------
-def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Day-only scenes of each town through the generate stage (one cached entry per town)."""
-    images, labels = [], []
+def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Day-only scenes of each town through the generate stage (one cached entry per town), and the
+    seconds their generation took (from the entries' timings.csv, so a cached rerun still reports it)."""
+    import pandas as pd
+
+    images, labels, seconds = [], [], 0.0
     for town in tqdm(towns, desc="render towns", unit="town"):
         gcfg = json.loads(json.dumps(cfg))
         gcfg["region"] = {**cfg["region"], "town_seed": int(town)}
@@ -59,10 +62,11 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
         }
         ctx = Context(cfg=gcfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
         result = generate.run(ctx)
+        seconds += float(pd.read_csv(Path(result.path) / "timings.csv")["total_time"].sum())
         ds = open_dataset({"kind": "generated", "name": "train_demo"}, grid, root=result.path)
         images += [load_image(g.images[grid.reference]) for g in ds.groups]
         labels += [load_label(g.labels[grid.reference]) for g in ds.groups]
-    return np.stack(images), np.stack(labels)
+    return np.stack(images), np.stack(labels), seconds
 
 
 def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.Tensor:
@@ -187,13 +191,12 @@ def main(dcfg: DictConfig) -> None:
     torch.set_num_threads(int(cfg["train"]["threads"]))
     grid = build_condition_grid({**cfg["conditions"], "only": [cfg["condition"]]})
     d, t, a = cfg["data"], cfg["train"], cfg["augment"]
-    t0 = time.perf_counter()
-    train_x, train_y = render_towns(cfg, grid, range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"]),
+    train_x, train_y, train_render_s = render_towns(cfg, grid, range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"]),
                                     d["train_scenes_per_town"], d["scene_seed"])
-    val_x, val_y = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
+    val_x, val_y, val_render_s = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
                                 d["val_scenes_per_town"], d["scene_seed"] + 100_000)
-    render_s = time.perf_counter() - t0
-    log.info("data: %d train / %d held-out-town val images (%.0f s)", len(train_x), len(val_x), render_s)
+    render_s = train_render_s + val_render_s
+    log.info("data: %d train / %d held-out-town val images (%.0f s of rendering)", len(train_x), len(val_x), render_s)
 
     torch.manual_seed(cfg["seed"])
     config = SegformerConfig(num_labels=NUM_CLASSES, id2label=dict(enumerate(CLASS_NAMES)),

@@ -97,11 +97,14 @@ def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     assert card["train"]["steps"] == 3 and card["data"]["train_images"] == 2 and card["loss"]["ohem_thresh"] == 0.7
     assert [h["step"] for h in card["history"]] == [2, 3] and 0.0 <= card["val_miou"] <= 1.0
     assert (out / "model.safetensors").stat().st_size > 0 and (out / "README.md").is_file()
+    render_s = card["render_seconds"]
+    assert render_s > 0
     second = subprocess.run([*args, "train.steps=5"], capture_output=True, text=True, timeout=600)
     assert second.returncode == 0, second.stderr[-2000:]
     assert "at step 3" in second.stderr + second.stdout
     card = json.loads((out / "model_card.json").read_text())
     assert [h["step"] for h in card["history"]] == [2, 3, 4, 5]
+    assert card["render_seconds"] == pytest.approx(render_s)  # read from the cache: still the rendering cost
 
     from pairedgta.models import build_segmenter
 
