@@ -7,7 +7,8 @@ Data: Day-EXTRASUNNY scenes of the embedded renderer over many towns (one `town_
 scenes), rendered once through the cached generate stage; validation on held-out town seeds. The
 model never sees rain, fog, sunset or night. Recipe: random resize 0.5-2.0, random crop (with the
 category-ratio re-draw), horizontal flip, photometric distortion as MMSegmentation's
-PhotoMetricDistortion (brightness, contrast, saturation, hue), AdamW with warm-up and poly decay.
+PhotoMetricDistortion (brightness, contrast, saturation, hue), OHEM cross-entropy, AdamW with warm-up
+and poly decay.
 Every `checkpoint_every` steps the full training state goes to <work_dir>/<hash>/checkpoint.pt,
 and a rerun with the same settings continues from it. Progress is a tqdm bar; MLflow records params,
 loss, learning rate and validation IoU. The result: safetensors weights, config, preprocessor config,
