@@ -63,7 +63,7 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
         }
         ctx = Context(cfg=gcfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
         result = generate.run(ctx)
-        seconds += float(pd.read_csv(Path(result.path) / "timings.csv")["total_time"].sum())
+        seconds += float(pd.read_csv(result.timings_csv)["total_time"].sum())
         ds = open_dataset({"kind": "generated", "name": "train_demo"}, grid, root=result.path)
         images += [load_image(g.images[grid.reference]) for g in ds.groups]
         labels += [load_label(g.labels[grid.reference]) for g in ds.groups]
@@ -152,9 +152,11 @@ def ohem_cross_entropy(logits: torch.Tensor, target: torch.Tensor, thresh: float
     `min_kept` hardest labelled pixels, so thin and rare classes are not drowned by road and sky."""
     loss = F.cross_entropy(logits, target, ignore_index=IGNORE_INDEX, reduction="none").flatten()
     valid = target.flatten() != IGNORE_INDEX
-    if thresh is None or not valid.any():
-        return loss[valid].mean() if valid.any() else loss.sum() * 0.0
+    if not valid.any():
+        return loss.sum() * 0.0  # zero, but still part of the graph
     loss = loss[valid]
+    if thresh is None:
+        return loss.mean()
     prob = torch.exp(-loss.detach())  # the softmax probability of the true class
     keep = prob < thresh
     if int(keep.sum()) < min(min_kept, loss.numel()):
