@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.scene import CameraPose, DynamicObject, Location, SceneDescriptor
-from pairedgta.scene.placement import SURFACE, PlacementConfig, place_objects
+from pairedgta.scene.placement import SURFACE, PlacementConfig, clear_of_ego, place_objects
 from pairedgta.scene.sampling import PolygonRegion, RectangleRegion, build_region, world_offset
 
 
@@ -98,11 +98,27 @@ def test_placement_invariants(seed, lo, extra, d_min, fwd, lat):
     for o in objects:
         assert fwd[0] <= o.forward <= fwd[0] + fwd[1] + 1e-9 and -lat - 1e-9 <= o.right <= lat + 1e-9
         assert region.surface_at(*world_offset(loc, o.forward, o.right)) == SURFACE[o.category]
+        assert clear_of_ego(o.category, o.model, o.forward, o.right)
     for i, a in enumerate(objects):
         for b in objects[i + 1:]:
             assert math.hypot(a.forward - b.forward, a.right - b.right) >= d_min - 1e-9
     # the same seed gives the same objects
     assert place_objects(np.random.default_rng(seed), loc, region, cfg) == (objects, requested)
+
+
+def test_no_object_encloses_the_camera():
+    # a 12 m bus centred 6 m ahead reaches back past the camera: the frame would be one class
+    assert not clear_of_ego("bus", "bus", 6.0, 0.0)
+    assert clear_of_ego("bus", "bus", 6.0, 3.5) and clear_of_ego("bus", "bus", 9.5, 0.0)
+    assert clear_of_ego("car", "blista", 6.0, 0.0) and clear_of_ego("person", "x", 6.0, 0.0)
+    cfg = PlacementConfig.from_cfg({"min": 3, "max": 3, "categories": ["bus", "truck"], "d_min": 0.0,
+                                    "forward_range": [6, 12], "lateral_range": [-2, 2]})
+    region = RectangleRegion("r", [-1e3, 1e3], [-1e3, 1e3])
+    for seed in range(30):
+        objects, _ = place_objects(np.random.default_rng(seed), Location(0, 0), region, cfg)
+        for o in objects:
+            half = 6.05 if o.category == "bus" else 3.8
+            assert o.forward - half >= 3.1 or abs(o.right) >= 2.3, o
 
 
 def test_placement_places_fewer_when_the_region_is_too_small():

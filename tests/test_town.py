@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pairedgta.errors import ConfigError
-from pairedgta.scene.town import SHAPES, ProceduralTownRegion
+from pairedgta.scene.town import SHAPES, ProceduralTownRegion, town_palette
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +98,37 @@ def test_bad_parameters_are_one_line_config_errors():
         ProceduralTownRegion(road_width=2.0)
     with pytest.raises(ConfigError, match="blocks"):
         ProceduralTownRegion(blocks=0)
+    with pytest.raises(ConfigError, match=r"material_variation=1.5 is invalid; set it in \[0, 1\]"):
+        ProceduralTownRegion(material_variation=1.5)
+
+
+def _colours(town: ProceduralTownRegion, material: str) -> np.ndarray:
+    rows = [a for (_, mat, _), a in town.layout().groups.items() if mat == material]
+    return np.concatenate(rows)[:, 7:10]
+
+
+def test_towns_differ_in_ground_materials_and_share_one_palette_at_zero_variation():
+    # one asphalt grey for every town lets a model learn "road = that grey"; towns must differ
+    asphalt = [town_palette(seed, 1.0)["asphalt"] for seed in range(40)]
+    grey = np.array([np.mean(a) for a in asphalt])
+    assert grey.max() - grey.min() > 0.15 and len(set(grey.tolist())) == 40
+    assert len({town_palette(s, 1.0)["paving"] for s in range(40)}) == 40
+    assert town_palette(3, 1.0) == town_palette(3, 1.0)
+    assert town_palette(3, 0.0) == town_palette(4, 0.0)  # 0: the reference palette, no road repairs
+    assert town_palette(3, 0.0)["wear"] == 0.0
+
+    # the layout uses them: road planes in the town's asphalt, repair patches darker or lighter
+    for seed in (1, 2):
+        t = ProceduralTownRegion(town_seed=seed, blocks=2)
+        road = _colours(t, "asphalt")
+        base = np.array(town_palette(seed, 1.0)["asphalt"])
+        assert np.isclose(road, base, atol=1e-6).all(axis=1).sum() >= 3  # the road surfaces
+        assert (~np.isclose(road, base, atol=1e-6).all(axis=1)).sum() > 0  # the patches
+        assert np.allclose(_colours(t, "sidewalk"), town_palette(seed, 1.0)["paving"], atol=1e-6)
+    flat = ProceduralTownRegion(town_seed=1, blocks=2, material_variation=0.0)
+    assert np.allclose(_colours(flat, "asphalt"), town_palette(0, 0.0)["asphalt"], atol=1e-6)
+    # the palette draws from its own stream: buildings are where they were
+    np.testing.assert_array_equal(flat.layout().solids, ProceduralTownRegion(town_seed=1, blocks=2).layout().solids)
 
 
 def test_region_dispatch_builds_the_town_from_its_config():

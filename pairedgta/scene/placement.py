@@ -8,6 +8,7 @@ import numpy as np
 
 from pairedgta.errors import ConfigError
 from pairedgta.scene.descriptor import CATEGORIES, DynamicObject, Location
+from pairedgta.scene.population import footprint
 from pairedgta.scene.sampling import Region, world_offset
 
 VEHICLES = ("car", "truck", "bus", "motorcycle", "bicycle", "rider")
@@ -23,6 +24,24 @@ DEFAULT_MODELS = {
     "person": ["a_m_y_business_01", "a_f_y_tourist_01", "a_m_m_skater_01"],
     "rider": ["a_m_y_motox_01"],
 }
+
+
+# the ego vehicle in the camera frame: forward from its rear to its bonnet, half width; and the gap kept
+EGO_FORWARD = (-3.0, 2.6)
+EGO_HALF_WIDTH = 1.0
+EGO_GAP = 0.5
+
+
+def clear_of_ego(category: str, model: str, forward: float, right: float) -> bool:
+    """False when the object's footprint reaches into the ego vehicle: a bus whose centre is 6 m ahead
+    would otherwise enclose the camera and fill the frame with one class."""
+    length, width = footprint(category, model)
+    if category == "person":
+        half_f = half_r = max(length, width) / 2  # any heading
+    else:
+        half_f, half_r = length / 2, width / 2  # vehicles stand along the lane (heading 0 or 180)
+    return (forward - half_f >= EGO_FORWARD[1] + EGO_GAP or forward + half_f <= EGO_FORWARD[0] - EGO_GAP
+            or abs(right) >= half_r + EGO_HALF_WIDTH + EGO_GAP)
 
 
 @dataclass(frozen=True)
@@ -72,7 +91,8 @@ def place_objects(
 ) -> tuple[tuple[DynamicObject, ...], int]:
     """Draw M_k ~ U{min..max} objects; returns (objects, requested M_k).
 
-    Each object is rejection-sampled in R_k on its category's surface with pairwise distance >= d_min;
+    Each object is rejection-sampled in R_k on its category's surface with pairwise distance >= d_min,
+    clear of the ego vehicle;
     when R_k cannot hold the count within `max_tries`, fewer objects are placed (the caller records it)."""
     requested = int(rng.integers(cfg.min, cfg.max + 1))
     probs = None
@@ -94,13 +114,16 @@ def place_objects(
             if surface not in (SURFACE[category], "unknown"):
                 continue
             names = list(models.get(category) or [category])
+            model = str(rng.choice(names))
+            if not clear_of_ego(category, model, forward, right):
+                continue
             heading = float(rng.choice([0.0, 180.0])) if category in VEHICLES else float(rng.uniform(0, 360))
             color = tuple(int(v) for v in rng.integers(0, 256, size=3))
             color2 = tuple(int(v) for v in rng.integers(0, 256, size=3))
             placed.append(
                 DynamicObject(
                     category=category,
-                    model=str(rng.choice(names)),
+                    model=model,
                     forward=forward,
                     right=right,
                     up=0.0,

@@ -33,6 +33,8 @@ _FACADES = (
 _ASPHALT = (0.21, 0.21, 0.22)
 _PAVING = (0.58, 0.56, 0.53)
 _KERB = (0.70, 0.69, 0.66)
+_GRASS = (0.30, 0.42, 0.18)
+_MARKING = (0.92, 0.92, 0.90)
 _SIGN_COLORS = {"disc": (0.80, 0.10, 0.10), "triangle": (0.95, 0.95, 0.95), "panel": (0.10, 0.30, 0.75)}
 
 
@@ -94,6 +96,34 @@ def _jitter(rng: np.random.Generator, color, amount=0.06):
     return tuple(float(np.clip(c + rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
 
 
+def _lerp(a, b, f: float) -> tuple[float, float, float]:
+    return tuple(float(x + (y - x) * f) for x, y in zip(a, b))  # type: ignore[return-value]
+
+
+def town_palette(town_seed: int, variation: float) -> dict[str, Any]:
+    """Ground materials of one town. Real cities differ in asphalt age, paving and verge colour; one
+    fixed asphalt grey for every town lets a model learn road = that grey, which breaks as soon as
+    rain or dusk changes it. `variation` 0 gives the reference palette, 1 the full range. Drawn
+    from its own stream so the geometry of a town does not depend on it."""
+    rng = np.random.default_rng([int(town_seed), 7919])
+    f = float(variation)
+    grey = rng.uniform(0.12, 0.42)  # fresh black asphalt .. sun-bleached, concrete-like
+    tint = rng.uniform(-0.02, 0.02)
+    asphalt = (grey + tint, grey, grey - tint + 0.01)
+    paving = rng.choice(4, p=[0.45, 0.25, 0.15, 0.15])
+    paving = [(0.58, 0.56, 0.53), (0.45, 0.45, 0.46), (0.72, 0.70, 0.64), (0.56, 0.38, 0.32)][int(paving)]
+    paving = tuple(float(np.clip(c * rng.uniform(0.8, 1.15), 0, 1)) for c in paving)
+    kerb = tuple(float(np.clip(c * rng.uniform(0.8, 1.1), 0, 1)) for c in _KERB)
+    grass = _lerp((0.20, 0.40, 0.12), (0.46, 0.46, 0.22), float(rng.uniform(0.0, 1.0)))  # lush .. dry
+    marking = tuple(float(c * rng.uniform(0.78, 1.0)) for c in _MARKING)  # fresh .. worn paint
+    wear = float(rng.uniform(0.5, 6.0))  # patches of repaired road per 100 m of road
+    return {
+        "asphalt": _lerp(_ASPHALT, asphalt, f), "paving": _lerp(_PAVING, paving, f),
+        "kerb": _lerp(_KERB, kerb, f), "grass": _lerp(_GRASS, grass, f), "marking": _lerp(_MARKING, marking, f),
+        "wear": wear * f,
+    }
+
+
 class ProceduralTownRegion:
     """Region interface over a procedural town: lane sampling, surface queries and the layout."""
 
@@ -102,7 +132,7 @@ class ProceduralTownRegion:
                  kerb_height: float = 0.15, floor_height: float = 3.2, min_floors: int = 2, max_floors: int = 9,
                  park_fraction: float = 0.15, lamp_spacing: float = 28.0, street_tree_fraction: float = 0.6,
                  lit_window_fraction: float = 0.45, countryside_trees: int = 60,
-                 population: Mapping[str, Any] | None = None) -> None:
+                 material_variation: float = 1.0, population: Mapping[str, Any] | None = None) -> None:
         # population: ambient traffic and pedestrians (pairedgta/scene/population.py); None = none
         self.name = str(name)
         self.town_seed = int(town_seed)
@@ -119,6 +149,7 @@ class ProceduralTownRegion:
         self.street_tree_fraction = float(street_tree_fraction)
         self.lit_window_fraction = float(lit_window_fraction)
         self.countryside_trees = int(countryside_trees)
+        self.material_variation = float(material_variation)
         self.population = PopulationConfig.from_cfg(population)
         checks = (
             ("blocks", self.blocks >= 1, "an integer >= 1"),
@@ -128,6 +159,7 @@ class ProceduralTownRegion:
             ("min_floors", 1 <= self.min_floors <= self.max_floors, "1 <= min_floors <= max_floors"),
             ("park_fraction", 0.0 <= self.park_fraction <= 1.0, "in [0, 1]"),
             ("lamp_spacing", self.lamp_spacing >= 5.0, ">= 5 (metres)"),
+            ("material_variation", 0.0 <= self.material_variation <= 1.0, "in [0, 1] (0 = one palette for all towns)"),
         )
         for key, ok, want in checks:
             if not ok:
@@ -162,6 +194,7 @@ class ProceduralTownRegion:
             "street_tree_fraction": self.street_tree_fraction,
             "lit_window_fraction": self.lit_window_fraction,
             "countryside_trees": self.countryside_trees,
+            "material_variation": self.material_variation,
             "population": self.population.to_dict(),
         }
 
@@ -246,6 +279,7 @@ class ProceduralTownRegion:
 
 def _build_layout(t: ProceduralTownRegion) -> TownLayout:
     rng = np.random.default_rng(t.town_seed)
+    pal = town_palette(t.town_seed, t.material_variation)
     b = _Builder()
     c = t.road_centres
     n = len(c)
@@ -255,15 +289,15 @@ def _build_layout(t: ProceduralTownRegion) -> TownLayout:
 
     # terrain reaching the horizon, then lot ground inside the town
     far = length + 1500.0
-    b.plane("grass", "terrain", -far, far, -far, far, -0.02, color=(0.30, 0.42, 0.18))
+    b.plane("grass", "terrain", -far, far, -far, far, -0.02, color=pal["grass"])
 
     # roads: east-west roads run the full length, north-south ones are cut at the junctions
     for cj in c:
-        b.plane("asphalt", "road", -length, length, cj - hw, cj + hw, 0.0, _ASPHALT)
+        b.plane("asphalt", "road", -length, length, cj - hw, cj + hw, 0.0, pal["asphalt"])
     ns_spans = _spans(c, hw, length)
     for ci in c:
         for y0, y1 in ns_spans:
-            b.plane("asphalt", "road", ci - hw, ci + hw, y0, y1, 0.0, _ASPHALT)
+            b.plane("asphalt", "road", ci - hw, ci + hw, y0, y1, 0.0, pal["asphalt"])
 
     # sidewalks: north-south strips run through the corners, east-west strips fill between them
     ew_spans = _spans(c, hw + sw, length)
@@ -271,24 +305,25 @@ def _build_layout(t: ProceduralTownRegion) -> TownLayout:
         for y0, y1 in ns_spans:
             for side in (-1, 1):
                 x0, x1 = sorted((ci + side * hw, ci + side * (hw + sw)))
-                b.box("sidewalk", "sidewalk", x0, x1, y0, y1, 0.0, kh, _PAVING)
+                b.box("sidewalk", "sidewalk", x0, x1, y0, y1, 0.0, kh, pal["paving"])
                 kx0, kx1 = sorted((ci + side * hw, ci + side * (hw + 0.25)))
-                b.box("kerb", "sidewalk", kx0, kx1, y0, y1, 0.0, kh + 0.01, _KERB)
+                b.box("kerb", "sidewalk", kx0, kx1, y0, y1, 0.0, kh + 0.01, pal["kerb"])
     for cj in c:
         for x0, x1 in ew_spans:
             for side in (-1, 1):
                 y0, y1 = sorted((cj + side * hw, cj + side * (hw + sw)))
-                b.box("sidewalk", "sidewalk", x0, x1, y0, y1, 0.0, kh, _PAVING)
+                b.box("sidewalk", "sidewalk", x0, x1, y0, y1, 0.0, kh, pal["paving"])
                 ky0, ky1 = sorted((cj + side * hw, cj + side * (hw + 0.25)))
-                b.box("kerb", "sidewalk", x0, x1, ky0, ky1, 0.0, kh + 0.01, _KERB)
+                b.box("kerb", "sidewalk", x0, x1, ky0, ky1, 0.0, kh + 0.01, pal["kerb"])
 
-    _markings(t, b, rng)
+    _road_wear(t, b, pal)
+    _markings(t, b, rng, pal["marking"])
     _street_furniture(t, b, rng)
     for i in range(n - 1):
         for j in range(n - 1):
             x0, x1 = c[i] + hw + sw, c[i + 1] - hw - sw
             y0, y1 = c[j] + hw + sw, c[j + 1] - hw - sw
-            b.box("lot", "terrain", x0, x1, y0, y1, 0.0, kh, color=(0.30, 0.42, 0.18))
+            b.box("lot", "terrain", x0, x1, y0, y1, 0.0, kh, color=pal["grass"])
             if rng.random() < t.park_fraction:
                 _park(t, b, rng, x0, x1, y0, y1)
             else:
@@ -297,12 +332,37 @@ def _build_layout(t: ProceduralTownRegion) -> TownLayout:
     return b.build(t.params(), half, length)
 
 
-def _markings(t: ProceduralTownRegion, b: _Builder, rng: np.random.Generator) -> None:
+def _road_wear(t: ProceduralTownRegion, b: _Builder, pal) -> None:
+    """Repair patches and resurfaced lanes in a darker or lighter asphalt, still labelled road."""
+    rate = pal["wear"]
+    if rate <= 0:
+        return
+    rng = np.random.default_rng([t.town_seed, 104729])
+    hw = t.road_width / 2
+    length = t.road_half_length
+    spans = _spans(t.road_centres, hw + t.sidewalk_width, length)
+    for axis in (0, 1):
+        for rc in t.road_centres:
+            for s0, s1 in spans:
+                for _ in range(int(rng.poisson(rate * (s1 - s0) / 100.0))):
+                    size = rng.uniform(1.5, 14.0)
+                    a0 = rng.uniform(s0, max(s0, s1 - size))
+                    lane = rng.uniform(0.6, 1.0) * hw
+                    o0 = rng.uniform(-hw, hw - lane)
+                    shade = rng.uniform(0.65, 1.5)
+                    colour = tuple(float(np.clip(c * shade, 0, 1)) for c in pal["asphalt"])
+                    z = float(rng.uniform(0.001, 0.003))  # below the markings (0.004), apart from each other
+                    if axis == 0:
+                        b.plane("asphalt", "road", rc + o0, rc + o0 + lane, a0, min(s1, a0 + size), z, colour)
+                    else:
+                        b.plane("asphalt", "road", a0, min(s1, a0 + size), rc + o0, rc + o0 + lane, z, colour)
+
+
+def _markings(t: ProceduralTownRegion, b: _Builder, rng: np.random.Generator, white) -> None:
     c = t.road_centres
     hw, sw = t.road_width / 2, t.sidewalk_width
     length = t.road_half_length
     z = 0.004
-    white = (0.92, 0.92, 0.90)
     spans = _spans(c, hw + sw, length)
     for axis in (0, 1):
         for rc in c:
@@ -596,4 +656,4 @@ def _countryside(t, b: _Builder, rng, half, length) -> None:
         placed += 1
 
 
-__all__ = ["COLUMNS", "SHAPES", "ProceduralTownRegion", "TownLayout"]
+__all__ = ["COLUMNS", "SHAPES", "ProceduralTownRegion", "TownLayout", "town_palette"]

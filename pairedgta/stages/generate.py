@@ -39,7 +39,7 @@ from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
-VERSION = "2"  # 2: descriptors carry the region's ambient population
+VERSION = "3"  # 2: descriptors carry the ambient population; 3: per-town ground materials
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
