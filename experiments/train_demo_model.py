@@ -170,6 +170,49 @@ def lr_factor(step: int, t: dict) -> float:
     return warm * (1 - min(step, t["steps"]) / (t["steps"] + 1)) ** t["poly_power"]
 
 
+def _number(v, lo: float, hi: float, integer: bool = False) -> bool:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (integer and not isinstance(v, int)):
+        return False
+    return lo <= v <= hi
+
+
+def check_config(cfg: dict) -> None:
+    """Every recipe value a typo could break, checked before minutes of rendering: one line naming the key."""
+    inf = float("inf")
+    d, t, a, lo = cfg["data"], cfg["train"], cfg["augment"], cfg.get("loss") or {}
+    checks = [
+        (f"data.{k}", d.get(k), _number(d.get(k), 1, inf, True), "an integer >= 1")
+        for k in ("train_towns", "train_scenes_per_town", "val_towns", "val_scenes_per_town", "workers")
+    ] + [
+        ("train.steps", t.get("steps"), _number(t.get("steps"), 1, inf, True), "an integer >= 1"),
+        ("train.batch_size", t.get("batch_size"), _number(t.get("batch_size"), 1, inf, True), "an integer >= 1"),
+        ("train.lr", t.get("lr"), _number(t.get("lr"), 1e-12, 10.0), "a learning rate > 0"),
+        ("train.weight_decay", t.get("weight_decay"), _number(t.get("weight_decay"), 0.0, inf), ">= 0"),
+        ("train.warmup", t.get("warmup"), _number(t.get("warmup"), 0, inf, True), "an integer >= 0"),
+        ("train.poly_power", t.get("poly_power"), _number(t.get("poly_power"), 1e-6, inf), "> 0"),
+        ("train.checkpoint_every", t.get("checkpoint_every"), _number(t.get("checkpoint_every"), 1, inf, True), "an integer >= 1"),
+        ("train.eval_every", t.get("eval_every"), _number(t.get("eval_every"), 1, inf, True), "an integer >= 1"),
+        ("train.threads", t.get("threads"), _number(t.get("threads"), 1, inf, True), "an integer >= 1"),
+        ("loss.ohem_thresh", lo.get("ohem_thresh"), lo.get("ohem_thresh") is None or _number(lo.get("ohem_thresh"), 1e-6, 1.0),
+         "null (plain cross-entropy) or a probability in (0, 1]"),
+        ("loss.ohem_min_kept", lo.get("ohem_min_kept"), _number(lo.get("ohem_min_kept", 0), 0, inf, True), "an integer >= 0"),
+        ("augment.flip", a.get("flip"), _number(a.get("flip"), 0.0, 1.0), "a probability in [0, 1]"),
+        ("augment.cat_max_ratio", a.get("cat_max_ratio"), _number(a.get("cat_max_ratio"), 1e-6, 1.0), "in (0, 1]"),
+        ("augment.scale_range", a.get("scale_range"), isinstance(a.get("scale_range"), list) and len(a["scale_range"]) == 2
+         and all(_number(v, 0.05, 8.0) for v in a["scale_range"]) and a["scale_range"][0] <= a["scale_range"][1],
+         "[low, high] with 0.05 <= low <= high <= 8"),
+        ("augment.crop", a.get("crop"), isinstance(a.get("crop"), list) and len(a["crop"]) == 2
+         and all(_number(v, 16, 4096, True) for v in a["crop"]), "[height, width] in pixels, each 16..4096"),
+        ("work_dir", cfg.get("work_dir"), isinstance(cfg.get("work_dir"), str) and cfg["work_dir"].strip() != "",
+         "a directory for the resumable checkpoint"),
+        ("out_dir", cfg.get("out_dir"), isinstance(cfg.get("out_dir"), str) and cfg["out_dir"].strip() != "",
+         "a directory for the trained model"),
+    ]
+    for key, value, ok, want in checks:
+        if not ok:
+            raise SystemExit(f"train_demo config: {key}={value!r} is invalid; set it to {want}")
+
+
 def state_key(cfg: dict) -> str:
     """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
     keep = {k: cfg[k] for k in ("data", "arch", "augment", "loss", "seed", "renderer", "region")}
@@ -191,6 +234,7 @@ def main(dcfg: DictConfig) -> None:
 
     cfg = OmegaConf.to_container(dcfg, resolve=True)
     assert isinstance(cfg, dict)
+    check_config(cfg)
     torch.set_num_threads(int(cfg["train"]["threads"]))
     grid = build_condition_grid({**cfg["conditions"], "only": [cfg["condition"]]})
     d, t, a = cfg["data"], cfg["train"], cfg["augment"]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -78,6 +79,31 @@ def test_state_key_ignores_run_length_but_not_the_recipe():
     longer = {**cfg, "train": {**cfg["train"], "steps": 20, "threads": 1}}
     plain = {**cfg, "loss": {"ohem_thresh": None}}
     assert tdm.state_key(cfg) == tdm.state_key(longer) != tdm.state_key(plain)
+
+
+def test_recipe_values_are_checked_up_front_with_the_key_named():
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module("pairedgta.conf", version_base=None):
+        cfg = OmegaConf.to_container(compose("train_demo"), resolve=True)
+    tdm.check_config(cfg)  # the shipped recipe passes
+    bad = [
+        ("loss", "ohem_thresh", "high", "loss.ohem_thresh='high' is invalid"),
+        ("loss", "ohem_min_kept", -1, "loss.ohem_min_kept=-1"),
+        ("train", "steps", 0, "train.steps=0 is invalid; set it to an integer >= 1"),
+        ("train", "lr", "1e-3x", "train.lr='1e-3x'"),
+        ("augment", "scale_range", [2.0, 0.5], "augment.scale_range=[2.0, 0.5]"),
+        ("augment", "crop", [128], "augment.crop=[128]"),
+        ("data", "train_towns", 2.5, "data.train_towns=2.5"),
+    ]
+    for section, key, value, message in bad:
+        broken = {**cfg, section: {**cfg[section], key: value}}
+        with pytest.raises(SystemExit, match=re.escape(message)):
+            tdm.check_config(broken)
+    with pytest.raises(SystemExit, match="work_dir=''"):
+        tdm.check_config({**cfg, "work_dir": ""})
+    tdm.check_config({**cfg, "loss": {**cfg["loss"], "ohem_thresh": None}})  # plain cross-entropy is allowed
 
 
 def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
