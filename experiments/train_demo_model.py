@@ -73,12 +73,15 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
 def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.Tensor:
     """MMSegmentation's PhotoMetricDistortion on a 3 x H x W image in [0, 1]: additive brightness,
     contrast (before or after the colour steps, at random), saturation and hue in HSV; each step with
-    probability 0.5."""
+    probability 0.5. MMSegmentation's contrast multiplies the pixels (a brightness scale);
+    `contrast_mode: blend` blends toward the image's mean grey instead (torchvision's definition), which
+    is what lowers contrast. `grayscale_p` then turns the image grey with that probability."""
     from torchvision.transforms.v2 import functional as TF
 
     def contrast(x: torch.Tensor) -> torch.Tensor:
         if rng.random() < 0.5:
-            x = (x * float(rng.uniform(*p["contrast_range"]))).clamp(0, 1)
+            alpha = float(rng.uniform(*p["contrast_range"]))
+            x = TF.adjust_contrast(x, alpha) if p.get("contrast_mode", "multiply") == "blend" else (x * alpha).clamp(0, 1)
         return x
 
     if rng.random() < 0.5:
@@ -92,6 +95,8 @@ def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.T
         img = TF.adjust_hue(img, float(rng.uniform(-p["hue_delta"], p["hue_delta"])) / 360.0)
     if not contrast_first:
         img = contrast(img)
+    if p.get("grayscale_p", 0.0) > 0 and rng.random() < p["grayscale_p"]:
+        img = TF.rgb_to_grayscale(img, num_output_channels=3)
     return img
 
 
@@ -197,6 +202,11 @@ def check_config(cfg: dict) -> None:
          "null (plain cross-entropy) or a probability in (0, 1]"),
         ("loss.ohem_min_kept", lo.get("ohem_min_kept"), _number(lo.get("ohem_min_kept", 0), 0, inf, True), "an integer >= 0"),
         ("augment.flip", a.get("flip"), _number(a.get("flip"), 0.0, 1.0), "a probability in [0, 1]"),
+        ("augment.photometric.contrast_mode", (a.get("photometric") or {}).get("contrast_mode", "multiply"),
+         (a.get("photometric") or {}).get("contrast_mode", "multiply") in ("multiply", "blend"),
+         "multiply (MMSegmentation) or blend (toward the mean grey)"),
+        ("augment.photometric.grayscale_p", (a.get("photometric") or {}).get("grayscale_p", 0.0),
+         _number((a.get("photometric") or {}).get("grayscale_p", 0.0), 0.0, 1.0), "a probability in [0, 1]"),
         ("augment.cat_max_ratio", a.get("cat_max_ratio"), _number(a.get("cat_max_ratio"), 1e-6, 1.0), "in (0, 1]"),
         ("augment.scale_range", a.get("scale_range"), isinstance(a.get("scale_range"), list) and len(a["scale_range"]) == 2
          and all(_number(v, 0.05, 8.0) for v in a["scale_range"]) and a["scale_range"][0] <= a["scale_range"][1],

@@ -66,6 +66,26 @@ def test_photometric_distortion_stays_in_range_and_changes_colour():
     assert torch.allclose(tdm.photometric(img.clone(), rng, IDENTITY), img, atol=1e-5)
 
 
+def test_contrast_blend_lowers_contrast_and_grayscale_removes_colour():
+    img = torch.rand(3, 16, 16)
+    base = {"brightness_delta": 0, "contrast_range": [0.3, 0.3], "saturation_range": [1.0, 1.0], "hue_delta": 0}
+    # MMSegmentation's contrast scales the pixels: the image gets darker, its spread shrinks with its mean
+    outs = {mode: [tdm.photometric(img.clone(), np.random.default_rng(s), {**base, "contrast_mode": mode})
+                   for s in range(12)] for mode in ("multiply", "blend")}
+    changed = [i for i, o in enumerate(outs["blend"]) if not torch.allclose(o, img)]
+    assert changed  # the contrast step ran for some seeds (probability 0.5)
+    for i in changed:
+        m, b_ = outs["multiply"][i], outs["blend"][i]
+        assert torch.allclose(m, img * 0.3, atol=1e-6)
+        assert abs(float(b_.mean()) - float(img.mean())) < 0.02 < abs(float(m.mean()) - float(img.mean()))
+        assert float(b_.std()) < 0.35 * float(img.std())
+    grey = tdm.photometric(img.clone(), np.random.default_rng(0), {**IDENTITY, "grayscale_p": 1.0})
+    assert torch.allclose(grey[0], grey[1]) and torch.allclose(grey[1], grey[2])
+    # off by default: the draws (and hence a recipe's images) are those of the original distortion
+    assert torch.equal(tdm.photometric(img.clone(), np.random.default_rng(5), {**base, "grayscale_p": 0.0}),
+                       tdm.photometric(img.clone(), np.random.default_rng(5), base))
+
+
 def test_learning_rate_warms_up_then_decays_to_zero():
     t = {"steps": 100, "warmup": 10, "poly_power": 1.0}
     f = [tdm.lr_factor(s, t) for s in range(101)]
@@ -96,6 +116,8 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
         ("augment", "scale_range", [2.0, 0.5], "augment.scale_range=[2.0, 0.5]"),
         ("augment", "crop", [128], "augment.crop=[128]"),
         ("data", "train_towns", 2.5, "data.train_towns=2.5"),
+        ("augment", "photometric", {**cfg["augment"]["photometric"], "contrast_mode": "hsv"},
+         "augment.photometric.contrast_mode='hsv' is invalid; set it to multiply (MMSegmentation) or blend"),
     ]
     for section, key, value, message in bad:
         broken = {**cfg, section: {**cfg[section], key: value}}
