@@ -185,6 +185,8 @@ def check_config(cfg: dict) -> None:
     """Every recipe value a typo could break, checked before minutes of rendering: one line naming the key."""
     inf = float("inf")
     d, t, a, lo = cfg["data"], cfg["train"], cfg["augment"], cfg.get("loss") or {}
+    ph = a.get("photometric") or {}
+    contrast_mode, grayscale_p = ph.get("contrast_mode", "multiply"), ph.get("grayscale_p", 0.0)
     checks = [
         (f"data.{k}", d.get(k), _number(d.get(k), 1, inf, True), "an integer >= 1")
         for k in ("train_towns", "train_scenes_per_town", "val_towns", "val_scenes_per_town", "workers")
@@ -202,11 +204,9 @@ def check_config(cfg: dict) -> None:
          "null (plain cross-entropy) or a probability in (0, 1]"),
         ("loss.ohem_min_kept", lo.get("ohem_min_kept"), _number(lo.get("ohem_min_kept", 0), 0, inf, True), "an integer >= 0"),
         ("augment.flip", a.get("flip"), _number(a.get("flip"), 0.0, 1.0), "a probability in [0, 1]"),
-        ("augment.photometric.contrast_mode", (a.get("photometric") or {}).get("contrast_mode", "multiply"),
-         (a.get("photometric") or {}).get("contrast_mode", "multiply") in ("multiply", "blend"),
+        ("augment.photometric.contrast_mode", contrast_mode, contrast_mode in ("multiply", "blend"),
          "multiply (MMSegmentation) or blend (toward the mean grey)"),
-        ("augment.photometric.grayscale_p", (a.get("photometric") or {}).get("grayscale_p", 0.0),
-         _number((a.get("photometric") or {}).get("grayscale_p", 0.0), 0.0, 1.0), "a probability in [0, 1]"),
+        ("augment.photometric.grayscale_p", grayscale_p, _number(grayscale_p, 0.0, 1.0), "a probability in [0, 1]"),
         ("augment.cat_max_ratio", a.get("cat_max_ratio"), _number(a.get("cat_max_ratio"), 1e-6, 1.0), "in (0, 1]"),
         ("augment.scale_range", a.get("scale_range"), isinstance(a.get("scale_range"), list) and len(a["scale_range"]) == 2
          and all(_number(v, 0.05, 8.0) for v in a["scale_range"]) and a["scale_range"][0] <= a["scale_range"][1],

@@ -110,9 +110,9 @@ def town_palette(town_seed: int, variation: float) -> dict[str, Any]:
     grey = rng.uniform(0.12, 0.42)  # fresh black asphalt .. sun-bleached, concrete-like
     tint = rng.uniform(-0.02, 0.02)
     asphalt = (grey + tint, grey, grey - tint + 0.01)
-    paving = rng.choice(4, p=[0.45, 0.25, 0.15, 0.15])
-    paving = [(0.58, 0.56, 0.53), (0.45, 0.45, 0.46), (0.72, 0.70, 0.64), (0.56, 0.38, 0.32)][int(paving)]
-    paving = tuple(float(np.clip(c * rng.uniform(0.8, 1.15), 0, 1)) for c in paving)
+    family = int(rng.choice(4, p=[0.45, 0.25, 0.15, 0.15]))  # buff, grey, pale, brick-red paving
+    base = [(0.58, 0.56, 0.53), (0.45, 0.45, 0.46), (0.72, 0.70, 0.64), (0.56, 0.38, 0.32)][family]
+    paving = tuple(float(np.clip(c * rng.uniform(0.8, 1.15), 0, 1)) for c in base)
     kerb = tuple(float(np.clip(c * rng.uniform(0.8, 1.1), 0, 1)) for c in _KERB)
     grass = _lerp((0.20, 0.40, 0.12), (0.46, 0.46, 0.22), float(rng.uniform(0.0, 1.0)))  # lush .. dry
     marking = tuple(float(c * rng.uniform(0.78, 1.0)) for c in _MARKING)  # fresh .. worn paint
