@@ -100,8 +100,11 @@ def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.T
     return img
 
 
-def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: dict) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random resize, crop (re-drawn while one class dominates), flip, photometric distortion."""
+def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: dict,
+           focus: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random resize, crop (re-drawn while one class dominates; around a random pixel of `focus`
+    when rare-class sampling chose that class and the resized image still shows it), flip,
+    photometric distortion."""
     h, w = a["crop"]
     img = torch.tensor(image).permute(2, 0, 1).float().div(255)[None]
     lab = torch.tensor(label.astype(np.int64))[None, None].float()
@@ -114,7 +117,13 @@ def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: di
         img = F.pad(img, (0, max(0, w - nw), 0, max(0, h - nh)), value=0.0)
         lab = F.pad(lab, (0, max(0, w - nw), 0, max(0, h - nh)), value=float(IGNORE_INDEX))
         nh, nw = img.shape[-2:]
+    where = (lab[0, 0] == focus).nonzero() if focus is not None else None
     for _ in range(10):
+        if where is not None and len(where):
+            py, px = (int(v) for v in where[int(rng.integers(len(where)))])
+            y0 = int(rng.integers(max(0, py - h + 1), min(py, nh - h) + 1))
+            x0 = int(rng.integers(max(0, px - w + 1), min(px, nw - w) + 1))
+            break
         y0, x0 = int(rng.integers(nh - h + 1)), int(rng.integers(nw - w + 1))
         crop = lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
         counts = torch.bincount(crop[crop != IGNORE_INDEX].flatten(), minlength=NUM_CLASSES)
@@ -126,8 +135,34 @@ def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: di
     return photometric(img, rng, a["photometric"]), lab
 
 
-def batch(images, labels, rng, a: dict, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    pairs = [sample(images[i], labels[i], rng, a) for i in rng.integers(len(images), size=size)]
+class RareClassSampler:
+    """Rare-class sampling (DAFormer, Hoyer et al. 2022): draw a class c with probability
+    proportional to exp((1 - f_c) / T), f_c its share of the training pixels, then an image that shows
+    at least `min_pixels` of it. Fences, signs, bicycles and riders cover < 0.3 % of the pixels but
+    appear in a third to three quarters of the scenes; uniform image sampling shows them too seldom
+    (and, with the crop, too small) for a small model to learn them. T -> infinity is uniform over the
+    classes present."""
+
+    def __init__(self, labels: np.ndarray, temperature: float, min_pixels: int):
+        counts = np.stack([np.bincount(lab[lab != IGNORE_INDEX].ravel(), minlength=NUM_CLASSES)[:NUM_CLASSES]
+                           for lab in labels])
+        share = counts.sum(0) / max(1, counts.sum())
+        self.images = [np.flatnonzero(counts[:, c] >= min_pixels) for c in range(NUM_CLASSES)]
+        self.classes = np.array([c for c in range(NUM_CLASSES) if len(self.images[c])])
+        logit = (1.0 - share[self.classes]) / temperature
+        self.prob = np.exp(logit - logit.max())
+        self.prob /= self.prob.sum()
+
+    def draw(self, rng: np.random.Generator) -> tuple[int, int]:
+        c = int(self.classes[rng.choice(len(self.classes), p=self.prob)])
+        return int(self.images[c][rng.integers(len(self.images[c]))]), c
+
+
+def batch(images, labels, rng, a: dict, size: int, rcs: RareClassSampler | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    if rcs is None:
+        pairs = [sample(images[i], labels[i], rng, a) for i in rng.integers(len(images), size=size)]
+    else:
+        pairs = [sample(images[i], labels[i], rng, a, focus=c) for i, c in (rcs.draw(rng) for _ in range(size))]
     return torch.stack([x for x, _ in pairs]), torch.stack([y for _, y in pairs])
 
 
@@ -187,6 +222,8 @@ def check_config(cfg: dict) -> None:
     d, t, a, lo = cfg["data"], cfg["train"], cfg["augment"], cfg.get("loss") or {}
     ph = a.get("photometric") or {}
     contrast_mode, grayscale_p = ph.get("contrast_mode", "multiply"), ph.get("grayscale_p", 0.0)
+    rcs = a.get("rare_class_sampling") or {}
+    rcs_t, rcs_min = rcs.get("temperature"), rcs.get("min_pixels", 16)
     checks = [
         (f"data.{k}", d.get(k), _number(d.get(k), 1, inf, True), "an integer >= 1")
         for k in ("train_towns", "train_scenes_per_town", "val_towns", "val_scenes_per_town", "workers")
@@ -207,6 +244,9 @@ def check_config(cfg: dict) -> None:
         ("augment.photometric.contrast_mode", contrast_mode, contrast_mode in ("multiply", "blend"),
          "multiply (MMSegmentation) or blend (toward the mean grey)"),
         ("augment.photometric.grayscale_p", grayscale_p, _number(grayscale_p, 0.0, 1.0), "a probability in [0, 1]"),
+        ("augment.rare_class_sampling.temperature", rcs_t, rcs_t is None or _number(rcs_t, 1e-4, inf),
+         "null (images drawn uniformly) or a temperature > 0 (DAFormer uses 0.01)"),
+        ("augment.rare_class_sampling.min_pixels", rcs_min, _number(rcs_min, 1, inf, True), "an integer >= 1"),
         ("augment.cat_max_ratio", a.get("cat_max_ratio"), _number(a.get("cat_max_ratio"), 1e-6, 1.0), "in (0, 1]"),
         ("augment.scale_range", a.get("scale_range"), isinstance(a.get("scale_range"), list) and len(a["scale_range"]) == 2
          and all(_number(v, 0.05, 8.0) for v in a["scale_range"]) and a["scale_range"][0] <= a["scale_range"][1],
@@ -290,11 +330,13 @@ def main(dcfg: DictConfig) -> None:
         mlflow.start_run(run_name=f"demo_segformer-{state_key(cfg)}")
         mlflow.log_params({"n_params": n_params, "train_images": len(train_x), "val_images": len(val_x),
                            **{f"train.{k}": v for k, v in t.items()}, **{f"augment.{k}": str(v) for k, v in a.items()}})
+    r = a.get("rare_class_sampling") or {}
+    rcs = RareClassSampler(train_y, r["temperature"], r.get("min_pixels", 16)) if r.get("temperature") else None
     model.train()
     t1 = time.perf_counter() - elapsed
     bar = tqdm(range(start + 1, t["steps"] + 1), initial=start, total=t["steps"], desc="train", unit="step")
     for step in bar:
-        x, y = batch(train_x, train_y, rng, a, t["batch_size"])
+        x, y = batch(train_x, train_y, rng, a, t["batch_size"], rcs)
         logits = model(pixel_values=(x - MEAN) / STD).logits
         logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
         loss = ohem_cross_entropy(logits, y, cfg["loss"]["ohem_thresh"], cfg["loss"]["ohem_min_kept"])

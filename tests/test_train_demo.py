@@ -56,6 +56,27 @@ def test_sample_crops_flips_and_pads_with_ignore():
     assert x.shape == (3, 24, 48) and (y[16:] == IGNORE_INDEX).all() and (x[:, 16:] == 0).all()
 
 
+def test_rare_class_sampling_favours_rare_classes_and_crops_around_them():
+    labels = np.zeros((4, 32, 64), dtype=np.uint8)  # road everywhere
+    labels[1, 5:10, 40:44] = 7     # 20 px of traffic sign, in image 1 only
+    labels[2, 0:2, 0:3] = 7        # 6 px of sign: below min_pixels, so image 2 does not count for it
+    labels[3, 20:, :] = 2          # building, common
+    rcs = tdm.RareClassSampler(labels, temperature=0.01, min_pixels=16)
+    assert list(rcs.classes) == [0, 2, 7] and rcs.prob[2] > 0.99  # the sign dominates at a low temperature
+    rng = np.random.default_rng(0)
+    draws = [rcs.draw(rng) for _ in range(200)]
+    assert all(i == 1 for i, c in draws if c == 7) and sum(c == 7 for _, c in draws) > 190
+    flat = tdm.RareClassSampler(labels, temperature=1e4, min_pixels=16)
+    assert np.allclose(flat.prob, 1 / 3, atol=1e-3)  # a high temperature is uniform over the classes present
+    image = np.zeros((32, 64, 3), dtype=np.uint8)
+    aug = {"scale_range": [1.0, 1.0], "crop": [8, 16], "cat_max_ratio": 0.75, "flip": 0.5, "photometric": IDENTITY}
+    for _ in range(20):  # an 8 x 16 crop of a 32 x 64 image shows the 5 x 4 px sign only when aimed at it
+        _, y = tdm.sample(image, labels[1], rng, aug, focus=7)
+        assert (y == 7).any()
+    _, y = tdm.sample(image, labels[0], rng, aug, focus=7)  # class absent: an ordinary random crop
+    assert y.shape == (8, 16) and not (y == 7).any()
+
+
 def test_photometric_distortion_stays_in_range_and_changes_colour():
     rng = np.random.default_rng(1)
     img = torch.rand(3, 8, 8)
@@ -116,6 +137,10 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
         ("augment", "scale_range", [2.0, 0.5], "augment.scale_range=[2.0, 0.5]"),
         ("augment", "crop", [128], "augment.crop=[128]"),
         ("data", "train_towns", 2.5, "data.train_towns=2.5"),
+        ("augment", "rare_class_sampling", {"temperature": -1, "min_pixels": 16},
+         "augment.rare_class_sampling.temperature=-1 is invalid"),
+        ("augment", "rare_class_sampling", {"temperature": 0.05, "min_pixels": 0},
+         "augment.rare_class_sampling.min_pixels=0"),
         ("augment", "photometric", {**cfg["augment"]["photometric"], "contrast_mode": "hsv"},
          "augment.photometric.contrast_mode='hsv' is invalid; set it to multiply (MMSegmentation) or blend"),
     ]
@@ -126,6 +151,7 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
     with pytest.raises(SystemExit, match="work_dir=''"):
         tdm.check_config({**cfg, "work_dir": ""})
     tdm.check_config({**cfg, "loss": {**cfg["loss"], "ohem_thresh": None}})  # plain cross-entropy is allowed
+    tdm.check_config({**cfg, "augment": {**cfg["augment"], "rare_class_sampling": {"temperature": 0.05, "min_pixels": 16}}})
 
 
 def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
