@@ -374,6 +374,10 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
     model.save_pretrained(out, safe_serialization=True)
     SegformerImageProcessor(do_resize=False, image_mean=MEAN.flatten().tolist(), image_std=STD.flatten().tolist()).save_pretrained(out)
     floor = max(0.0, m - cfg["miou_floor_margin"])
+    ohem = (cfg.get("loss") or {}).get("ohem_thresh")
+    loss_text = f"OHEM cross-entropy (thresh {ohem})" if ohem is not None else "cross-entropy"
+    rcs_t = (cfg["augment"].get("rare_class_sampling") or {}).get("temperature")
+    rcs_text = f", rare-class sampling (T = {rcs_t})" if rcs_t else ""
     card = {
         "model": "demo_segformer", "parameters": n_params, "arch": cfg["arch"],
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
@@ -397,7 +401,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         f"- data: {n_train} training scenes from {d['train_towns']} towns, {n_val} validation scenes from "
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {t['steps']} steps, batch {t['batch_size']}, crops {cfg['augment']['crop']}, AdamW lr {t['lr']}, "
-        f"poly decay",
+        f"poly decay, {loss_text}{rcs_text}" + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else ""),
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU threads", "",
         "| class | IoU |", "|---|---|",
