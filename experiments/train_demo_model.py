@@ -117,18 +117,18 @@ def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: di
         img = F.pad(img, (0, max(0, w - nw), 0, max(0, h - nh)), value=0.0)
         lab = F.pad(lab, (0, max(0, w - nw), 0, max(0, h - nh)), value=float(IGNORE_INDEX))
         nh, nw = img.shape[-2:]
-    where = (lab[0, 0] == focus).nonzero() if focus is not None else None
-    for _ in range(10):
-        if where is not None and len(where):
-            py, px = (int(v) for v in where[int(rng.integers(len(where)))])
-            y0 = int(rng.integers(max(0, py - h + 1), min(py, nh - h) + 1))
-            x0 = int(rng.integers(max(0, px - w + 1), min(px, nw - w) + 1))
-            break
-        y0, x0 = int(rng.integers(nh - h + 1)), int(rng.integers(nw - w + 1))
-        crop = lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
-        counts = torch.bincount(crop[crop != IGNORE_INDEX].flatten(), minlength=NUM_CLASSES)
-        if counts.sum() == 0 or counts.max() / counts.sum() < a["cat_max_ratio"]:
-            break
+    where = (lab[0, 0] == focus).nonzero() if focus is not None else []
+    if len(where):
+        py, px = (int(v) for v in where[int(rng.integers(len(where)))])
+        y0 = int(rng.integers(max(0, py - h + 1), min(py, nh - h) + 1))
+        x0 = int(rng.integers(max(0, px - w + 1), min(px, nw - w) + 1))
+    else:
+        for _ in range(10):
+            y0, x0 = int(rng.integers(nh - h + 1)), int(rng.integers(nw - w + 1))
+            crop = lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
+            counts = torch.bincount(crop[crop != IGNORE_INDEX].flatten(), minlength=NUM_CLASSES)
+            if counts.sum() == 0 or counts.max() / counts.sum() < a["cat_max_ratio"]:
+                break
     img, lab = img[0, :, y0 : y0 + h, x0 : x0 + w], lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
     if rng.random() < a["flip"]:
         img, lab = img.flip(-1), lab.flip(-1)
