@@ -84,9 +84,39 @@ def test_surface_at(town):
 
 def test_buildings_stand_on_lots_only(town):
     solids = town.layout().solids
-    for cx, cy, *_ in solids[:: max(1, len(solids) // 50)]:
-        assert town.surface_at(float(cx), float(cy)) == "other"
-        assert town.obstacle_at(float(cx), float(cy), float(town.kerb_height) + 0.5)
+    hw = town.road_width / 2
+    railings = 0
+    for cx, cy, cz, sx, sy, sz, _ in solids:
+        assert town.obstacle_at(float(cx), float(cy), float(cz + sz / 2))
+        if town.surface_at(float(cx), float(cy)) == "other":
+            continue
+        # the only solids off the lots: 1 m guard railings along the kerb, never on the road
+        railings += 1
+        across = cx if min(sx, sy) == sx else cy
+        assert abs(min(abs(across - town.road_centres)) - (hw + 0.3)) < 1e-3
+        assert sz == pytest.approx(1.0) and min(sx, sy) < 0.31
+    assert railings > 0
+
+
+def test_thin_classes_are_built_along_the_streets(town):
+    """Signs, fences and walls are common enough to be learnt: every kerb gets signs facing its
+    traffic, and the three thin classes all exist in one town."""
+    from pairedgta.scene.town import ProceduralTownRegion
+
+    labels = {label for (_, _, label) in town.layout().groups}
+    assert {"traffic sign", "fence", "wall"} <= labels
+    signs = sum(len(v) for (_, m, label), v in town.layout().groups.items() if label == "traffic sign" and m == "sign")
+    bare = ProceduralTownRegion(town_seed=town.town_seed, blocks=town.blocks, signs_per_100m=0.0,
+                                junction_sign_fraction=0.0, railing_fraction=0.0)
+    assert not any(label == "traffic sign" for (_, _, label) in bare.layout().groups)
+    street_km = 2 * 2 * len(town.road_centres) * (town.road_centres[-1] - town.road_centres[0]) / 1000
+    assert signs >= 0.5 * town.signs_per_100m * 10 * street_km  # kerbs x km x signs/km, minus junctions
+    # plates face the traffic of their side: on an east kerb of a north-south street, south
+    rows = town.layout().groups[("disc", "sign", "traffic sign")]
+    hw = town.road_width / 2
+    c = town.road_centres
+    east = [r for r in rows if np.isclose(min(abs(r[0] - c - hw - 0.45)), 0, atol=0.1)]
+    assert east and all(np.isclose(r[6] % 360, 180.0) for r in east)
 
 
 def test_bad_parameters_are_one_line_config_errors():

@@ -291,7 +291,7 @@ def _street_side(rng, pop, place, person_look, axis, road, segment, lo, hi, span
     # bicycles and motorcycles standing on the sidewalk by the kerb
     for _ in range(int(rng.poisson(pop.parked_two_wheelers_per_100m * span / 100))):
         x, y = _point(axis, road, rng.uniform(lo, hi), side * (hw + 0.75))
-        moto = rng.random() < 0.4
+        moto = rng.random() < 0.3
         cat, models = ("motorcycle", MOTORCYCLE_MODELS) if moto else ("bicycle", BICYCLE_MODELS)
         place(cat, _pick(rng, models), x, y, heading + 90.0 + rng.normal(0, 10), _pick(rng, PAINTS, PAINT_WEIGHTS),
               (30, 30, 30), "parked")

@@ -30,12 +30,22 @@ _FACADES = (
     (0.42, 0.43, 0.45), (0.76, 0.60, 0.38), (0.62, 0.68, 0.74), (0.80, 0.56, 0.46),
     (0.60, 0.52, 0.44), (0.35, 0.30, 0.28),
 )
+_WALLS = ((0.62, 0.60, 0.56), (0.55, 0.36, 0.30), (0.74, 0.72, 0.66))  # concrete, brick, render
+_FENCES = ((0.45, 0.40, 0.35), (0.30, 0.22, 0.15), (0.25, 0.28, 0.26), (0.62, 0.62, 0.60))  # wood, painted, metal
 _ASPHALT = (0.21, 0.21, 0.22)
 _PAVING = (0.58, 0.56, 0.53)
 _KERB = (0.70, 0.69, 0.66)
 _GRASS = (0.30, 0.42, 0.18)
 _MARKING = (0.92, 0.92, 0.90)
-_SIGN_COLORS = {"disc": (0.80, 0.10, 0.10), "triangle": (0.95, 0.95, 0.95), "panel": (0.10, 0.30, 0.75)}
+# sign kind -> (shape, plate size w, 0, h in metres, face colour); sizes of European street signs
+_SIGNS = {
+    "disc": ("disc", (0.75, 0.0, 0.75), (0.80, 0.10, 0.10)),        # prohibitions, speed limits
+    "triangle": ("triangle", (0.9, 0.0, 0.8), (0.95, 0.95, 0.95)),  # warnings
+    "panel": ("panel", (0.65, 0.0, 0.85), (0.10, 0.30, 0.75)),      # information, parking
+    "square": ("panel", (0.75, 0.0, 0.75), (0.12, 0.35, 0.78)),     # crossings, one-way
+    "plate": ("panel", (0.6, 0.0, 0.3), (0.95, 0.95, 0.92)),        # supplementary plate below another
+    "direction": ("panel", (1.9, 0.0, 1.05), (0.10, 0.42, 0.22)),   # destinations at a junction
+}
 
 
 @dataclass
@@ -132,7 +142,9 @@ class ProceduralTownRegion:
                  kerb_height: float = 0.15, floor_height: float = 3.2, min_floors: int = 2, max_floors: int = 9,
                  park_fraction: float = 0.15, lamp_spacing: float = 28.0, street_tree_fraction: float = 0.6,
                  lit_window_fraction: float = 0.45, countryside_trees: int = 60,
-                 material_variation: float = 1.0, population: Mapping[str, Any] | None = None) -> None:
+                 material_variation: float = 1.0, signs_per_100m: float = 2.0, junction_sign_fraction: float = 0.6,
+                 railing_fraction: float = 0.2, front_boundary_fraction: float = 0.6,
+                 population: Mapping[str, Any] | None = None) -> None:
         # population: ambient traffic and pedestrians (pairedgta/scene/population.py); None = none
         self.name = str(name)
         self.town_seed = int(town_seed)
@@ -150,6 +162,10 @@ class ProceduralTownRegion:
         self.lit_window_fraction = float(lit_window_fraction)
         self.countryside_trees = int(countryside_trees)
         self.material_variation = float(material_variation)
+        self.signs_per_100m = float(signs_per_100m)
+        self.junction_sign_fraction = float(junction_sign_fraction)
+        self.railing_fraction = float(railing_fraction)
+        self.front_boundary_fraction = float(front_boundary_fraction)
         self.population = PopulationConfig.from_cfg(population)
         checks = (
             ("blocks", self.blocks >= 1, "an integer >= 1"),
@@ -160,6 +176,10 @@ class ProceduralTownRegion:
             ("park_fraction", 0.0 <= self.park_fraction <= 1.0, "in [0, 1]"),
             ("lamp_spacing", self.lamp_spacing >= 5.0, ">= 5 (metres)"),
             ("material_variation", 0.0 <= self.material_variation <= 1.0, "in [0, 1] (0 = one palette for all towns)"),
+            ("signs_per_100m", 0.0 <= self.signs_per_100m <= 20.0, "between 0 and 20 (signs per 100 m of kerb)"),
+            ("junction_sign_fraction", 0.0 <= self.junction_sign_fraction <= 1.0, "in [0, 1]"),
+            ("railing_fraction", 0.0 <= self.railing_fraction <= 1.0, "in [0, 1]"),
+            ("front_boundary_fraction", 0.0 <= self.front_boundary_fraction <= 1.0, "in [0, 1]"),
         )
         for key, ok, want in checks:
             if not ok:
@@ -195,6 +215,10 @@ class ProceduralTownRegion:
             "lit_window_fraction": self.lit_window_fraction,
             "countryside_trees": self.countryside_trees,
             "material_variation": self.material_variation,
+            "signs_per_100m": self.signs_per_100m,
+            "junction_sign_fraction": self.junction_sign_fraction,
+            "railing_fraction": self.railing_fraction,
+            "front_boundary_fraction": self.front_boundary_fraction,
             "population": self.population.to_dict(),
         }
 
@@ -459,10 +483,12 @@ def _street_furniture(t: ProceduralTownRegion, b: _Builder, rng: np.random.Gener
                     continue
                 green = (phase == 0) == ns
                 _traffic_light(b, px, py, kh, facing, green, metal)
-                if rng.random() < 0.35:
-                    kind = ("disc", "triangle", "panel")[int(rng.integers(3))]
+                if rng.random() < t.junction_sign_fraction:
+                    kind = ("disc", "triangle", "panel", "square", "direction", "direction")[int(rng.integers(6))]
                     sx_, sy_ = px + dx * 1.6 * (0 if ns else 1), py + dy * 1.6 * (1 if ns else 0)
                     _sign(b, sx_, sy_, kh, facing, kind, metal)
+    _street_signs(t, b, metal)
+    _guard_railings(t, b)
 
 
 def _facing_vec(facing: float) -> tuple[float, float]:
@@ -497,13 +523,108 @@ def _traffic_light(b, x, y, kh, facing, green, metal) -> None:
               (0.22, 0.0, 0.22), facing, (1, 1, 1))
 
 
-def _sign(b, x, y, kh, facing, kind, metal) -> None:
-    b.add("cylinder", "metal", "pole", (x, y, kh), (0.08, 0.08, 2.6), 0.0, metal)
+def _sign(b, x, y, kh, facing, kind, metal, below: str | None = None) -> None:
+    """A sign on its own post; its back is labelled traffic sign too, as in Cityscapes. `below`: a
+    second plate under the first (a supplementary plate, or two signs on one post)."""
+    shape, size, colour = _SIGNS[kind]
+    top = kh + (2.9 if kind == "direction" else 2.3)  # plate centre; direction signs clear pedestrians
     fx, fy = _facing_vec(facing)
-    size = (0.7, 0.0, 0.7) if kind != "panel" else (0.6, 0.0, 0.8)
-    b.add(kind, "sign", "traffic sign", (x + fx * 0.06, y + fy * 0.06, kh + 2.0), size, facing, _SIGN_COLORS[kind])
-    b.add(kind, "sign_back", "traffic sign", (x + fx * 0.05, y + fy * 0.05, kh + 2.0), size, facing + 180.0,
-          (0.6, 0.6, 0.6))
+    plates = [(kind, top)]
+    if below is not None:
+        plates.append((below, top - size[2] / 2 - _SIGNS[below][1][2] / 2 - 0.08))
+    b.add("cylinder", "metal", "pole", (x, y, kh), (0.08, 0.08, top + size[2] / 2 - kh - 0.05), 0.0, metal)
+    for k, z in plates:
+        shape, size, colour = _SIGNS[k]
+        z0 = z - size[2] / 2  # shapes stand on their base
+        b.add(shape, "sign", "traffic sign", (x + fx * 0.06, y + fy * 0.06, z0), size, facing, colour)
+        b.add(shape, "sign_back", "traffic sign", (x + fx * 0.05, y + fy * 0.05, z0), size, facing + 180.0,
+              (0.6, 0.6, 0.6))
+
+
+def _street_signs(t: ProceduralTownRegion, b: _Builder, metal) -> None:
+    """Signs along every street, at the kerb and facing the traffic of their side: Cityscapes has
+    ~0.5 % sign pixels, which junction corners alone (one sign per approach at most) cannot give.
+    Their own random stream, so the rest of the town keeps its draws."""
+    rng = np.random.default_rng([t.town_seed, 15485863])
+    c = t.road_centres
+    hw, sw, kh = t.road_width / 2, t.sidewalk_width, t.kerb_height
+    poles = np.asarray(b.rows.get(("cylinder", "metal", "pole"), []), dtype=np.float64).reshape(-1, len(COLUMNS))
+    kinds = ("disc", "disc", "triangle", "panel", "square")
+    for axis in (0, 1):
+        for rc in c:
+            for side in (-1, 1):
+                facing = (180.0 if side > 0 else 0.0) if axis == 0 else (270.0 if side > 0 else 90.0)
+                across = rc + side * (hw + 0.45)
+                for s0, s1 in [(c[k] + hw + sw + 4.0, c[k + 1] - hw - sw - 4.0) for k in range(len(c) - 1)]:
+                    for along in rng.uniform(s0, s1, size=int(rng.poisson(t.signs_per_100m * (s1 - s0) / 100))):
+                        x, y = (across, along) if axis == 0 else (along, across)
+                        if len(poles) and np.min(np.hypot(poles[:, 0] - x, poles[:, 1] - y)) < 1.5:
+                            continue  # not on top of a lamp post or another sign
+                        kind = kinds[int(rng.integers(len(kinds)))]
+                        below = None
+                        if rng.random() < 0.35:
+                            below = "plate" if rng.random() < 0.6 else kinds[int(rng.integers(len(kinds)))]
+                        _sign(b, x, y, kh, facing, kind, metal, below)
+                        poles = np.vstack([poles, [[x, y] + [0.0] * (len(COLUMNS) - 2)]])
+
+
+def _fence(b: _Builder, rng, x0, x1, y0, y1, z0, height, style: str, colour, solid=True) -> None:
+    """A fence along the long side of [x0, x1] x [y0, y1]: `boards` (wooden, narrow gaps) or
+    `railing` (metal posts, rails and thin bars); both labelled fence. A solid box would read as a
+    wall, which Cityscapes labels differently."""
+    along_x = (x1 - x0) >= (y1 - y0)
+    a0, a1 = (x0, x1) if along_x else (y0, y1)
+    mid = ((y0 + y1) / 2) if along_x else ((x0 + x1) / 2)
+    length = a1 - a0
+    if length < 0.5:
+        return
+
+    def piece(a, w, z, h, d=0.06):
+        cx, cy = (a, mid) if along_x else (mid, a)
+        size = (w, d, h) if along_x else (d, w, h)
+        b.add("box", "fence", "fence", (cx, cy, z), size, 0.0, colour)
+
+    if style == "boards":
+        pitch = float(rng.uniform(0.13, 0.2))
+        board = pitch * 0.8
+        for a in np.arange(a0 + pitch / 2, a1, pitch):
+            piece(a, board, z0, height, 0.03)
+        piece((a0 + a1) / 2, length, z0 + 0.25, 0.1, 0.08)  # cross rails behind the boards
+        piece((a0 + a1) / 2, length, z0 + height - 0.3, 0.1, 0.08)
+    else:
+        for a in np.linspace(a0 + 0.05, a1 - 0.05, max(2, int(length / 2.0) + 1)):
+            piece(a, 0.06, z0, height, 0.06)
+        for z in (z0 + 0.12, z0 + height - 0.06):
+            piece((a0 + a1) / 2, length, z, 0.05, 0.05)
+        for a in np.arange(a0 + 0.12, a1, 0.12):
+            piece(a, 0.02, z0 + 0.12, height - 0.18, 0.02)
+    if solid:  # keeps pedestrians and parked bicycles out of it
+        cx, cy = ((a0 + a1) / 2, mid) if along_x else (mid, (a0 + a1) / 2)
+        size = (length, 0.3, height) if along_x else (0.3, length, height)
+        b.solids.append((cx, cy, z0, *size, 0.0))
+
+
+def _guard_railings(t: ProceduralTownRegion, b: _Builder) -> None:
+    """Pedestrian guard railings along the kerb after some junctions' crossings (fence)."""
+    rng = np.random.default_rng([t.town_seed, 32452843])
+    c = t.road_centres
+    hw, sw, kh = t.road_width / 2, t.sidewalk_width, t.kerb_height
+    colour = (0.30, 0.32, 0.33)
+    for axis in (0, 1):
+        for rc in c:
+            for side in (-1, 1):
+                o = rc + side * (hw + 0.3)
+                for k in range(len(c) - 1):
+                    for start, direction in ((c[k] + hw + sw, 1), (c[k + 1] - hw - sw, -1)):
+                        if rng.random() >= t.railing_fraction:
+                            continue
+                        a0 = start + direction * 3.5  # beyond the zebra crossing of the junction mouth
+                        a1 = a0 + direction * float(rng.uniform(6.0, 14.0))
+                        a0, a1 = sorted((a0, a1))
+                        if axis == 0:
+                            _fence(b, rng, o - 0.03, o + 0.03, a0, a1, kh, 1.0, "railing", colour)
+                        else:
+                            _fence(b, rng, a0, a1, o - 0.03, o + 0.03, kh, 1.0, "railing", colour)
 
 
 def _split(rng: np.random.Generator, lo: float, hi: float, smin: float, smax: float) -> list[float]:
@@ -537,7 +658,7 @@ def _urban_block(t, b: _Builder, rng, x0, x1, y0, y1) -> None:
             cells.append((x1 - depth, x1, a, c_, "e"))
     for cx0, cx1, cy0, cy1, side in cells:
         if rng.random() < 0.85:
-            setback = float(rng.choice([0.0, 0.0, 0.5, 1.5]))
+            setback = float(rng.choice([0.0, 0.0, 0.5, 1.5, 3.0]))
             gap = float(rng.choice([0.0, 0.0, 0.6]))
             bx0, bx1, by0, by1 = cx0 + gap / 2, cx1 - gap / 2, cy0 + gap / 2, cy1 - gap / 2
             if side == "s":
@@ -550,6 +671,8 @@ def _urban_block(t, b: _Builder, rng, x0, x1, y0, y1) -> None:
                 bx1 -= setback
             floors = int(np.clip(floors_hi + rng.integers(-2, 3), t.min_floors, t.max_floors))
             _building(t, b, rng, bx0, bx1, by0, by1, kh, floors, side)
+            if setback >= 1.5 and rng.random() < t.front_boundary_fraction:
+                _front_boundary(b, rng, cx0, cx1, cy0, cy1, kh, side)
         else:
             _yard(b, rng, cx0, cx1, cy0, cy1, kh, side)
     # courtyard trees
@@ -600,15 +723,15 @@ def _building(t, b: _Builder, rng, x0, x1, y0, y1, z0, floors, street_side) -> N
 
 
 def _yard(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
-    kind = int(rng.integers(3))
+    kind = int(rng.choice(3, p=[0.4, 0.3, 0.3]))  # wall, fence, hedge
     edge = {"s": (x0, x1, y0, y0 + 0.3), "n": (x0, x1, y1 - 0.3, y1),
             "w": (x0, x0 + 0.3, y0, y1), "e": (x1 - 0.3, x1, y0, y1)}[side]
     if kind == 0:
-        b.box("wall", "wall", *edge, kh, kh + rng.uniform(1.4, 2.4), color=_jitter(rng, (0.62, 0.60, 0.56)), solid=True)
+        b.box("wall", "wall", *edge, kh, kh + rng.uniform(1.4, 2.4), color=_jitter(rng, _WALLS[int(rng.integers(3))]),
+              solid=True)
     elif kind == 1:
-        ex0, ex1, ey0, ey1 = edge
-        b.box("fence", "fence", ex0, ex1, ey0, ey1, kh, kh + rng.uniform(1.2, 1.8),
-              color=_jitter(rng, (0.45, 0.40, 0.35)))
+        _fence(b, rng, *edge, kh, float(rng.uniform(1.2, 1.9)), ("boards", "railing")[int(rng.integers(2))],
+               _jitter(rng, _FENCES[int(rng.integers(len(_FENCES)))]))
     else:
         ex0, ex1, ey0, ey1 = edge
         cx, cy = (ex0 + ex1) / 2, (ey0 + ey1) / 2
@@ -622,21 +745,48 @@ def _yard(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
         _tree(b, rng, rng.uniform(x0 + 2, x1 - 2), rng.uniform(y0 + 2, y1 - 2), kh)
 
 
+def _front_boundary(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
+    """A low garden wall or a fence along the street edge of a set-back building, with a gate."""
+    edge = {"s": (x0, x1, y0, y0 + 0.25), "n": (x0, x1, y1 - 0.25, y1),
+            "w": (x0, x0 + 0.25, y0, y1), "e": (x1 - 0.25, x1, y0, y1)}[side]
+    ex0, ex1, ey0, ey1 = edge
+    along_x = side in "sn"
+    a0, a1 = (ex0, ex1) if along_x else (ey0, ey1)
+    gate = float(rng.uniform(a0 + 1.5, a1 - 2.7)) if a1 - a0 > 5.0 else None
+    spans = [(a0, a1)] if gate is None else [(a0, gate), (gate + 1.2, a1)]
+    wall = rng.random() < 0.55
+    colour = _jitter(rng, (_WALLS if wall else _FENCES)[int(rng.integers(3))])
+    height = float(rng.uniform(0.6, 1.2)) if wall else float(rng.uniform(0.9, 1.5))
+    style = ("boards", "railing")[int(rng.integers(2))]
+    for s0, s1 in spans:
+        px0, px1, py0, py1 = (s0, s1, ey0, ey1) if along_x else (ex0, ex1, s0, s1)
+        if wall:
+            b.box("wall", "wall", px0, px1, py0, py1, kh, kh + height, color=colour, solid=True)
+        else:
+            _fence(b, rng, px0, px1, py0, py1, kh, height, style, colour)
+
+
 def _park(t, b: _Builder, rng, x0, x1, y0, y1) -> None:
     kh = t.kerb_height
     hedge = _jitter(rng, (0.18, 0.32, 0.10), 0.04)
     edges = ((x0, x1, y0, y0 + 0.9), (x0, x1, y1 - 0.9, y1), (x0, x0 + 0.9, y0 + 0.9, y1 - 0.9),
              (x1 - 0.9, x1, y0 + 0.9, y1 - 0.9))
+    railing = rng.random() < 0.35  # a metal railing on a low wall instead of a hedge
+    colour = _jitter(rng, _FENCES[2 + int(rng.integers(2))])
     for (ax0, ax1, ay0, ay1) in edges:
-        # hedge with an entrance gap in the middle
+        # hedge or railing with an entrance gap in the middle
         if ax1 - ax0 > ay1 - ay0:
             mid = (ax0 + ax1) / 2
-            b.box("hedge", "vegetation", ax0, mid - 2, ay0, ay1, kh, kh + 1.2, color=hedge)
-            b.box("hedge", "vegetation", mid + 2, ax1, ay0, ay1, kh, kh + 1.2, color=hedge)
+            pieces = ((ax0, mid - 2, ay0 + 0.3, ay1 - 0.3), (mid + 2, ax1, ay0 + 0.3, ay1 - 0.3))
         else:
             mid = (ay0 + ay1) / 2
-            b.box("hedge", "vegetation", ax0, ax1, ay0, mid - 2, kh, kh + 1.2, color=hedge)
-            b.box("hedge", "vegetation", ax0, ax1, mid + 2, ay1, kh, kh + 1.2, color=hedge)
+            pieces = ((ax0 + 0.3, ax1 - 0.3, ay0, mid - 2), (ax0 + 0.3, ax1 - 0.3, mid + 2, ay1))
+        for px0, px1, py0, py1 in pieces:
+            if railing:
+                b.box("wall", "wall", px0, px1, py0, py1, kh, kh + 0.45, color=_jitter(rng, _WALLS[0]), solid=True)
+                _fence(b, rng, px0, px1, py0, py1, kh + 0.45, 1.1, "railing", colour, solid=False)
+            else:
+                b.box("hedge", "vegetation", px0, px1, py0, py1, kh, kh + 1.2, color=hedge)
     for _ in range(int(rng.integers(8, 18))):
         _tree(b, rng, rng.uniform(x0 + 3, x1 - 3), rng.uniform(y0 + 3, y1 - 3), kh, float(rng.uniform(0.9, 1.4)))
 
