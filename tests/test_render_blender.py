@@ -249,7 +249,8 @@ def test_bad_scenes_are_one_line_renderer_errors():
             r.prepare(_descriptor(location=Location(x=mid, y=mid)))
         assert "\n" not in str(err.value)
         # camera pushed into a building
-        bx, by, bz = (float(v) for v in region.layout().solids[0][:3])
+        solids = region.layout().solids
+        bx, by, bz = (float(v) for v in solids[int(np.argmax(solids[:, 5]))][:3])  # the tallest: a building
         road_x = float(c[np.argmin(np.abs(c - bx))]) + region.road_width / 4
         ego = Location(x=road_x, y=by, heading=0.0)
         with pytest.raises(RendererError, match="inside a building"):
