@@ -90,8 +90,9 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                 sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
                             vmin=0, vmax=max(1.0, float(heat.max())))
                 cax.tick_params(labelsize=5, length=2)
-                top.set_title(f"{inp.label} \u00b7 {model_display(model)}\n{cls}: "
-                              f"\u03c1_valid {', '.join(parts)}", fontsize=6)
+                # one line per selection: two on one line run into the neighbouring panel's title
+                top.set_title(f"{inp.label} \u00b7 {model_display(model)} \u00b7 {cls}\n"
+                              + "\n".join(f"\u03c1_valid {p}" for p in parts), fontsize=6)
                 top.tick_params(length=0, labelsize=5)
                 diff = g["clean_count"].to_numpy() - g["adv_count"].to_numpy()
                 x = np.arange(len(diff))

@@ -28,7 +28,7 @@ from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
-VERSION = "5"  # 5: the ranking figure says why a class has no rho_valid in terms of phi
+VERSION = "6"  # 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
 DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
 
 
