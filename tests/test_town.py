@@ -172,3 +172,11 @@ def test_region_dispatch_builds_the_town_from_its_config():
     assert isinstance(region, ProceduralTownRegion) and region.name == "procedural_town"
     loc = region.sample_location(np.random.default_rng(0))
     assert region.surface_at(loc.x, loc.y) == "road"
+
+
+@pytest.mark.parametrize("key, value", [("signs_per_100m", -1.0), ("junction_sign_fraction", 1.5),
+                                        ("railing_fraction", -0.1), ("front_boundary_fraction", 2.0)])
+def test_street_furniture_densities_are_checked(key, value):
+    with pytest.raises(ConfigError, match=rf"region procedural_town: {key}=.* is invalid; set it") as err:
+        ProceduralTownRegion(**{key: value})
+    assert "\n" not in str(err.value)
