@@ -722,10 +722,15 @@ def _building(t, b: _Builder, rng, x0, x1, y0, y1, z0, floors, street_side) -> N
                       a=float(rng.random()))
 
 
+def _street_edge(x0, x1, y0, y1, side: str, thickness: float) -> tuple[float, float, float, float]:
+    """The strip of a parcel along its street side ('s', 'n', 'w' or 'e'), `thickness` metres deep."""
+    return {"s": (x0, x1, y0, y0 + thickness), "n": (x0, x1, y1 - thickness, y1),
+            "w": (x0, x0 + thickness, y0, y1), "e": (x1 - thickness, x1, y0, y1)}[side]
+
+
 def _yard(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
     kind = int(rng.choice(3, p=[0.4, 0.3, 0.3]))  # wall, fence, hedge
-    edge = {"s": (x0, x1, y0, y0 + 0.3), "n": (x0, x1, y1 - 0.3, y1),
-            "w": (x0, x0 + 0.3, y0, y1), "e": (x1 - 0.3, x1, y0, y1)}[side]
+    edge = _street_edge(x0, x1, y0, y1, side, 0.3)
     if kind == 0:
         b.box("wall", "wall", *edge, kh, kh + rng.uniform(1.4, 2.4), color=_jitter(rng, _WALLS[int(rng.integers(3))]),
               solid=True)
@@ -747,9 +752,7 @@ def _yard(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
 
 def _front_boundary(b: _Builder, rng, x0, x1, y0, y1, kh, side) -> None:
     """A low garden wall or a fence along the street edge of a set-back building, with a gate."""
-    edge = {"s": (x0, x1, y0, y0 + 0.25), "n": (x0, x1, y1 - 0.25, y1),
-            "w": (x0, x0 + 0.25, y0, y1), "e": (x1 - 0.25, x1, y0, y1)}[side]
-    ex0, ex1, ey0, ey1 = edge
+    ex0, ex1, ey0, ey1 = _street_edge(x0, x1, y0, y1, side, 0.25)
     along_x = side in "sn"
     a0, a1 = (ex0, ex1) if along_x else (ey0, ey1)
     gate = float(rng.uniform(a0 + 1.5, a1 - 2.7)) if a1 - a0 > 5.0 else None
