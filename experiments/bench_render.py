@@ -4,6 +4,7 @@ condition-wise rendering.
     python experiments/bench_render.py                      # 512x256 and 1024x512, 2 scenes x 9 conditions
     python experiments/bench_render.py --sizes 512x256 --scenes 3 samples=8 denoise=false
     python experiments/bench_render.py --sweep              # a few quality/speed settings at 512x256
+    python experiments/bench_render.py fog_model=volume --sizes 512x256   # path-traced fog instead of analytic
     python experiments/bench_render.py --contact /tmp/blender_contact.png   # 9 conditions + labels of scene 0
     python experiments/bench_render.py --sizes 512x256 --no-population     # without the ambient population
 
@@ -41,6 +42,7 @@ SWEEP = [
     {"samples": 2, "fast_gi": False},
     {"samples": 2, "light_tree": True},
     {"samples": 2, "denoiser_quality": "BALANCED"},
+    {"samples": 2, "fog_model": "volume"},
 ]
 
 

@@ -117,6 +117,19 @@ def test_bad_options_are_config_errors():
         build_renderer({"backend": "blender", "width": 64, "height": 32, "sampels": 4})
     with pytest.raises(ConfigError, match="renderer.device"):
         BlenderRenderer(width=64, height=32, device="TPU")
+    with pytest.raises(ConfigError, match="renderer.fog_model is invalid; set it analytic or volume"):
+        BlenderRenderer(width=64, height=32, fog_model="haze")
+
+
+def test_analytic_fog_colour_follows_the_light():
+    fog = {n: lighting(GRID[n]) for n in ("Day-FOGGY", "Sunset-FOGGY", "Night-FOGGY", "Day-EXTRASUNNY")}
+    for name, p in fog.items():
+        assert np.all(np.isfinite(p["fog_color"])) and np.all(p["fog_color"] >= 0), name
+    lum = {n: float(np.mean(p["fog_color"])) for n, p in fog.items()}
+    assert lum["Day-FOGGY"] > lum["Sunset-FOGGY"] > lum["Night-FOGGY"] > 0  # lamps light the night fog
+    day, sunset = fog["Day-FOGGY"]["fog_color"], fog["Sunset-FOGGY"]["fog_color"]
+    assert sunset[0] / sunset[2] > day[0] / day[2]  # warmer at sunset
+    assert fog["Day-EXTRASUNNY"]["extinction"] == 0.0 < fog["Day-FOGGY"]["extinction"]
 
 
 def test_missing_bpy_is_a_one_line_renderer_error(monkeypatch):
@@ -223,6 +236,26 @@ def test_physical_order_of_conditions(rendered):
     lum = lambda im: im.mean(axis=2)
     assert lum(night).mean() < lum(day).mean()
     assert lum(fog).std() < lum(day).std()  # fog lowers contrast
+
+
+def test_both_fog_models_light_clear_skies_alike_and_fog_the_same_scene():
+    """fog_model=volume keeps a scattering box over the town; switched off under a clear sky it must
+    let the sun through (an empty box shader once shadowed it), so both models give one clear
+    image. Under fog both lower contrast with the same labels."""
+    d = _descriptor()
+    out = {}
+    for model in ("analytic", "volume"):
+        with BlenderRenderer(width=96, height=48, samples=2, town=TOWN, fog_model=model) as r:
+            out[model] = {n: r.render(d, GRID[n]) for n in ("Day-EXTRASUNNY", "Day-FOGGY")}
+    clear = [out[m]["Day-EXTRASUNNY"].image.astype(float) for m in ("analytic", "volume")]
+    assert abs(clear[0].mean() - clear[1].mean()) < 3.0, (clear[0].mean(), clear[1].mean())
+    road = out["analytic"]["Day-EXTRASUNNY"].labels == ROAD
+    assert abs(clear[0][road].mean() - clear[1][road].mean()) < 4.0
+    for model in ("analytic", "volume"):
+        fogged = out[model]["Day-FOGGY"]
+        np.testing.assert_array_equal(fogged.labels, out[model]["Day-EXTRASUNNY"].labels)
+        assert fogged.image.mean(axis=2).std() < out[model]["Day-EXTRASUNNY"].image.mean(axis=2).std(), model
+        assert fogged.state["fog_model"] == model
 
 
 def test_all_nine_paper_conditions_pair_at_very_low_resolution():

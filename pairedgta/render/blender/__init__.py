@@ -1,5 +1,5 @@
 """Cycles backend (bpy), split by concern: geometry (mesh templates), models (object models),
-materials (materials, world, lights, conditions), labels (label codes and the index pass) and
+materials (materials, world, lights, fog, conditions), labels (label codes and the index pass) and
 renderer (BlenderRenderer). Importing the package does not import bpy."""
 from pairedgta.render.blender.geometry import TEMPLATES, mesh_arrays, srgb_to_linear
 from pairedgta.render.blender.labels import LABEL_CODE_VOID, MAX_INSTANCES, decode_labels, label_code

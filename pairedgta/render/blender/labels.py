@@ -31,17 +31,19 @@ def label_code(label: str, instance: int = 0) -> int:
 def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None], tmp_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Render the index pass of the current scene and return (train ids, instance ids).
 
-    Only values change (label_mode, fog_on, sampling settings) and are restored afterwards:
+    Only values change (label_mode, fog_on, compositing, sampling settings) and are restored afterwards:
     toggling visibility would reorder Cycles' scene and so the beauty pass's sampling."""
     sc = bpy.context.scene
     vl = sc.view_layers[0]
     cy = sc.cycles
     saved = (cy.samples, cy.filter_width, cy.use_denoising)
+    compositing = sc.render.use_compositing  # analytic fog must not tint the codes
     fog = shading.get("fog_on")
     img = sc.render.image_settings
     shading.set("label_mode", 1.0)
     shading.set("fog_on", 0.0)
     vl.use_sky = False
+    sc.render.use_compositing = False
     cy.samples, cy.filter_width, cy.use_denoising = 1, 0.01, False  # one centred sample per pixel
     img.file_format = "OPEN_EXR"
     img.color_depth = "32"
@@ -53,6 +55,7 @@ def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None], tmp_d
         shading.set("label_mode", 0.0)
         shading.set("fog_on", fog)
         vl.use_sky = True
+        sc.render.use_compositing = compositing
         cy.samples, cy.filter_width, cy.use_denoising = saved
     image = bpy.data.images.load(path, check_existing=False)
     try:
