@@ -383,7 +383,7 @@ class Shading:
         the samples, so silhouettes stay antialiased) blends the image toward the in-scattered
         radiance, and a fog-glow glare gives lamps and head-lights their halo. A homogeneous medium
         needs no path-traced volume: this is what the volume model computes, without its noise and
-        at about two thirds of its render time (experiments/bench_render.py --sweep)."""
+        at about two thirds of the time of a fogged image (experiments/bench_render.py --sweep)."""
         bpy = self._bpy
         sc = bpy.context.scene
         sc.view_layers[0].use_pass_mist = True
@@ -497,7 +497,7 @@ class Shading:
         volume = self.fog_model == "volume"
         self.set("fog_density", density if volume else 0.0)
         self.set("fog_on", 1.0 if volume and density > 0.0 else 0.0)
-        # clear air skips the compositor: those images stay byte-identical to the volume model's
+        # clear air skips the compositor: a clear image is the plain render
         self._bpy.context.scene.render.use_compositing = not volume and density > 0.0
         self.set("fog_optical_depth", density * FOG_MIST_DEPTH)
         self.set("fog_color", p["fog_color"])
