@@ -42,7 +42,7 @@ def test_demo_model_on_fresh_held_out_scenes():
     gt_cm = ConfusionMatrix()
     xi = {c: ReferenceConsistency() for c in ("Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")}
     with build_renderer(cfg["renderer"]) as renderer:
-        for k in range(2):
+        for k in range(3):  # two scenes leave most of the 19 classes to a few hundred pixels
             seed = 300_000 + k  # disjoint from training (100000+), validation (200000+) and evaluation seeds
             rng = np.random.default_rng(seed)
             loc = region.sample_location(rng)
