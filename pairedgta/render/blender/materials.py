@@ -113,7 +113,8 @@ class Shading:
         self._build_materials()
         self._build_world()
         self._build_lights()
-        self._build_compositor()
+        if self.fog_model == "analytic":
+            self._build_compositor()
 
     def set(self, name: str, value) -> None:
         for socket in self._knobs.get(name, []):
@@ -419,7 +420,7 @@ class Shading:
         out = ng.nodes.new("NodeGroupOutput")
         ng.links.new(glare.outputs["Image"], out.inputs[0])
         sc.compositing_node_group = ng
-        sc.render.use_compositing = False  # switched on by `apply` for analytic fog only
+        sc.render.use_compositing = False  # switched on by `apply` for fogged conditions only
 
     def _combine_grey(self, nt, value):
         comb = nt.nodes.new("ShaderNodeCombineXYZ")
