@@ -383,8 +383,8 @@ class Shading:
         """Analytic fog: transmittance exp(-sigma * d) from the mist pass (ray distance, averaged over
         the samples, so silhouettes stay antialiased) blends the image toward the in-scattered
         radiance, and a fog-glow glare gives lamps and head-lights their halo. A homogeneous medium
-        needs no path-traced volume: this is what the volume model computes, without its noise and
-        at about two thirds of the time of a fogged image (experiments/bench_render.py --sweep)."""
+        needs no path-traced volume: this is what the volume model computes, without its noise at
+        2 samples (timings of both: experiments/bench_render.py --sweep)."""
         bpy = self._bpy
         sc = bpy.context.scene
         sc.view_layers[0].use_pass_mist = True

@@ -7,7 +7,7 @@ BVH is reused (persistent data), labels cannot drift between conditions, and an 
 lamps and head lights come from fixed pools and switched-off things get zero values, not hidden.
 Labels come from a separate 1-sample pass (labels.py). Fog and rain haze are analytic by default
 (the compositor blends toward the in-scattered light by exp(-extinction * distance), materials.py);
-`fog_model=volume` path-traces a scattering box instead, at about 1.4x the time of a fogged image.
+`fog_model=volume` path-traces a scattering box instead (light beams, noisier at 2 samples).
 
 bpy is imported lazily so this package (and the numpy mesh helpers) import without it. bpy keeps one
 global scene per process, so only one BlenderRenderer owns it at a time; another instance that is
