@@ -1,7 +1,12 @@
-"""Train the shipped demo model the way real Cityscapes models are trained, on daytime scenes only.
+"""Train the shipped demo models (the offline zoo) the way real Cityscapes models are trained, on daytime scenes only.
 
-    python experiments/train_demo_model.py                      # render (cached) + train, resumable
+    python experiments/train_demo_model.py                      # demo_segformer: render (cached) + train, resumable
+    python experiments/train_demo_model.py zoo=demo_ddrnet      # another zoo member (pairedgta/conf/zoo/)
     python experiments/train_demo_model.py train.steps=500 data.train_towns=4   # a quick try
+
+`zoo=<name>` picks the model: its family (`arch.family`: segformer from transformers, or the
+project's own ddrnet / pidnet / deeplabv3plus), its widths and any recipe change (the brittle control
+`demo_segformer_noaug` drops the photometric distortion).
 
 Data: Day-EXTRASUNNY scenes of the embedded renderer over many towns (one `town_seed` per group of
 scenes), rendered once through the cached generate stage; validation on held-out town seeds. The
@@ -12,7 +17,7 @@ and poly decay.
 Every `checkpoint_every` steps the full training state goes to <work_dir>/<hash>/checkpoint.pt,
 and a rerun with the same settings continues from it. Progress is a tqdm bar; MLflow records params,
 loss, learning rate and validation IoU. The result: safetensors weights, config, preprocessor config,
-model card (per-class IoU, wall times) and README in pairedgta/models/weights/demo_segformer.
+model card (per-class IoU, wall times) and README in pairedgta/models/weights/<model_name>.
 """
 from __future__ import annotations
 
@@ -132,7 +137,7 @@ def sample(image: np.ndarray, label: np.ndarray, rng: np.random.Generator, a: di
     img, lab = img[0, :, y0 : y0 + h, x0 : x0 + w], lab[0, 0, y0 : y0 + h, x0 : x0 + w].long()
     if rng.random() < a["flip"]:
         img, lab = img.flip(-1), lab.flip(-1)
-    return photometric(img, rng, a["photometric"]), lab
+    return (photometric(img, rng, a["photometric"]) if a.get("photometric") else img), lab
 
 
 class RareClassSampler:
@@ -166,13 +171,50 @@ def batch(images, labels, rng, a: dict, size: int, rcs: RareClassSampler | None 
     return torch.stack([x for x, _ in pairs]), torch.stack([y for _, y in pairs])
 
 
+# -- models -------------------------------------------------------------------------------------------
+IN_PROJECT = ("ddrnet", "pidnet", "deeplabv3plus")
+
+
+def build_network(cfg: dict) -> torch.nn.Module:
+    """The untrained network of `arch.family` with the zoo member's widths (<= 4 M parameters)."""
+    arch = {k: v for k, v in cfg["arch"].items() if k != "family"}
+    family = cfg["arch"].get("family", "segformer")
+    if family == "segformer":
+        from transformers import SegformerConfig, SegformerForSemanticSegmentation
+
+        config = SegformerConfig(num_labels=NUM_CLASSES, id2label=dict(enumerate(CLASS_NAMES)),
+                                 label2id={n: i for i, n in enumerate(CLASS_NAMES)}, **arch)
+        return SegformerForSemanticSegmentation(config)
+    import importlib
+
+    return importlib.import_module(f"pairedgta.models.{family}").build_module({"name": cfg["model_name"], **arch})
+
+
+def logits_of(model: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """Normalised B x 3 x H x W -> logits at the network's output stride (1/4 SegFormer, 1/8 DDRNet/PIDNet)."""
+    out = model(pixel_values=x) if hasattr(model, "config") else model(x)
+    return out.logits if hasattr(out, "logits") else out
+
+
+def init_weights(cfg: dict, model: torch.nn.Module, source: str) -> torch.nn.Module:
+    """`train.init_from`: a zoo folder of the same family (transformers folder or model.safetensors)."""
+    if cfg["arch"].get("family", "segformer") == "segformer":
+        from transformers import SegformerForSemanticSegmentation
+
+        return SegformerForSemanticSegmentation.from_pretrained(source)
+    from safetensors.torch import load_file
+
+    model.load_state_dict(load_file(str(Path(source) / "model.safetensors")), strict=True)
+    return model
+
+
 @torch.inference_mode()
 def validate(model, images, labels) -> ConfusionMatrix:
     model.eval()
     cm = ConfusionMatrix(NUM_CLASSES)
     for img, lab in zip(images, labels):
         x = torch.from_numpy(img).permute(2, 0, 1).float().div(255)[None]
-        logits = model(pixel_values=(x - MEAN) / STD).logits
+        logits = logits_of(model, (x - MEAN) / STD)
         logits = F.interpolate(logits, size=x.shape[-2:], mode="bilinear", align_corners=False)
         cm.update(lab, logits.argmax(1)[0].numpy())
     model.train()
@@ -221,6 +263,7 @@ def check_config(cfg: dict) -> None:
     inf = float("inf")
     d, t, a, lo = cfg["data"], cfg["train"], cfg["augment"], cfg.get("loss") or {}
     ph = a.get("photometric") or {}
+    family = (cfg.get("arch") or {}).get("family", "segformer")
     contrast_mode, grayscale_p = ph.get("contrast_mode", "multiply"), ph.get("grayscale_p", 0.0)
     rcs = a.get("rare_class_sampling") or {}
     rcs_t, rcs_min = rcs.get("temperature"), rcs.get("min_pixels", 16)
@@ -253,6 +296,10 @@ def check_config(cfg: dict) -> None:
          "[low, high] with 0.05 <= low <= high <= 8"),
         ("augment.crop", a.get("crop"), isinstance(a.get("crop"), list) and len(a["crop"]) == 2
          and all(_number(v, 16, 4096, True) for v in a["crop"]), "[height, width] in pixels, each 16..4096"),
+        ("arch.family", family, family in ("segformer",) + IN_PROJECT,
+         "segformer, " + ", ".join(IN_PROJECT) + " (pairedgta/models/<family>.py)"),
+        ("model_name", cfg.get("model_name"), isinstance(cfg.get("model_name"), str)
+         and cfg["model_name"].replace("_", "").isalnum(), "a name of letters, digits and _ (the model config's name)"),
         ("work_dir", cfg.get("work_dir"), isinstance(cfg.get("work_dir"), str) and cfg["work_dir"].strip() != "",
          "a directory for the resumable checkpoint"),
         ("out_dir", cfg.get("out_dir"), isinstance(cfg.get("out_dir"), str) and cfg["out_dir"].strip() != "",
@@ -265,7 +312,7 @@ def check_config(cfg: dict) -> None:
 
 def state_key(cfg: dict) -> str:
     """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
-    keep = {k: cfg[k] for k in ("data", "arch", "augment", "loss", "seed", "renderer", "region")}
+    keep = {k: cfg[k] for k in ("model_name", "data", "arch", "augment", "loss", "seed", "renderer", "region")}
     keep["train"] = {k: v for k, v in cfg["train"].items() if k not in ("steps", "threads", "eval_every", "checkpoint_every")}
     return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:12]
 
@@ -280,11 +327,12 @@ def save_checkpoint(path: Path, model, opt, sched, step: int, rng: np.random.Gen
 
 @hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="train_demo")
 def main(dcfg: DictConfig) -> None:
-    from transformers import SegformerConfig, SegformerForSemanticSegmentation
+    from hydra.core.hydra_config import HydraConfig
 
     cfg = OmegaConf.to_container(dcfg, resolve=True)
     assert isinstance(cfg, dict)
     check_config(cfg)
+    cfg["command"] = " ".join(["python experiments/train_demo_model.py", *HydraConfig.get().overrides.task])
     torch.set_num_threads(int(cfg["train"]["threads"]))
     grid = build_condition_grid({**cfg["conditions"], "only": [cfg["condition"]]})
     d, t, a = cfg["data"], cfg["train"], cfg["augment"]
@@ -296,11 +344,9 @@ def main(dcfg: DictConfig) -> None:
     log.info("data: %d train / %d held-out-town val images (%.0f s of rendering)", len(train_x), len(val_x), render_s)
 
     torch.manual_seed(cfg["seed"])
-    config = SegformerConfig(num_labels=NUM_CLASSES, id2label=dict(enumerate(CLASS_NAMES)),
-                             label2id={n: i for i, n in enumerate(CLASS_NAMES)}, **cfg["arch"])
-    model = SegformerForSemanticSegmentation(config)
+    model = build_network(cfg)
     if t.get("init_from"):
-        model = SegformerForSemanticSegmentation.from_pretrained(str(ROOT / t["init_from"]))
+        model = init_weights(cfg, model, str(ROOT / t["init_from"]))
     n_params = sum(p.numel() for p in model.parameters())
     if n_params > 4_000_000:
         raise SystemExit(f"arch has {n_params} parameters; the demo model must stay <= 4 M")
@@ -327,7 +373,7 @@ def main(dcfg: DictConfig) -> None:
     if tracking.get("enabled", True):
         mlflow.set_tracking_uri(tracking.get("uri"))
         mlflow.set_experiment("train_demo")
-        mlflow.start_run(run_name=f"demo_segformer-{state_key(cfg)}")
+        mlflow.start_run(run_name=f"{cfg['model_name']}-{state_key(cfg)}")
         mlflow.log_params({"n_params": n_params, "train_images": len(train_x), "val_images": len(val_x),
                            **{f"train.{k}": v for k, v in t.items()}, **{f"augment.{k}": str(v) for k, v in a.items()}})
     r = a.get("rare_class_sampling") or {}
@@ -337,7 +383,7 @@ def main(dcfg: DictConfig) -> None:
     bar = tqdm(range(start + 1, t["steps"] + 1), initial=start, total=t["steps"], desc="train", unit="step")
     for step in bar:
         x, y = batch(train_x, train_y, rng, a, t["batch_size"], rcs)
-        logits = model(pixel_values=(x - MEAN) / STD).logits
+        logits = logits_of(model, (x - MEAN) / STD)
         logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
         loss = ohem_cross_entropy(logits, y, cfg["loss"]["ohem_thresh"], cfg["loss"]["ohem_min_kept"])
         opt.zero_grad(set_to_none=True)
@@ -362,28 +408,66 @@ def main(dcfg: DictConfig) -> None:
         mlflow.end_run()
 
 
+FAMILY_TEXT = {
+    "segformer": "SegFormer (transformers)", "ddrnet": "DDRNet (the project's pairedgta/models/ddrnet.py)",
+    "pidnet": "PIDNet (the project's pairedgta/models/pidnet.py)",
+    "deeplabv3plus": "DeepLabV3+ (the project's pairedgta/models/deeplabv3plus.py)",
+}
+
+
+def save_weights(cfg: dict, model: torch.nn.Module, out: Path) -> None:
+    """SegFormer: a transformers folder (config, safetensors, preprocessor). The project's families: the
+    state dict as model.safetensors, loaded strictly by the model config's `checkpoint_path`."""
+    if cfg["arch"].get("family", "segformer") == "segformer":
+        from transformers import SegformerImageProcessor
+
+        model.save_pretrained(out, safe_serialization=True)
+        SegformerImageProcessor(do_resize=False, image_mean=MEAN.flatten().tolist(),
+                                image_std=STD.flatten().tolist()).save_pretrained(out)
+        return
+    from safetensors.torch import save_file
+
+    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    tmp = out / "model.safetensors.tmp"
+    save_file(state, str(tmp), metadata={"family": cfg["arch"]["family"], "model": cfg["model_name"]})
+    os.replace(tmp, out / "model.safetensors")
+
+
+def recipe_text(cfg: dict) -> str:
+    a, t = cfg["augment"], cfg["train"]
+    ohem = (cfg.get("loss") or {}).get("ohem_thresh")
+    parts = [f"{t['steps']} steps, batch {t['batch_size']}, crops {a['crop']}, AdamW lr {t['lr']}, poly decay",
+             f"OHEM cross-entropy (thresh {ohem})" if ohem is not None else "cross-entropy"]
+    rcs_t = (a.get("rare_class_sampling") or {}).get("temperature")
+    if rcs_t:
+        parts.append(f"rare-class sampling (T = {rcs_t})")
+    ph = a.get("photometric")
+    if not ph:
+        parts.append("no photometric distortion, contrast or greyscale augmentation (resize, crop and flip only)")
+    else:
+        parts.append(f"photometric distortion (contrast {ph.get('contrast_mode', 'multiply')}"
+                     + (f", {ph['grayscale_p']:.0%} greyscale" if ph.get("grayscale_p") else "") + ")")
+    text = ", ".join(parts)
+    return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else "")
+
+
 def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: list, render_s: float, train_s: float,
                 n_train: int, n_val: int) -> None:
-    from transformers import SegformerImageProcessor
-
     d, t = cfg["data"], cfg["train"]
     iou = cm.iou().numpy()
     m = miou(cm)
+    name, family = cfg["model_name"], cfg["arch"].get("family", "segformer")
     out = ROOT / cfg["out_dir"]
     out.mkdir(parents=True, exist_ok=True)
-    model.save_pretrained(out, safe_serialization=True)
-    SegformerImageProcessor(do_resize=False, image_mean=MEAN.flatten().tolist(), image_std=STD.flatten().tolist()).save_pretrained(out)
+    save_weights(cfg, model, out)
     floor = max(0.0, m - cfg["miou_floor_margin"])
-    ohem = (cfg.get("loss") or {}).get("ohem_thresh")
-    loss_text = f"OHEM cross-entropy (thresh {ohem})" if ohem is not None else "cross-entropy"
-    rcs_t = (cfg["augment"].get("rare_class_sampling") or {}).get("temperature")
-    rcs_text = f", rare-class sampling (T = {rcs_t})" if rcs_t else ""
     card = {
-        "model": "demo_segformer", "parameters": n_params, "arch": cfg["arch"],
+        "model": name, "family": family, "parameters": n_params, "arch": cfg["arch"],
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
                  "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]], "train_images": n_train,
                  "val_images": n_val, **{k: v for k, v in d.items() if k not in ("objects", "camera", "workers")}},
         "augment": cfg["augment"], "loss": cfg["loss"], "train": t, "seed": cfg["seed"],
+        "command": cfg.get("command"),
         "val_miou": m, "val_miou_convention": "mean over classes with TP+FP+FN > 0 (cityscapesScripts)",
         "val_pixel_accuracy": cm.accuracy(),
         "val_iou": {CLASS_NAMES[c]: float(iou[c]) for c in range(NUM_CLASSES) if not np.isnan(iou[c])},
@@ -393,22 +477,21 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
 
     write_json(out / "model_card.json", card)
     lines = [
-        "# demo_segformer", "",
-        f"A compact SegFormer ({n_params / 1e6:.2f} M parameters) trained by `experiments/train_demo_model.py` only on",
-        "synthetic daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels and the",
-        "standard Cityscapes augmentation (resize 0.5-2.0, crop, flip, photometric distortion). It never saw rain,",
-        "fog, sunset or night. It demonstrates the method offline; it is not a Cityscapes model.", "",
+        f"# {name}", "",
+        f"A compact {FAMILY_TEXT[family]} ({n_params / 1e6:.2f} M parameters) trained by `experiments/train_demo_model.py`",
+        "only on synthetic daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels. It",
+        "never saw rain, fog, sunset or night. It demonstrates the method offline; it is not a Cityscapes model.", "",
+        f"- command: `{cfg.get('command') or 'python experiments/train_demo_model.py'}`",
         f"- data: {n_train} training scenes from {d['train_towns']} towns, {n_val} validation scenes from "
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
-        f"- training: {t['steps']} steps, batch {t['batch_size']}, crops {cfg['augment']['crop']}, AdamW lr {t['lr']}, "
-        f"poly decay, {loss_text}{rcs_text}" + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else ""),
+        f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU threads", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],
     ]
     (out / "README.md").write_text("\n".join(lines) + "\n")
-    print(f"demo model: val mIoU {m:.3f}, {n_params} parameters -> {out}")
+    print(f"{name}: val mIoU {m:.3f}, {n_params} parameters -> {out}")
 
 
 if __name__ == "__main__":

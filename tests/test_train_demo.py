@@ -148,6 +148,10 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
         broken = {**cfg, section: {**cfg[section], key: value}}
         with pytest.raises(SystemExit, match=re.escape(message)):
             tdm.check_config(broken)
+    with pytest.raises(SystemExit, match="arch.family='unet' is invalid; set it to segformer, ddrnet"):
+        tdm.check_config({**cfg, "arch": {**cfg["arch"], "family": "unet"}})
+    with pytest.raises(SystemExit, match="model_name='../x'"):
+        tdm.check_config({**cfg, "model_name": "../x"})
     with pytest.raises(SystemExit, match="work_dir=''"):
         tdm.check_config({**cfg, "work_dir": ""})
     tdm.check_config({**cfg, "loss": {**cfg["loss"], "ohem_thresh": None}})  # plain cross-entropy is allowed
@@ -185,3 +189,76 @@ def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     model = build_segmenter("demo_segformer", path=str(out))
     probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
     assert probs.shape[-2:] == (64, 128) and probs.shape[-3] == 19
+
+
+def test_every_zoo_member_composes_builds_within_4m_parameters_and_matches_its_model_config():
+    """The training recipe (pairedgta/conf/zoo/) and the shipped model config (pairedgta/conf/model/) name
+    the same widths: the weights load strictly, so a drift would fail at the first run."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    from pairedgta.models import model_config
+
+    with initialize_config_module("pairedgta.conf", version_base=None):
+        for name in ("demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"):
+            cfg = OmegaConf.to_container(compose("train_demo", overrides=[f"zoo={name}"]), resolve=True)
+            tdm.check_config(cfg)
+            assert cfg["model_name"] == name and cfg["out_dir"].endswith(f"weights/{name}")
+            net = tdm.build_network(cfg)
+            assert sum(p.numel() for p in net.parameters()) <= 4_000_000
+            mcfg = model_config(name)
+            assert mcfg["family"] == cfg["arch"]["family"]
+            for key, value in cfg["arch"].items():
+                if key != "family" and cfg["arch"]["family"] != "segformer":
+                    assert mcfg[key] == value, (name, key)
+    noaug = OmegaConf.to_container(compose_zoo("demo_segformer_noaug"), resolve=True)
+    full = OmegaConf.to_container(compose_zoo("demo_segformer"), resolve=True)
+    assert noaug["augment"]["photometric"] is None and full["augment"]["photometric"]
+    assert noaug["arch"] == full["arch"] and noaug["data"] == full["data"]
+
+
+def compose_zoo(name: str):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("pairedgta.conf", version_base=None):
+        return compose("train_demo", overrides=[f"zoo={name}"])
+
+
+def test_without_photometric_distortion_a_crop_keeps_its_colours():
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (64, 128, 3), dtype=np.uint8)
+    label = np.zeros((64, 128), dtype=np.uint8)
+    a = {"crop": [64, 128], "scale_range": [1.0, 1.0], "cat_max_ratio": 1.0, "flip": 0.0, "photometric": None}
+    for seed in range(5):
+        x, _ = tdm.sample(image, label, np.random.default_rng(seed), a)
+        assert torch.allclose(x, torch.tensor(image).permute(2, 0, 1).float() / 255)
+
+
+def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_path):
+    """The project's own families train through the same script and load through the model config."""
+    out = tmp_path / "model"
+    args = [sys.executable, str(ROOT / "experiments" / "train_demo_model.py"), "zoo=demo_ddrnet",
+            f"cache_dir={tmp_path / 'cache'}", f"out_dir={out}", f"work_dir={tmp_path / 'work'}",
+            f"hydra.run.dir={tmp_path / 'run'}", "tracking.enabled=false",
+            "renderer.width=128", "renderer.height=64", "renderer.samples=1", "renderer.denoise=false",
+            "data.train_towns=1", "data.train_scenes_per_town=1", "data.val_towns=1", "data.val_scenes_per_town=1",
+            "augment.crop=[32,64]", "arch.planes=4", "arch.spp_planes=4", "arch.head_planes=8",
+            "train.batch_size=2", "train.warmup=1", "train.eval_every=2", "train.checkpoint_every=1", "train.steps=2"]
+    run = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    card = json.loads((out / "model_card.json").read_text())
+    assert card["family"] == "ddrnet" and card["model"] == "demo_ddrnet" and "zoo=demo_ddrnet" in card["command"]
+    assert "demo_ddrnet" in (out / "README.md").read_text()
+
+    from pairedgta.errors import ModelError
+    from pairedgta.models import build_segmenter
+
+    weights = out / "model.safetensors"
+    model = build_segmenter("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
+    probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
+    assert probs.shape == (1, 19, 64, 128)
+    with pytest.raises(ModelError, match="does not fit the architecture"):  # the shipped widths: strict refusal
+        build_segmenter("demo_ddrnet", checkpoint_path=str(weights))
+    weights.write_bytes(b"not a safetensors file")
+    with pytest.raises(ModelError, match="cannot read checkpoint .*safetensors"):
+        build_segmenter("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)

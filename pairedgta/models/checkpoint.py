@@ -55,17 +55,33 @@ def _is_state_dict(obj: Any) -> bool:
     return isinstance(obj, Mapping) and len(obj) > 0 and all(isinstance(v, torch.Tensor) for v in obj.values())
 
 
+def resolve_checkpoint_path(path: str | Path) -> Path:
+    """`pkg://models/weights/<name>/model.safetensors` is a file shipped inside the package (the zoo)."""
+    from pairedgta.models.hf_common import PACKAGE_DIR
+
+    text = str(path)
+    if text.startswith("pkg://"):
+        return PACKAGE_DIR / text[len("pkg://"):]
+    return Path(text).expanduser()
+
+
 def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str, torch.Tensor]:
     """Read a checkpoint file into a flat state dict with the documented nesting and prefixes removed."""
-    path = Path(path).expanduser()
+    path = resolve_checkpoint_path(path)
     if not path.is_file():
         raise ModelError(f"{model_name}: checkpoint file {path} does not exist; fix model.checkpoint_path=")
     try:
-        with torch.serialization.safe_globals(_numpy_safe_globals()):
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # corrupt, truncated, or not a weights-only torch file
+        if path.suffix == ".safetensors":  # the zoo's own weights: a flat tensor file, no pickle at all
+            from safetensors.torch import load_file
+
+            obj = load_file(str(path), device="cpu")
+        else:
+            with torch.serialization.safe_globals(_numpy_safe_globals()):
+                obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # corrupt, truncated, or not a weights-only torch / safetensors file
         raise ModelError(
-            f"{model_name}: cannot read checkpoint {path} ({_first_line(exc)}); expected a torch state-dict file"
+            f"{model_name}: cannot read checkpoint {path} ({_first_line(exc)}); expected a torch state-dict "
+            "or safetensors file"
         ) from None
     seen = 0
     while not _is_state_dict(obj):
@@ -106,7 +122,7 @@ def load_checkpoint_strict(
     Keys under `training_only_prefixes` (auxiliary heads, loss buffers) are reported in one log line and dropped;
     any other missing, unexpected or shape-mismatched key raises ModelError.
     """
-    path = Path(path).expanduser()
+    path = resolve_checkpoint_path(path)
     state = read_state_dict(path, model_name=model_name)
     expected = module.state_dict()
     prefixes = tuple(training_only_prefixes) + LOSS_PREFIXES
