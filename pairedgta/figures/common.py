@@ -34,6 +34,9 @@ MODEL_DISPLAY = {
     "segformer_b0": "SegFormer-B0", "segformer_b2": "SegFormer-B2", "segformer_b5": "SegFormer-B5",
     "mask2former_swin_s": "Mask2Former Swin-S", "mask2former_swin_l": "Mask2Former Swin-L",
     "deeplabv3plus_r101": "DeepLabV3+ R101", "pidnet_m": "PIDNet-M", "ddrnet_23": "DDRNet-23",
+    # the offline zoo (pairedgta/models/weights)
+    "demo_segformer": "demo SegFormer", "demo_segformer_noaug": "demo SegFormer no-aug",
+    "demo_ddrnet": "demo DDRNet", "demo_pidnet": "demo PIDNet",
 }
 # a fixed colour per model, so a model has the same colour in every figure of every run
 _MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]

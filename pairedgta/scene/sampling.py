@@ -103,9 +103,40 @@ REGIONS.register("rectangle", "pairedgta.scene.sampling:RectangleRegion")
 REGIONS.register("procedural_town", "pairedgta.scene.town:ProceduralTownRegion")
 
 
+class TownCycle:
+    """`region.town_seeds: [a, b, ...]`: scene k is drawn in town `town_seeds[k % n]`, so one dataset
+    spans several towns (a held-out test set that no single layout dominates). Each town answers the
+    Region interface; `for_scene(k)` picks it."""
+
+    def __init__(self, regions: list[Any]) -> None:
+        self.regions = regions
+        self.name = regions[0].name
+
+    def for_scene(self, k: int) -> Any:
+        return self.regions[int(k) % len(self.regions)]
+
+    def order(self, indices: list[int]) -> list[int]:
+        """Scenes grouped by town: the renderer builds each town once, not once per scene."""
+        return sorted(indices, key=lambda k: (int(k) % len(self.regions), int(k)))
+
+
 def build_region(cfg: Mapping[str, Any]) -> Region:
     cfg = dict(cfg)
-    return REGIONS.build(cfg.pop("type", None), cfg, where="region")
+    seeds = cfg.pop("town_seeds", None)
+    kind = cfg.pop("type", None)
+    if seeds is not None:
+        if kind != "procedural_town":
+            raise ConfigError(f"region.town_seeds is for region=procedural_town, not region.type={kind!r}; remove it")
+        if (not isinstance(seeds, (list, tuple)) or not seeds
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in seeds)):
+            raise ConfigError(f"region.town_seeds={seeds!r} is invalid; set it to a non-empty list of integer town seeds "
+                              "(or null for region.town_seed alone)")
+        return TownCycle([REGIONS.build(kind, {**cfg, "town_seed": int(v)}, where="region") for v in seeds])  # type: ignore[return-value]
+    return REGIONS.build(kind, cfg, where="region")
+
+
+def region_for_scene(region: Any, k: int) -> Any:
+    return region.for_scene(k) if hasattr(region, "for_scene") else region
 
 
 def world_offset(location: Location, forward: float, right: float) -> tuple[float, float]:

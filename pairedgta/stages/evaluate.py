@@ -58,7 +58,8 @@ from pairedgta.stages.common import (
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "3"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "4"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+# 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
 GT = "ground_truth"
 
 
@@ -68,7 +69,8 @@ class EvaluateResult(StageResult):
 
     complete: bool = True
 
-    FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json")
+    FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json",
+             "group_counts.npz")
 
     def model_config(self) -> dict[str, Any]:
         """The model's composed config: as this run built it, or (an evaluation collected from the cache)
@@ -102,6 +104,14 @@ class EvaluateResult(StageResult):
 
     def summary(self) -> dict[str, Any]:
         return json.loads((self.path / "summary.json").read_text())
+
+    def group_counts(self) -> dict[str, np.ndarray]:
+        """Per-group counts (see `write_group_counts`); empty for entries written before VERSION 4."""
+        path = self.path / "group_counts.npz"
+        if not path.is_file():
+            return {}
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
 
     def artifacts(self) -> list[Path]:
         return [self.path / f for f in self.FILES if (self.path / f).is_file()]
@@ -417,6 +427,7 @@ def compute(
         done[r["group_id"]] = r
     results = [done[g.group_id] for g in dataset.groups if g.group_id in done]
     model = str(model_cfg["name"])
+    write_group_counts(out / "group_counts.npz", results, conditions)
     acc: dict[tuple[str, str], _Accumulator] = {}
     gt_cm: dict[str, ConfusionMatrix] = {}
     agreement_rows: list[dict[str, Any]] = []
@@ -434,6 +445,38 @@ def compute(
         count_rows += r["counts"]
     return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
                          coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"]))
+
+
+def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
+    """What a paired bootstrap over groups needs, per group g and condition i: `present[g, i]`; for each
+    reference source (`pseudo_label`, `ground_truth`) the retained and reference pixels per class
+    (`<source>_retained[g, i, c]`, `<source>_reference[g, i, c]`); and the confusion matrix against the
+    condition's own labels (`cm[g, i, truth, prediction]`, with `cm_present[g, i]`). Integers only: no
+    pickle is needed to read it back."""
+    G, C = len(results), len(conditions)
+    arrays: dict[str, np.ndarray] = {
+        "group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
+        "conditions": np.array(conditions, dtype=str),
+        "present": np.zeros((G, C), dtype=bool), "cm_present": np.zeros((G, C), dtype=bool),
+        "cm": np.zeros((G, C, NUM_CLASSES, NUM_CLASSES), dtype=np.int64),
+    }
+    for source in ("pseudo_label", GT):
+        arrays[f"{source}_retained"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
+        arrays[f"{source}_reference"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
+    index = {c: i for i, c in enumerate(conditions)}
+    for g, r in enumerate(results):
+        for key, (retained, reference) in r["xi"].items():
+            source, cond = key.split("|", 1)
+            if cond in index:
+                arrays["present"][g, index[cond]] = True
+                arrays[f"{source}_retained"][g, index[cond]] = retained
+                arrays[f"{source}_reference"][g, index[cond]] = reference
+        for cond, mat in r["cm"].items():
+            if cond in index:
+                arrays["cm_present"][g, index[cond]] = True
+                arrays["cm"][g, index[cond]] = np.asarray(mat, dtype=np.int64)
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
 
 
 def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",

@@ -34,7 +34,7 @@ from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
-from pairedgta.scene.sampling import build_region
+from pairedgta.scene.sampling import build_region, region_for_scene
 from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
@@ -146,6 +146,7 @@ def scene_seed(base_seed: int, k: int) -> int:
 
 
 def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDescriptor, dict[str, float]]:
+    region = region_for_scene(region, k)
     gen = cfg["generate"]
     seed = scene_seed(gen["seed"], k)
     rng = np.random.default_rng(seed)
@@ -172,6 +173,7 @@ def render_scene(
 ) -> dict[str, Any]:
     """Render scene k into scenes_dir/<id> atomically; returns its timing row."""
     descriptor, t = build_descriptor(k, cfg, region)
+    region = region_for_scene(region, k)
     final = scenes_dir / descriptor.scene_id
     tmp = scenes_dir / f".tmp-{descriptor.scene_id}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -323,6 +325,8 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
     if len(todo) < n:
         log.info("generate: resuming, %d of %d scenes already rendered", n - len(todo), n)
     region = build_region(cfg["region"])
+    if hasattr(region, "order"):
+        todo = region.order(todo)
     t_open = time.perf_counter()
     if workers == 1:
         renderer = build_renderer(dict(cfg["renderer"]))

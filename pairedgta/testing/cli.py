@@ -29,6 +29,7 @@ def fast_overrides(tmp: Path) -> list[str]:
         "renderer=synthetic",
         "region=synthetic_street",
         "model=tiny_segformer",
+        "models=null",  # just `model` (the default list is the shipped zoo)
         "reference_model=tiny_segformer",
         "generate.num_scenes=3",
         "renderer.width=64",

@@ -313,6 +313,7 @@ class BlenderRenderer(Renderer):
         elif "town_seed" in extra:
             params["town_seed"] = extra["town_seed"]
         kind = params.pop("type", "procedural_town")
+        params.pop("town_seeds", None)  # the region's list of towns: each descriptor names its own town_seed
         if kind != "procedural_town":
             raise ConfigError(
                 f"renderer=blender renders the procedural town but region.type is '{kind}'; "
