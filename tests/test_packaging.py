@@ -37,6 +37,24 @@ def _build_wheel(tmp: Path) -> Path:
     return wheel
 
 
+def _venv_seeing_these_packages(env_dir: Path) -> Path:
+    """A venv whose dependencies are the running interpreter's. `system_site_packages=True` would give the
+    *base* interpreter's, which inside a venv (README's install in `python -m venv`) lack them all; a .pth
+    naming this interpreter's site directories works in both cases. Only those directories are added,
+    not their .pth files, so the checkout's editable install of pairedgta stays out of sight."""
+    import site
+    import sysconfig
+
+    venv.EnvBuilder(system_site_packages=False, with_pip=False).create(env_dir)
+    py = env_dir / "bin" / "python"
+    dirs = [d for d in [*site.getsitepackages(), sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]]
+            if Path(d).is_dir()]
+    target = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    (Path(target) / "zz_parent_site_packages.pth").write_text("\n".join(dict.fromkeys(dirs)) + "\n")
+    return py
+
+
 def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     wheel = _build_wheel(tmp_path)
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -45,11 +63,10 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     weights = CONFIG_DIR.parent / "models" / "weights" / "demo_segformer"
     assert {f"pairedgta/models/weights/demo_segformer/{p.name}" for p in weights.iterdir()} <= names
 
-    # a fresh environment: the shared site-packages give the dependencies (no downloads), the wheel gives
-    # pairedgta; the checkout is neither the working directory nor on sys.path
+    # a fresh environment: the running interpreter's site-packages give the dependencies (no downloads),
+    # the wheel gives pairedgta; the checkout is neither the working directory nor on sys.path
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
-    py = env_dir / "bin" / "python"
+    py = _venv_seeing_these_packages(env_dir)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
     env.update(OFFLINE, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PYTHONWARNINGS="ignore")
     proc = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], capture_output=True,
@@ -91,7 +108,12 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
 def test_help_names_the_app(tmp_path):
     proc = run_cli(["--help"], tmp_path, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "pairedgta is powered by Hydra" in proc.stdout and "__main__" not in proc.stdout
+    out = proc.stdout
+    assert out.startswith("pairedgta: perfectly paired driving images") and "__main__" not in out
+    for experiment in ("smoke", "metric_validity", "paper_table", "night_vs_acdc", "cost_analysis"):
+        assert f"+experiment={experiment}" in out  # the experiments, each with its command
+    assert "model: " in out and "demo_ddrnet" in out and "renderer: " in out  # Hydra's list of group options
+    assert "CUEW" not in proc.stdout + proc.stderr  # Blender's CUDA probe stays quiet on a CPU machine
 
 
 def test_launcher_presets_extend_the_plugins_instead_of_shadowing_them():

@@ -61,6 +61,31 @@ _OWNER: BlenderRenderer | None = None
 _SESSIONS = 0
 
 
+
+@contextlib.contextmanager
+def _quiet_cuda_probe(active: bool):
+    """Blender's C code prints to file descriptor 1, and Cycles' CUDA probe prints "CUEW initialization
+    failed" on every machine without the CUDA driver: noise when rendering on the CPU. The block's output
+    goes through a temporary file and every other line is passed on."""
+    if not active:
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 1)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+            tmp.seek(0)
+            kept = [line for line in tmp.read().decode(errors="replace").splitlines(keepends=True) if "CUEW" not in line]
+            if kept:
+                sys.stdout.write("".join(kept))
+                sys.stdout.flush()
+
 class BlenderRenderer(Renderer):
     """Cycles renderer of the procedural town (CPU by default)."""
 
@@ -207,7 +232,8 @@ class BlenderRenderer(Renderer):
         cy.use_adaptive_sampling = False
         cy.use_denoising = self.denoise
         if self.denoise:
-            cy.denoiser = "OPENIMAGEDENOISE"
+            with _quiet_cuda_probe(self.device == "CPU"):  # choosing the denoiser probes every GPU library
+                cy.denoiser = "OPENIMAGEDENOISE"
             cy.denoising_prefilter = "FAST"
             cy.denoising_quality = self.denoiser_quality
             cy.denoising_input_passes = "RGB_ALBEDO_NORMAL"
