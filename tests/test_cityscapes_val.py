@@ -103,7 +103,7 @@ def bad_runs(tree, tmp_path_factory):
         if case == "size_mismatch":
             gt_dir = root / "gtFine" / "val" / "frankfurt"
             Image.new("L", (32, 16)).save(gt_dir / "frankfurt_000001_007973_gtFine_labelTrainIds.png")
-        futures[case] = (tmp, pool.submit(run_cli, args_for(root, tmp, tracking=False), tmp))
+        futures[case] = (tmp, pool.submit(run_cli, args_for(root, tmp, tracking=False), tmp, subprocess_=True))  # threads: each its own process
     yield futures
     pool.shutdown(wait=True)
 

@@ -111,3 +111,20 @@ def test_an_evaluation_gives_back_a_buildable_model_config(tmp_path):
     cfg = EvaluateResult("evaluate", "k", tmp_path, hit=True).model_config()
     check_model_config(cfg)
     assert cfg["path"] == model_config("demo_segformer")["path"]
+
+
+def test_a_sweep_of_models_is_drawn_together_by_collect_cached(tmp_path):
+    """`-m model=a,b` evaluates one model per job; a plot run with plot.collect_cached then draws every
+    cached evaluation of the same dataset and pseudo-labels in one models x conditions heatmap."""
+    sweep = run_cli(tiny_smoke(tmp_path) + ["model=tiny_segformer,tiny_ddrnet"], tmp_path, multirun=True)
+    assert sweep.returncode == 0, sweep.stderr[-3000:]
+    args = [a for a in tiny_smoke(tmp_path) if not a.startswith("stages=")]
+    plot = run_cli(args + ["models=null", "stages=[plot]", "plot.collect_cached=true", "plot.figures=[xi_models]"],
+                   tmp_path)
+    assert plot.returncode == 0, plot.stderr[-3000:]
+    where = Path(plot.stdout.split("results: ")[1].split()[0])
+    import pandas as pd
+
+    table = pd.read_csv(where / "xi_models.csv")
+    assert set(table["model"]) == {"tiny_segformer", "tiny_ddrnet"} and set(table["condition"]) == {"Night-EXTRASUNNY"}
+    assert (where / "xi_models.png").is_file()
