@@ -12,6 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
+from pairedgta.configs import merge_variant
 from pairedgta.errors import ConfigError
 
 MISSING = "???"
@@ -105,14 +106,6 @@ def check_cache_dir(value: Any) -> None:
             pass
     except OSError as exc:
         raise ConfigError(f"cache_dir={value} is not writable ({exc.strerror or exc}); use a writable directory") from None
-
-
-def merge_variant(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    """A variant's config: `overrides` merged into `base`, except that a `dataset` node replaces the whole."""
-    out = dict(base)
-    for k, v in overrides.items():
-        out[k] = merge_variant(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
-    return out
 
 
 def passes(cfg: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:

@@ -58,4 +58,12 @@ def group_option(group: str, name: str) -> dict[str, Any]:
     return dict(out[group]) if set(out) == {group} else out
 
 
-__all__ = ["CONFIG_DIR", "CONFIG_MODULE", "group_option", "group_options"]
+__all__ = ["CONFIG_DIR", "CONFIG_MODULE", "group_option", "group_options", "merge_variant"]
+
+
+def merge_variant(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """A variant's config: `overrides` merged into `base`, except that a `dataset` node replaces the whole."""
+    out = dict(base)
+    for k, v in overrides.items():
+        out[k] = merge_variant(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "dataset" else v
+    return out

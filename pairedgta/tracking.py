@@ -121,6 +121,9 @@ def _store_lock(uri: str) -> Iterator[None]:
         yield
 
 
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+
+
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
         self.enabled = enabled
@@ -138,7 +141,11 @@ class Tracker:
                     except mlflow.exceptions.MlflowException:  # another job (another host) created it first
                         if mlflow.get_experiment_by_name(experiment) is None:
                             raise
-                self.experiment_id = mlflow.set_experiment(experiment).experiment_id
+                found = mlflow.set_experiment(experiment)
+                self.experiment_id = found.experiment_id
+                if EXPERIMENT_KIND[0] not in (found.tags or {}):
+                    # MLflow 3's UI opens an experiment without this tag on the GenAI overview, not its runs
+                    mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
                 self.mlflow = mlflow
                 self.end_orphans()
 

@@ -22,7 +22,7 @@ SEP = " \u00b7 "
 def _tracked(tmp: Path, db: Path, extra: list[str] = ()) -> list[str]:
     over = [o for o in fast_overrides(tmp) if not o.startswith(("tracking.", "plot.formats"))]
     return over + [f"tracking.uri=sqlite:///{db}", "tracking.enabled=true", "name=trk", "plot.formats=[png]",
-                   "models=[tiny_segformer,tiny_deeplabv3plus]", "plot.figures=[xi_table,qualitative,ranking]",
+                   "models=[tiny_segformer,tiny_deeplabv3plus]", "plot.figures=[xi_models,xi_table,qualitative,ranking]",
                    "plot.qualitative_groups=1", *extra]
 
 
@@ -49,6 +49,7 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
     exp = client.get_experiment_by_name("trk")
     assert exp.artifact_location == (db.parent / "mlartifacts" / "trk").as_uri()
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"  # the UI opens on the runs
     assert not (tmp_path / "mlruns").exists()
 
     gen_key = next(p.name for p in (tmp_path / "cache" / "generate").iterdir() if not p.name.startswith("."))
@@ -80,6 +81,10 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
         config = yaml.safe_load(Path(mlflow.artifacts.download_artifacts(f"{r.info.artifact_uri}/config.yaml",
                                                                           dst_path=str(tmp_path / "dl" / model))).read_text())
         assert config["model"]["name"] == model and config["metric"]["bootstrap"]["resamples"] == 50
+    # the parent carries each model's numbers with the model in the key: one chart compares them
+    assert {f"compare/xi_mean/Day-RAIN/{m}" for m in by_model} <= set(parent.data.metrics)
+    assert parent.data.metrics["compare/xi_mean/Day-RAIN/tiny_deeplabv3plus"] == pytest.approx(
+        by_model["tiny_deeplabv3plus"].data.metrics["xi_mean/Day-RAIN"])
     parent_arts = _artifacts(client, parent.info.run_id)
     assert {"figures/ranking.png", "figures/table1_xi.csv", "pseudolabel/histogram.csv", "config.yaml"} <= parent_arts
     assert not any(a.startswith("figures/") and a.split("/")[1] in owners for a in parent_arts)

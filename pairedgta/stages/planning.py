@@ -16,8 +16,8 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
-from pairedgta.config_checks import merge_variant
 from pairedgta.conditions import ConditionGrid, build_condition_grid
+from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
 from pairedgta.models import check_model_config, model_config
