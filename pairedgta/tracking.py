@@ -281,10 +281,13 @@ class Tracker:
         if not self.enabled:
             return
         from hydra.core.hydra_config import HydraConfig
+        from omegaconf import OmegaConf
 
         if not HydraConfig.initialized():
             return
         hc = HydraConfig.get()
+        if OmegaConf.is_missing(hc.runtime, "output_dir"):
+            return  # Hydra's compose API (no job, no output folder)
         if hc.output_subdir is not None:
             self.artifacts(sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")), "hydra")
         self.tags({f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)})

@@ -115,11 +115,14 @@ def test_learning_rate_warms_up_then_decays_to_zero():
 
 
 def test_state_key_ignores_run_length_but_not_the_recipe():
-    cfg = {"data": {"a": 1}, "arch": {}, "augment": {}, "loss": {"ohem_thresh": 0.7}, "seed": 0, "renderer": {},
-           "region": {}, "train": {"steps": 10, "lr": 1e-3, "threads": 2, "eval_every": 5, "checkpoint_every": 1}}
+    cfg = {"model_name": "demo_a", "data": {"a": 1}, "arch": {}, "augment": {}, "loss": {"ohem_thresh": 0.7},
+           "seed": 0, "renderer": {}, "region": {},
+           "train": {"steps": 10, "lr": 1e-3, "threads": 2, "eval_every": 5, "checkpoint_every": 1}}
     longer = {**cfg, "train": {**cfg["train"], "steps": 20, "threads": 1}}
     plain = {**cfg, "loss": {"ohem_thresh": None}}
+    other = {**cfg, "model_name": "demo_b"}  # two zoo members never share a checkpoint
     assert tdm.state_key(cfg) == tdm.state_key(longer) != tdm.state_key(plain)
+    assert tdm.state_key(other) != tdm.state_key(cfg)
 
 
 def test_recipe_values_are_checked_up_front_with_the_key_named():

@@ -68,6 +68,7 @@ def _run_in_process(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     import warnings
 
     from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
 
     from pairedgta.__main__ import cli
 
@@ -101,4 +102,5 @@ def _run_in_process(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
                 root.addHandler(h)
         root.setLevel(saved_level)
         GlobalHydra.instance().clear()
+        HydraConfig.instance().cfg = None  # a later compose() in this process is not "inside a Hydra job"
     return subprocess.CompletedProcess(["pairedgta", *argv], code, out.getvalue(), err.getvalue())
