@@ -34,7 +34,7 @@ def test_paper_and_strict_outputs_follow_and_record_their_convention(tmp_path):
     assert set(xi_p.convention) == {"paper"} and set(xi_s.convention) == {"strict"}
     # same pixel counts, different conventions on top of them
     np.testing.assert_array_equal(xi_p.reference_pixels, xi_s.reference_pixels)
-    absent_seen = False
+    absent_seen = supported_seen = False
     for (src, cond), g in xi_p[xi_p.class_id >= 0].groupby(["reference_model", "condition"]):
         ref, ret = g.reference_pixels.to_numpy(float), g.retained_pixels.to_numpy(float)
         clamp = ret / np.maximum(ref, 1)
@@ -46,9 +46,27 @@ def test_paper_and_strict_outputs_follow_and_record_their_convention(tmp_path):
         s = xi_s[(xi_s.reference_model == src) & (xi_s.condition == cond)]
         s_cls = s[s.class_id >= 0]
         assert s_cls.xi.isna().tolist() == (ref == 0).tolist()
-        assert s[s.class_id == -1].xi.item() == pytest.approx(np.nanmean(s_cls.xi))
-        assert list(s_cls[s_cls.in_mean].class_name) == [c for c, r in zip(CLASS_NAMES, ref) if r > 0]
+        # the support rule: >= metric.min_images images and >= metric.min_pixels pixels to enter the mean
+        images = s_cls.images.to_numpy()
+        assert ((images > 0) == (ref > 0)).all() and (images <= s_cls.n_pairs).all()
+        want = (images >= 3) & (ref >= 1000)
+        assert s_cls.supported.tolist() == want.tolist()
+        assert list(s_cls[s_cls.in_mean].class_name) == [c for c, ok in zip(CLASS_NAMES, want) if ok]
+        mean = s[s.class_id == -1].xi.item()
+        assert (np.isnan(mean) and not want.any()) or mean == pytest.approx(s_cls.xi[want].mean())
+        # a class seen in one image has no interval: every resample that defines it gives the same ratio
+        one = s_cls[images == 1]
+        assert one.ci_low.isna().all() and one.ci_high.isna().all()
+        supported_seen |= bool(want.any()) and bool((~want & (ref > 0)).any())
     assert absent_seen  # the tiny reference model leaves classes without pseudo-label pixels
+    assert supported_seen  # some condition has both supported classes and defined but unsupported ones
+    summary = json.loads((strict / "summary.json").read_text())
+    assert summary["convention"]["min_images"] == 3 and summary["convention"]["min_pixels"] == 1000
+    assert json.loads((paper / "summary.json").read_text())["convention"]["min_images"] == 0
+    # the tables show the unsupported cells, marked, and never make them the best of a column
+    md = (Path(strict_run["plot"]) / "table1_xi.md").read_text()
+    assert "\u2020 too little support" in md and "\u2020" in md.split("\n## ", 1)[1]
+    assert "\u2020" not in (Path(paper_run["plot"]) / "table1_xi.md").read_text()
 
     ag_p, ag_s = pd.read_csv(paper / "pixel_agreement.csv", dtype={"pair_id": str}), pd.read_csv(strict / "pixel_agreement.csv", dtype={"pair_id": str})
     for ag, mode in ((ag_p, "per_image"), (ag_s, "pooled")):
@@ -116,9 +134,37 @@ def test_sampled_conditions_are_deterministic_and_cover_the_conditions():
     picks = [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 0) for i in range(200)]
     assert all(p[0] == "Day-EXTRASUNNY" and len(p) == 2 and p[1] != "Day-EXTRASUNNY" for p in picks)
     counts = pd.Series([p[1] for p in picks]).value_counts()
-    assert set(counts.index) == set(conds[1:]) and counts.min() > 40  # ~ 200/3 each
+    # a time of day first (Day or Night, 1/2 each), then a weather of it: Day-RAIN/Day-FOGGY ~ 50 each
+    assert set(counts.index) == set(conds[1:]) and 75 < counts["Night-EXTRASUNNY"] < 125
+    assert 25 < counts["Day-RAIN"] < 75 and 25 < counts["Day-FOGGY"] < 75
     assert picks == [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 0) for i in range(200)]
     assert picks != [sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 1) for i in range(200)]
     # independent of the order the groups are visited in and of the other groups
     assert sampled_conditions("00007", conds, "Day-EXTRASUNNY", "random_one", 0) == picks[7]
     assert sampled_conditions("x", conds, "Day-EXTRASUNNY", "all", 0) == conds
+
+
+def test_random_one_draws_a_time_of_day_then_a_weather_as_the_authors_loader():
+    """On the paper grid a Day condition for ~1/3 of the groups (the released data: 41 of 101), each of
+    the two Day weathers ~1/6, each Sunset and Night condition ~1/9 (not 1/8 each)."""
+    times, weathers = ("Day", "Sunset", "Night"), ("EXTRASUNNY", "RAIN", "FOGGY")
+    conds = [f"{t}-{w}" for t in times for w in weathers]
+    n = 9000
+    drawn = pd.Series([sampled_conditions(f"{i:05d}", conds, "Day-EXTRASUNNY", "random_one", 0)[1]
+                       for i in range(n)]).value_counts() / n
+    assert "Day-EXTRASUNNY" not in drawn
+    assert drawn[[c for c in drawn.index if c.startswith("Day")]].sum() == pytest.approx(1 / 3, abs=0.02)
+    for c in ("Day-RAIN", "Day-FOGGY"):
+        assert drawn[c] == pytest.approx(1 / 6, abs=0.015)
+    for c in conds[3:]:
+        assert drawn[c] == pytest.approx(1 / 9, abs=0.015)
+
+
+def test_support_rule_values_are_checked_with_the_key_named():
+    from pairedgta.metrics.conventions import convention_from_config
+
+    conv = convention_from_config({"convention": "strict", "min_images": 2, "min_pixels": 10})
+    assert conv.supported([1, 2, 5], [100, 9, 10]).tolist() == [False, False, True]
+    for key, value in (("min_images", -1), ("min_pixels", 1.5), ("min_images", "many")):
+        with pytest.raises(ConfigError, match=f"metric.{key}=.* is invalid; set it to an integer >= 0"):
+            convention_from_config({"convention": "strict", key: value})

@@ -56,7 +56,8 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
     clean = (metric.get("rho") or {}).get("clean_condition") or passes[0].grid.reference
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude)
     cells, corr = validity(models, clean, include, conv.absent, int(boot.get("resamples", 1000)),
-                           float(boot.get("confidence", 0.95)), int(boot.get("seed", 0)))
+                           float(boot.get("confidence", 0.95)), int(boot.get("seed", 0)), conv.min_images,
+                           conv.min_pixels)
     cells_df, corr_df = pd.DataFrame(cells), pd.DataFrame(corr)
     cells_df["convention"] = corr_df["convention"] = conv.name
     files = []

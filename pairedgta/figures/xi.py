@@ -32,8 +32,29 @@ def table_columns(xi: pd.DataFrame) -> list[str]:
     convention the 17 classes of Table 1, absent ones as 0; under the strict one the classes with
     reference pixels), in Cityscapes order, then `mean`. Older outputs without `in_mean`: the defined ones."""
     rows = xi[xi["class_name"] != "mean"]
-    shown = rows[rows["in_mean"].astype(bool)] if "in_mean" in rows else rows[rows["xi"].notna()]
+    if "in_mean" not in rows:
+        shown = rows[rows["xi"].notna()]
+    elif "supported" in rows:  # defined classes too thin for the mean are shown, marked (see `unsupported`)
+        shown = rows[rows["in_mean"].astype(bool) | (rows["xi"].notna() & ~rows["supported"].astype(bool))]
+    else:
+        shown = rows[rows["in_mean"].astype(bool)]
     return ordered_classes(shown["class_name"]) + ["mean"]
+
+
+def unsupported(part: pd.DataFrame, rows: str, index: list, columns: list) -> pd.DataFrame:
+    """True where a shown cell's class has too little support for the mean (xi.csv `supported`: the
+    strict convention's metric.min_images / min_pixels rule); all False for outputs without that column.
+    rows: the column that indexes the table (model or condition)."""
+    if "supported" not in part:
+        return pd.DataFrame(False, index=index, columns=columns)
+    flag = part[part["class_name"] != "mean"]
+    flag = flag.assign(unsupported=(~flag["supported"].astype(bool) & flag["xi"].notna()).astype(float))
+    wide = flag.pivot_table(index=rows, columns="class_name", values="unsupported", aggfunc="max")
+    return wide.reindex(index=index, columns=columns).fillna(0).astype(bool)
+
+
+MARK = "\u2020"  # dagger: too little support, shown but left out of the mean
+MARK_NOTE = f"{MARK} too little support (metric.min_images / min_pixels): shown, left out of the mean"
 
 
 def xi_tables(xi: pd.DataFrame, reference: str) -> dict[str, pd.DataFrame]:
@@ -51,23 +72,36 @@ def xi_tables(xi: pd.DataFrame, reference: str) -> dict[str, pd.DataFrame]:
     return tables
 
 
+def xi_marks(xi: pd.DataFrame, reference: str) -> dict[str, pd.DataFrame]:
+    """Per table of `xi_tables`, which cells to mark as unsupported."""
+    tables = xi_tables(xi, reference)
+    xi = xi[(xi["reference_model"] != GT) & (xi["condition"] != reference)]
+    return {cond: unsupported(xi[xi["condition"] == cond], "model", list(t.index), list(t.columns))
+            for cond, t in tables.items()}
+
+
 def display_values(table: pd.DataFrame) -> pd.DataFrame:
     """Percent with one decimal: what the Markdown and LaTeX tables show, and what `bold` compares."""
     return (table * 100).round(1)
 
 
-def bold_mask(table: pd.DataFrame) -> pd.DataFrame:
-    """True where a shown value is the column maximum (every tie is bold; a column of NaN has none)."""
+def bold_mask(table: pd.DataFrame, marks: pd.DataFrame | None = None) -> pd.DataFrame:
+    """True where a shown value is the column maximum (every tie is bold; a column of NaN has none);
+    marked (unsupported) cells neither win nor count."""
     shown = display_values(table)
+    if marks is not None:
+        shown = shown.mask(marks.reindex_like(shown).fillna(False).astype(bool))
     return shown.eq(shown.max(axis=0, skipna=True), axis=1) & shown.notna()
 
 
-def _cell(value: float, bold: bool, fmt: str) -> str:
+def _cell(value: float, bold: bool, fmt: str, marked: bool = False) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–" if fmt == "md" else "--"
     text = f"{value:.1f}"
     if bold:
-        return f"**{text}**" if fmt == "md" else rf"\textbf{{{text}}}"
+        text = f"**{text}**" if fmt == "md" else rf"\textbf{{{text}}}"
+    if marked:
+        text += MARK if fmt == "md" else r"$^\dagger$"
     return text
 
 
@@ -83,25 +117,36 @@ def write_csv(tables: dict[str, pd.DataFrame], reference: str, path: Path) -> Pa
     return path
 
 
-def to_markdown(tables: dict[str, pd.DataFrame], reference: str) -> str:
+def _marks(marks: dict[str, pd.DataFrame] | None, cond: str, t: pd.DataFrame) -> pd.DataFrame:
+    m = (marks or {}).get(cond)
+    return pd.DataFrame(False, index=t.index, columns=t.columns) if m is None else m.reindex_like(t).fillna(False)
+
+
+def to_markdown(tables: dict[str, pd.DataFrame], reference: str, marks: dict[str, pd.DataFrame] | None = None) -> str:
     parts = [f"# \u03be per class (%): {condition_display(reference)} \u2192 each condition; best per column in bold\n"]
+    if any(m.to_numpy().any() for m in (marks or {}).values()):
+        parts.append(f"\n{MARK_NOTE}\n")
     for cond, t in tables.items():
-        shown, bold = display_values(t), bold_mask(t)
+        mk = _marks(marks, cond, t)
+        shown, bold = display_values(t), bold_mask(t, mk)
         header = ["Model"] + [class_short(c) if c != "mean" else "Mean" for c in t.columns]
-        rows = [[model_display(m)] + [_cell(shown.at[m, c], bool(bold.at[m, c]), "md") for c in t.columns] for m in t.index]
+        rows = [[model_display(m)] + [_cell(shown.at[m, c], bool(bold.at[m, c]), "md", bool(mk.at[m, c]))
+                                      for c in t.columns] for m in t.index]
         parts.append(f"\n## {condition_display(reference)} \u2192 {condition_display(cond)}\n\n")
         parts.append(markdown_table(header, rows))
     return "".join(parts)
 
 
-def to_latex(tables: dict[str, pd.DataFrame], reference: str) -> str:
+def to_latex(tables: dict[str, pd.DataFrame], reference: str, marks: dict[str, pd.DataFrame] | None = None) -> str:
     """A table* of subtables like the paper's Table 1 (needs booktabs, subcaption, graphicx)."""
     out = [
         "% generated by pairedgta (plot stage); \\usepackage{booktabs,subcaption,graphicx}",
         "\\begin{table*}[t]", "\\centering", "\\renewcommand{\\arraystretch}{0.9}",
     ]
+    any_mark = any(m.to_numpy().any() for m in (marks or {}).values())
     for cond, t in tables.items():
-        shown, bold = display_values(t), bold_mask(t)
+        mk = _marks(marks, cond, t)
+        shown, bold = display_values(t), bold_mask(t, mk)
         n = len(t.columns) - 1
         head = " & ".join(["Model"] + [latex_escape(class_short(c)) if c != "mean" else "Mean" for c in t.columns])
         out += [
@@ -111,12 +156,13 @@ def to_latex(tables: dict[str, pd.DataFrame], reference: str) -> str:
             f"\\begin{{tabular}}{{l{'c' * n}|c}}", "\\toprule", head + " \\\\", "\\midrule",
         ]
         for m in t.index:
-            cells = [_cell(shown.at[m, c], bool(bold.at[m, c]), "tex") for c in t.columns]
+            cells = [_cell(shown.at[m, c], bool(bold.at[m, c]), "tex", bool(mk.at[m, c])) for c in t.columns]
             out.append(" & ".join([latex_escape(model_display(m))] + cells) + " \\\\")
         out += ["\\bottomrule", "\\end{tabular}", "}", "\\end{subtable}"]
     out += [
         ("\\caption{Class-wise reference consistency $\\xi$ (\\%) across environmental conditions; the last column "
-         "is the class-wise mean, the best value per column is in bold.}"),
+         "is the class-wise mean, the best value per column is in bold."
+         + (" $^\\dagger$: too little support, left out of the mean." if any_mark else "") + "}"),
         "\\label{tab:retention_conditions}", "\\end{table*}", "",
     ]
     return "\n".join(out)
@@ -126,9 +172,10 @@ def write_tables(xi: pd.DataFrame, reference: str, out: Path, stem: str = "table
     tables = xi_tables(xi, reference)
     if not tables:
         return []
+    marks = xi_marks(xi, reference)
     paths = [write_csv(tables, reference, out / f"{stem}.csv")]
-    (out / f"{stem}.md").write_text(to_markdown(tables, reference))
-    (out / f"{stem}.tex").write_text(to_latex(tables, reference))
+    (out / f"{stem}.md").write_text(to_markdown(tables, reference, marks))
+    (out / f"{stem}.tex").write_text(to_latex(tables, reference, marks))
     return paths + [out / f"{stem}.md", out / f"{stem}.tex"]
 
 
@@ -146,14 +193,20 @@ def heatmap_figures(xi: pd.DataFrame, reference: str, out: Path, formats: list[s
         part = xi[xi["model"] == model]
         wide = part.pivot_table(index="condition", columns="class_name", values="xi", dropna=False, aggfunc="first")
         shown = display_values(wide.reindex(index=conditions, columns=columns))
+        marked = unsupported(part, "condition", conditions, columns).to_numpy()
+        labels = [[("" if pd.isna(v) else f"{v:.1f}" + (MARK if mk else "")) for v, mk in zip(row, mrow)]
+                  for row, mrow in zip(shown.to_numpy(), marked)]
         shown.index = [condition_display(c) for c in shown.index]
         shown.columns = [class_short(c) if c != "mean" else "Mean" for c in columns]
         with paper_style():
             fig, ax = plt.subplots(figsize=(TEXT_WIDTH, 0.24 * len(conditions) + 0.9))
-            sns.heatmap(shown, ax=ax, annot=True, fmt=".1f", vmin=0, vmax=100, cmap="viridis", mask=shown.isna(),
+            sns.heatmap(shown, ax=ax, annot=labels, fmt="", vmin=0, vmax=100, cmap="viridis", mask=shown.isna(),
                         annot_kws={"fontsize": 5}, linewidths=0.3, linecolor="white",
                         cbar_kws={"label": "\u03be (%)", "pad": 0.01, "fraction": 0.04})
-            ax.set_title(f"{model_display(model)}: \u03be (%) from {condition_display(reference)}, per condition and class")
+            title = f"{model_display(model)}: \u03be (%) from {condition_display(reference)}, per condition and class"
+            if marked.any():
+                title += f"\n({MARK_NOTE})"
+            ax.set_title(title)
             ax.set_xlabel("")
             ax.set_ylabel("")
             ax.tick_params(length=0)

@@ -23,6 +23,15 @@ class Convention:
     mean_exclude: tuple[str, ...]  # classes left out of the class-wise mean (and of Table 1)
     agreement: str                 # pooled | per_image
     rho_headline: str              # the rho_valid selection reported as the headline
+    min_images: int = 0            # a class enters the mean only with reference pixels in >= min_images images
+    min_pixels: int = 0            # ... and >= min_pixels reference pixels in all (0 and 0: every defined class)
+
+    def supported(self, images, pixels):
+        """Boolean mask over classes: enough support for the class-wise mean (images, pixels: per class).
+        Without it a class seen in one image with 7 pixels weighs as much as road in the mean."""
+        import numpy as np
+
+        return (np.asarray(images) >= self.min_images) & (np.asarray(pixels) >= self.min_pixels)
 
     def mean_classes(self):
         """Boolean mask over the 19 Cityscapes classes: which enter the class-wise mean."""
@@ -58,4 +67,12 @@ def convention_from_config(metric: dict[str, Any], selections: list[str] | None 
     headline = str(rho.get("headline") or selections[0])
     if headline not in selections:
         raise ConfigError(f"metric.rho.headline={headline!r} is not among metric.rho.selections={selections}")
-    return Convention(name, absent, exclude, agreement, headline)
+    support = {}
+    for key in ("min_images", "min_pixels"):
+        value = metric.get(key, 0)
+        if value is None:
+            value = 0
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ConfigError(f"metric.{key}={value!r} is invalid; set it to an integer >= 0 (0 = no support rule)")
+        support[key] = value
+    return Convention(name, absent, exclude, agreement, headline, **support)

@@ -72,17 +72,26 @@ def miou(cm: np.ndarray) -> np.ndarray:
         return np.nanmean(np.where(union > 0, tp / np.maximum(union, 1), np.nan), axis=-1)
 
 
+def supported(reference: np.ndarray, min_images: int = 0, min_pixels: int = 0) -> np.ndarray:
+    """C x K: which classes have the support the class-wise mean asks for (metric.min_images/min_pixels),
+    judged on the data itself and kept fixed across resamples (as evaluate's mean is)."""
+    reference = np.asarray(reference)
+    return ((reference > 0).sum(axis=0) >= min_images) & (reference.sum(axis=0) >= min_pixels)
+
+
 def cell_measures(g: GroupCounts, weights: np.ndarray, clean: str, include: np.ndarray,
-                  absent: str) -> dict[str, np.ndarray]:
+                  absent: str, min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
     """Every measure per (resample, condition) for group weights R x G (a row of ones = the data itself)."""
     w = np.asarray(weights, float)
     ci = g.conditions.index(clean)
     cm = np.einsum("rg,gcij->rcij", w, g.cm)
+    inc_pl = np.asarray(include, bool) & supported(g.pl_reference, min_images, min_pixels)
+    inc_gt = np.asarray(include, bool) & supported(g.gt_reference, min_images, min_pixels)
     out = {
         "xi_mean": mean_xi(np.einsum("rg,gck->rck", w, g.pl_retained), np.einsum("rg,gck->rck", w, g.pl_reference),
-                           include, absent),
+                           inc_pl, absent),
         "xi_gt_mean": mean_xi(np.einsum("rg,gck->rck", w, g.gt_retained), np.einsum("rg,gck->rck", w, g.gt_reference),
-                              include, absent),
+                              inc_gt, absent),
         "gt_miou": miou(cm),
     }
     out["gt_miou_clean"] = np.repeat(out["gt_miou"][:, ci : ci + 1], len(g.conditions), axis=1)
@@ -136,7 +145,8 @@ def _interval(boot: np.ndarray, confidence: float) -> tuple[float, float, int]:
 
 
 def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent: str = "nan",
-             resamples: int = 1000, confidence: float = 0.95, seed: int = 0) -> tuple[list[dict], list[dict]]:
+             resamples: int = 1000, confidence: float = 0.95, seed: int = 0, min_images: int = 0,
+             min_pixels: int = 0) -> tuple[list[dict], list[dict]]:
     """-> (cells, correlations). `cells`: one row per (model, adverse condition) with every measure and
     its bootstrap interval. `correlations`: Spearman and Kendall between label-free mean xi and each
     target (rPC, GT mIoU, xi against GT) across models within each adverse condition, and over every
@@ -151,9 +161,10 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     if clean not in conds:
         raise ValueError(f"the clean condition {clean} was not evaluated")
     adverse = [i for i, c in enumerate(conds) if c != clean]
-    point = [cell_measures(m, np.ones((1, n)), clean, include, absent) for m in models]
+    support = (min_images, min_pixels)
+    point = [cell_measures(m, np.ones((1, n)), clean, include, absent, *support) for m in models]
     w = resample_weights(n, resamples, seed).astype(float)
-    boot = [cell_measures(m, w, clean, include, absent) for m in models]
+    boot = [cell_measures(m, w, clean, include, absent, *support) for m in models]
     cells = []
     for m, p, b in zip(models, point, boot):
         for i in adverse:
@@ -184,4 +195,4 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
 
 
 __all__ = ["GroupCounts", "concat_groups", "cell_measures", "validity", "spearman_rows", "kendall_rows", "miou",
-           "mean_xi", "MEASURES", "TARGETS"]
+           "mean_xi", "supported", "MEASURES", "TARGETS"]

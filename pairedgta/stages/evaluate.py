@@ -27,7 +27,7 @@ from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_i
 from pairedgta.datasets import PairedDataset, load_group_images, load_label
 from pairedgta.errors import ConfigError, DataError, PairedGTAError
 from pairedgta.metrics.bootstrap import class_mean_ci, spearman_ci
-from pairedgta.metrics.conventions import convention_from_config
+from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics import (
     reference_consistency_counts,
     SELECTIONS,
@@ -58,8 +58,10 @@ from pairedgta.stages.common import (
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "4"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "5"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 # 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
+# 5: xi.csv `images`/`supported` (metric.min_images/min_pixels); no interval for a class seen in one image;
+#    random_one draws a time of day, then a weather of it (the authors' loader)
 GT = "ground_truth"
 
 
@@ -250,15 +252,21 @@ SAMPLINGS = ("all", "random_one")
 
 def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: str, seed: int) -> list[str]:
     """The conditions of one group to evaluate: all, or the clean one plus one adverse condition drawn
-    at random (the authors' loader). The draw depends only on (seed, group id), so it is reproducible
-    and does not change when groups are added, reordered or split over shards."""
+    as the authors' loader draws it: a time of day uniformly (the part of the name before the first
+    "-": Day, Sunset, Night), then one of that time's adverse weathers uniformly. On the paper's grid a
+    Day condition is drawn for 1/3 of the groups, not 2/8. The draw depends only on (seed, group id), so
+    it is reproducible and does not change when groups are added, reordered or split over shards."""
     if sampling == "all":
         return present
     adverse = [c for c in present if c != clean]
     if not adverse:
         return present
+    by_time: dict[str, list[str]] = {}
+    for c in adverse:
+        by_time.setdefault(c.split("-", 1)[0], []).append(c)
     rng = np.random.default_rng([seed, zlib.crc32(str(group_id).encode())])
-    return [clean, adverse[int(rng.integers(len(adverse)))]]
+    weathers = list(by_time.values())[int(rng.integers(len(by_time)))]
+    return [clean, weathers[int(rng.integers(len(weathers)))]]
 
 
 class _GroupInputs(torch.utils.data.Dataset):
@@ -552,14 +560,22 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
         xi = a.metric.compute().numpy()
         retained, reference = np.stack(a.retained), np.stack(a.reference)
         lo, hi = ratio_ci(retained, reference, s["resamples"], s["confidence"], s["seed"], conv["absent"])
+        images = (reference > 0).sum(axis=0)
+        if conv["absent"] == "nan":
+            # a class seen in one image: every resample that defines it gives the same ratio, so the
+            # bootstrap cannot vary and a zero-width interval would claim certainty
+            lo, hi = np.where(images < 2, np.nan, lo), np.where(images < 2, np.nan, hi)
+        supported = Convention(**{**conv, "mean_exclude": tuple(conv["mean_exclude"])}).supported(
+            images, a.metric.reference.numpy())
         ref_name = reference_model if source == "pseudo_label" else GT
-        # which classes the mean covers: the convention's classes, minus the undefined ones (NaN)
-        included = in_mean & ~np.isnan(xi)
+        # which classes the mean covers: the convention's classes, minus the undefined (NaN) and unsupported ones
+        included = in_mean & ~np.isnan(xi) & supported
         for k in range(NUM_CLASSES):
             xi_rows.append({
                 "model": model, "reference_model": ref_name, "condition": cond, "class_id": k,
                 "class_name": CLASS_NAMES[k], "xi": xi[k], "ci_low": lo[k], "ci_high": hi[k],
                 "reference_pixels": int(a.metric.reference[k]), "retained_pixels": int(a.metric.retained[k]),
+                "images": int(images[k]), "supported": bool(supported[k]),
                 "in_mean": bool(included[k]), "n_pairs": len(a.retained), "convention": name,
             })
         # the class-wise mean under the convention, with its own bootstrap over images
@@ -569,7 +585,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             "model": model, "reference_model": ref_name, "condition": cond, "class_id": -1, "class_name": "mean",
             "xi": mean, "ci_low": mlo, "ci_high": mhi,
             "reference_pixels": int(a.metric.reference.sum()), "retained_pixels": int(a.metric.retained.sum()),
-            "in_mean": False, "n_pairs": len(a.retained), "convention": name,
+            "images": len(a.retained), "supported": bool(included.any()), "in_mean": False, "n_pairs": len(a.retained), "convention": name,
         })
         summary["xi_mean" if source == "pseudo_label" else "xi_mean_gt"][cond] = mean
         if source == "pseudo_label" or not summary["n_pairs"].get(cond):
