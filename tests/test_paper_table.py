@@ -251,9 +251,36 @@ def test_printed_table_as_results_round_trips_the_published_means(tmp_path):
     got = xi[xi.class_name == "mean"].set_index(["condition", "model"])["xi"] * 100
     for r in table.itertuples(index=False):
         assert abs(got[(condition_name(r.condition), model_name(r.model))] - r.mean) <= 0.05 + 1e-9
+    # Table 1 as the tool prints it: every one of the 24 Means exactly as in the paper
+    printed = pd.read_csv(tmp_path / "paper" / "table1_xi.csv").set_index(["condition", "model"])["mean"] * 100
+    for r in table.itertuples(index=False):
+        assert f"{printed[(condition_name(r.condition), model_name(r.model))]:.1f}" == f"{r.mean:.1f}", r
     _, strict = paper_table(csv, tmp_path / "strict", STRICT)
     s = strict[strict.class_name == "mean"].set_index(["condition", "model"])["xi"] * 100
     # Night-Sunny, SegFormer-B5: 17 printed values minus rider and bicycle -> mean over 15
     b5 = table[(table.condition == "Night-Sunny") & (table.model == "SegFormer-B5")].iloc[0]
     want = np.mean([b5[c] for c in table.columns[2:-1] if c not in ("rider", "bicycle")])
     assert s[("Night-EXTRASUNNY", "segformer_b5")] == pytest.approx(want)
+
+
+def test_paper_means_are_the_mean_of_the_printed_cells_and_the_raw_mean_stays_in_the_long_csv(tmp_path):
+    """14 cells at 0.50049 (print 50.0) and 3 at 0.50249 (print 50.2): the raw mean 50.084 % prints 50.1,
+    the mean of the printed cells 50.035 % prints 50.0; the authors' Means are the latter."""
+    ret = {k: 0.50049 for k in range(19)} | {0: 0.50249, 1: 0.50249, 2: 0.50249}  # print 50.0 and 50.2
+    mass = {k: 10.0 for k in range(19)}
+    csv = tmp_path / "authors.csv"
+    pd.DataFrame(authors_rows("segformer-b5", "Day-Rain", ret, mass)).to_csv(csv, index=False)
+    paths, xi = paper_table(csv, tmp_path / "out", PAPER)
+    cells = [ret[CLASS_NAMES.index(c)] for c in CLASS_NAMES if c not in ("bus", "train")]
+    raw = np.mean(cells) * 100
+    printed = np.mean([round(v * 100, 1) for v in cells])
+    assert round(raw, 1) != round(printed, 1)  # the case where the conventions part
+    table = pd.read_csv(tmp_path / "out" / "table1_xi.csv")
+    assert table["mean"].item() * 100 == pytest.approx(printed)
+    assert f"{printed:.1f}" in (tmp_path / "out" / "table1_xi.md").read_text()
+    long = pd.read_csv(tmp_path / "out" / "table1_xi_long.csv")
+    assert long[long.class_name == "mean"].xi.item() * 100 == pytest.approx(raw)  # the raw mean, kept
+    # the strict convention prints evaluate's mean as it is
+    paper_table(csv, tmp_path / "strict", STRICT)
+    strict = pd.read_csv(tmp_path / "strict" / "table1_xi.csv")
+    assert strict["mean"].item() * 100 == pytest.approx(np.mean(list(ret.values())) * 100)

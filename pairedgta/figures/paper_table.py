@@ -230,8 +230,11 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
     convention; the metrics are every Mean, `table/authors/xi_mean/<condition>/<model>`."""
     path, convention, filters = _options(opts)
     paths, xi = paper_table(path, out, convention, filters, opts.formats, opts.dpi)
-    means = xi[xi["class_name"] == "mean"]
-    return paths, {f"table/authors/xi_mean/{r.condition}/{r.model}": float(r.xi) for r in means.itertuples()}
+    metrics = {}
+    for cond, table in xi_fig.xi_tables(xi, REFERENCE).items():  # the Means as the table prints them
+        for model, value in table["mean"].items():
+            metrics[f"table/authors/xi_mean/{cond}/{model}"] = float(value)
+    return paths, metrics
 
 
 def printed_table_as_results(out_csv: str | Path, table: str | Path | None = None) -> Path:
