@@ -25,6 +25,7 @@ FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="p
 FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")
 FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv")
 FIGURES.register("authors_table", "pairedgta.figures.paper_table:draw", needs=None, source="plot.table_csv")
+FIGURES.register("authors_ranking", "pairedgta.figures.authors_ranking:draw", needs=None, source="plot.frame_counts_csv")
 
 
 @dataclass

@@ -14,7 +14,6 @@ import seaborn as sns
 
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
-    TEXT_WIDTH,
     concat_tables,
     condition_display,
     markdown_table,
@@ -64,12 +63,13 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
     if not columns:
         return []
     with paper_style():
-        width = min(TEXT_WIDTH * 1.5, max(TEXT_WIDTH / 2, 2.0 * len(columns)))
-        fig = plt.figure(figsize=(width, 2.3 * len(inputs)))
+        # >= 9.5 in: >= 1200 px at the default 150 dpi once trimmed, ~2.3 in per panel so titles never collide
+        width = max(9.5, 2.3 * len(columns))
+        fig = plt.figure(figsize=(width, 2.5 * len(inputs)))
         outer = fig.add_gridspec(len(inputs), 1, hspace=0.55)
         for i, inp in enumerate(inputs):
             # per dataset: the heatmap row and, tight below it, the difference row (shared x)
-            inner = outer[i].subgridspec(2, len(columns), height_ratios=[1, 1.4], hspace=0.08, wspace=0.45)
+            inner = outer[i].subgridspec(2, len(columns), height_ratios=[1, 1.4], hspace=0.08, wspace=0.65)
             for j, (model, cls) in enumerate(columns):
                 top, bottom = fig.add_subplot(inner[0, j]), fig.add_subplot(inner[1, j])
                 g = sorted_counts(inp.counts, model, cls, inp.condition)
@@ -78,8 +78,9 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     bottom.axis("off")
                     continue
                 r = inp.rho[(inp.rho["model"] == model) & (inp.rho["class_name"] == cls) & (inp.rho["condition"] == inp.condition)]
-                vals = {row.selection: row.rho for row in r.itertuples()}
-                parts = [f"{SELECTION_LABEL.get(s, s)} {vals[s]:.3f}" for s in selections if s in vals and not math.isnan(vals[s])]
+                vals = {row.selection: row for row in r.itertuples()}
+                parts = [_rho_text(SELECTION_LABEL.get(s, s), vals[s]) for s in selections
+                         if s in vals and not math.isnan(vals[s].rho)]
                 if not parts:
                     # no rho_valid (too few frames with the class, or constant counts): say so in words
                     # rather than draw an all-black heatmap
@@ -90,6 +91,7 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                 sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
                             vmin=0, vmax=max(1.0, float(heat.max())))
                 cax.tick_params(labelsize=5, length=2)
+                cax.set_ylabel("\u03c6 (pixels)", fontsize=5, labelpad=1)
                 # one line per selection: two on one line run into the neighbouring panel's title
                 top.set_title(f"{inp.label} \u00b7 {model_display(model)} \u00b7 {cls}\n"
                               + "\n".join(f"\u03c1_valid {p}" for p in parts), fontsize=6)
@@ -109,6 +111,16 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                     if i == 0:
                         bottom.legend(fontsize=5, frameon=False)
         return save(fig, out, stem, formats, dpi)
+
+
+def _rho_text(label: str, row) -> str:
+    """`non-zero 0.991 [0.977, 0.996]`: the value and its bootstrap interval over frames (none when the
+    bootstrap could not give one)."""
+    text = f"{label} {row.rho:.3f}"
+    lo, hi = getattr(row, "ci_low", math.nan), getattr(row, "ci_high", math.nan)
+    if lo is not None and hi is not None and not (math.isnan(float(lo)) or math.isnan(float(hi))):
+        text += f" [{float(lo):.2f}, {float(hi):.2f}]"
+    return text
 
 
 def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:

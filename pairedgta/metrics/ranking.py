@@ -38,3 +38,21 @@ def rho_valid(clean_counts, adverse_counts, m: int = 25, selection: str = "top_m
         raise ValueError(f"clean and adverse counts differ in length: {clean.shape} vs {adverse.shape}")
     idx = select_frames(clean, m, selection)
     return spearman(clean[idx], adverse[idx])
+
+
+def rho_rows(clean_counts, adverse_counts, selections, m: int = 25, resamples: int = 1000, confidence: float = 0.95,
+             seed: int = 0, headline: str | None = None) -> list[dict]:
+    """One row per selection: rho_valid over its frames with a percentile bootstrap interval over those
+    frames (`m` is recorded for top_m only). Shared by evaluate and the authors' per-frame counts."""
+    from pairedgta.metrics.bootstrap import spearman_ci
+
+    clean = np.asarray(clean_counts, dtype=float)
+    adverse = np.asarray(adverse_counts, dtype=float)
+    rows = []
+    for sel in selections:
+        idx = select_frames(clean, m, sel)
+        x, y = clean[idx], adverse[idx]
+        lo, hi = spearman_ci(x, y, resamples, confidence, seed)
+        rows.append({"selection": sel, "m": m if sel == "top_m" else math.nan, "n_frames": len(idx),
+                     "rho": spearman(x, y), "ci_low": lo, "ci_high": hi, "headline": sel == headline})
+    return rows

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
 from pairedgta.datasets import PairedDataset, load_group_images, load_label
 from pairedgta.errors import ConfigError, DataError, PairedGTAError
-from pairedgta.metrics.bootstrap import class_mean_ci, spearman_ci
+from pairedgta.metrics.bootstrap import class_mean_ci
 from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics import (
     reference_consistency_counts,
@@ -38,9 +38,8 @@ from pairedgta.metrics import (
     mean_mask,
     prediction_mass_from_labels,
     ratio_ci,
-    select_frames,
-    spearman,
 )
+from pairedgta.metrics.ranking import rho_rows as rho_valid_rows
 from pairedgta.models import shared_segmenter
 from pairedgta.cache import MANIFEST, canonical_json, stage_hash
 from pairedgta.conditions import ConditionGrid
@@ -614,21 +613,13 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
     counts.to_csv(out / "frame_counts.csv", index=False)
     rho_rows = []
     for (cls, cond), g in counts.groupby(["class_name", "condition"], sort=False):
-        clean_c = g["clean_count"].to_numpy()
-        adv_c = g["adv_count"].to_numpy()
-        for sel in s["selections"]:
-            idx = select_frames(clean_c, s["m"], sel)
-            x, y = clean_c[idx], adv_c[idx]
-            rho = spearman(x, y)
-            lo, hi = spearman_ci(x, y, s["resamples"], s["confidence"], s["seed"])
-            rho_rows.append({
-                "dataset": dataset.name, "model": model, "class_name": cls, "condition": cond, "selection": sel,
-                "m": s["m"] if sel == "top_m" else math.nan, "n_frames": len(idx), "rho": rho, "ci_low": lo, "ci_high": hi,
-                "headline": sel == conv["rho_headline"], "convention": name,
-            })
-            summary["rho_valid"].setdefault(cond, {}).setdefault(sel, {})[cls] = rho
-            if sel == conv["rho_headline"]:
-                summary["rho_valid_headline"].setdefault(cond, {})[cls] = rho
+        for r in rho_valid_rows(g["clean_count"].to_numpy(), g["adv_count"].to_numpy(), s["selections"], s["m"],
+                                s["resamples"], s["confidence"], s["seed"], conv["rho_headline"]):
+            rho_rows.append({"dataset": dataset.name, "model": model, "class_name": cls, "condition": cond, **r,
+                             "convention": name})
+            summary["rho_valid"].setdefault(cond, {}).setdefault(r["selection"], {})[cls] = r["rho"]
+            if r["headline"]:
+                summary["rho_valid_headline"].setdefault(cond, {})[cls] = r["rho"]
     pd.DataFrame(rho_rows, columns=["dataset", "model", "class_name", "condition", "selection", "m", "n_frames", "rho",
                                     "ci_low", "ci_high", "headline", "convention"]).to_csv(out / "rho_valid.csv", index=False)
 

@@ -187,7 +187,12 @@ def _root_key(container: dict[str, Any], dataset: dict[str, Any], variant: bool)
 
 
 def check_roots(container: dict[str, Any]) -> None:
-    """Every dataset a pass reads needs a root, before anything is computed: one line naming the key."""
+    """Every dataset a pass reads needs a root, before anything is computed: one line naming the key.
+    A run that only draws figures from files given to it (plot.table_csv, plot.frame_counts_csv) reads none."""
+    from pairedgta.stages import plot
+
+    if plot.sourced(container) and list(container.get("stages") or []) == ["plot"]:
+        return
     for _label, cfg in pass_configs(container):
         d = cfg["dataset"]
         if d.get("root") == MISSING:
@@ -204,9 +209,9 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
             f"dataset={dcfg.get('name')} is not a paired dataset: it feeds the model check "
             f"(+experiment=cityscapes_val_check, stages=[{CHECK_STAGE}]), not {', '.join(plan.stages)}"
         )
+    if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
+        return PassResult(label, cfg, grid)  # figures drawn from given files (cost.csv, the authors' CSVs) read no dataset
     if dcfg.get("root") is None:
-        if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
-            return PassResult(label, cfg, grid)  # e.g. the cost figure from a given CSV
         gen = generate.run(ctx)
         results["generate"] = gen
         if not gen.complete:  # a shard job: other shards still have scenes to render
