@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 import pairedgta.figures.qualitative as qualitative
+from pairedgta.cityscapes import CLASS_NAMES
 import pairedgta.figures.xi as xi_figure
 import pairedgta.models as models
 from pairedgta.app import run
@@ -97,7 +98,7 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     save = qualitative.save
 
     def keep(fig, out, stem, formats, dpi):
-        grids[stem] = {"legend": [t.get_text() for lg in fig.legends for t in lg.get_texts()],
+        grids[stem] = {"legends": [(lg.get_title().get_text(), [t.get_text() for t in lg.get_texts()]) for lg in fig.legends],
                        "labels": [a.get_xlabel() or a.get_ylabel() for a in fig.get_axes()]}
         return save(fig, out, stem, formats, dpi)
 
@@ -109,7 +110,10 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     assert sorted(built) == ["tiny_pidnet", "tiny_segformer"]
     assert set(grids) == {"qualitative_tiny_segformer", "qualitative_tiny_pidnet"}
     for g in grids.values():
-        assert [t for t in g["legend"]] == [t for t, _ in qualitative.LEGEND]
+        (_, overlay), (title, classes) = g["legends"]
+        assert overlay == [t for t, _ in qualitative.LEGEND]
+        # the prediction columns' key: the classes shown, in Cityscapes order
+        assert title == "predicted classes" and classes and classes == [c for c in CLASS_NAMES if c in classes]
         assert "max softmax probability" in g["labels"]  # the confidence column's colour bar
     err = capsys.readouterr().err
     assert re.search(r"plot: 100%\|[^\n\r]*\| 2/2", err), err[-1500:]
@@ -123,3 +127,21 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     cfg = models.model_config("tiny_segformer")
     assert models.shared_segmenter(cfg) is not models.shared_segmenter(cfg)
     assert built == ["tiny_segformer", "tiny_segformer"]
+
+
+def test_contact_sheet_has_a_class_colour_key_for_its_label_tile(tmp_path, monkeypatch):
+    import pairedgta.figures.contact_sheet as sheet
+
+    legends = []
+    save = sheet.save
+
+    def keep(fig, out, stem, formats, dpi):
+        legends.extend((lg.get_title().get_text(), [t.get_text() for t in lg.get_texts()]) for lg in fig.legends)
+        return save(fig, out, stem, formats, dpi)
+
+    monkeypatch.setattr(sheet, "save", keep)
+    summary = run(compose_cfg(fast_overrides(tmp_path) + ["stages=[generate,plot]", "plot.figures=[contact_sheet]"]))
+    assert (Path(summary["plot"]) / "contact_sheet.png").is_file()
+    ((title, classes),) = legends
+    assert title == "classes (Cityscapes colours)"
+    assert len(classes) >= 3 and classes == [c for c in CLASS_NAMES if c in classes]  # road, sky, ... in order

@@ -28,6 +28,20 @@ FONT_SIZE = 7
 # the class order of every table and figure (Cityscapes train ids) and its colours
 CLASS_ORDER: tuple[str, ...] = CLASS_NAMES
 CLASS_COLORS = {name: tuple(PALETTE[i] / 255.0) for i, name in enumerate(CLASS_NAMES)}
+
+
+def class_legend_handles(label_maps) -> list:
+    """Cityscapes-colour swatches for the classes present in the given label maps (train ids; void
+    ignored), in Cityscapes order: the key a reader needs to read a colourised prediction."""
+    import numpy as np
+    from matplotlib.patches import Patch
+
+    present = set()
+    for m in label_maps:
+        ids = np.unique(np.asarray(m))
+        present |= {int(k) for k in ids if 0 <= k < len(CLASS_NAMES)}
+    return [Patch(facecolor=CLASS_COLORS[CLASS_NAMES[k]], edgecolor="0.5", linewidth=0.3, label=CLASS_NAMES[k])
+            for k in sorted(present)]
 CLASS_SHORT = {"traffic light": "T. light", "traffic sign": "T. sign", "motorcycle": "motor."}
 
 MODEL_DISPLAY = {

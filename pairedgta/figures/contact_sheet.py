@@ -14,7 +14,7 @@ from pairedgta.cityscapes import colorize  # noqa: E402
 from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
-from pairedgta.figures.common import save  # noqa: E402
+from pairedgta.figures.common import class_legend_handles, save  # noqa: E402
 
 
 def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, formats: list[str], dpi: int,
@@ -35,12 +35,18 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
     for ax, name in zip(axes.flat, names):
         ax.imshow(load_image(group.images[name]))
         ax.set_title(condition_display(name), fontsize=8)
+    handles = []
     if has_labels:
         ax = axes.flat[len(names)]
-        ax.imshow(colorize(load_label(group.labels[dataset.reference])))
+        label = load_label(group.labels[dataset.reference])
+        ax.imshow(colorize(label))
         ax.set_title("labels (identical in every condition)", fontsize=8)
+        handles = class_legend_handles([label])
     fig.suptitle(f"{dataset.name} group {group.group_id}", fontsize=9)
     fig.tight_layout()
+    if handles:  # the label tile's key, below the sheet
+        fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncols=min(len(handles), 7),
+                   fontsize=7, frameon=False, title="classes (Cityscapes colours)", title_fontsize=7)
     return save(fig, out, stem, formats, dpi)
 
 

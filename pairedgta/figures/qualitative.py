@@ -19,7 +19,15 @@ import pandas as pd
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save, slug
+from pairedgta.figures.common import (
+    TEXT_WIDTH,
+    class_legend_handles,
+    condition_display,
+    model_display,
+    paper_style,
+    save,
+    slug,
+)
 
 log = logging.getLogger("pairedgta.plot")
 COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",
@@ -117,6 +125,11 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
         bar.ax.tick_params(labelsize=5, length=2)
         handles = [Patch(facecolor=colour / 255.0, edgecolor="none", label=text) for text, colour in LEGEND]
         fig.legend(handles=handles, loc="outside lower right", fontsize=5, frameon=False, ncols=1)
+        # the key to the prediction columns: the classes they show, in Cityscapes colours
+        classes = class_legend_handles([m for panel in panels for m in (panel[2], panel[4])])
+        if classes:
+            fig.legend(handles=classes, loc="outside lower left", fontsize=5, frameon=False,
+                       ncols=min(len(classes), 5), title="predicted classes", title_fontsize=5)
         fig.suptitle(title or model_display(segmenter.name), fontsize=7)
         return save(fig, out, stem, formats, dpi), pd.DataFrame(rows)
 
