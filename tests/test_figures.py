@@ -145,3 +145,14 @@ def test_contact_sheet_has_a_class_colour_key_for_its_label_tile(tmp_path, monke
     ((title, classes),) = legends
     assert title == "classes (Cityscapes colours)"
     assert len(classes) >= 3 and classes == [c for c in CLASS_NAMES if c in classes]  # road, sky, ... in order
+
+
+def test_figures_that_key_the_plot_by_their_own_files_say_so_at_registration():
+    """plot reads `keyed` from the registry instead of importing every figure module on a cached run."""
+    import inspect
+
+    from pairedgta.figures import FIGURES
+
+    for name in FIGURES.names():
+        module = inspect.getmodule(FIGURES.resolve(name))
+        assert hasattr(module, "cache_key") == bool(FIGURES.meta(name).get("keyed")), name

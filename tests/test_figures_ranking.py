@@ -72,7 +72,7 @@ def test_rho_valid_from_the_authors_frame_counts_through_the_cli(tmp_path):
     from pairedgta.figures import FIGURES
     from pairedgta.testing.cli import run_cli
 
-    assert FIGURES.meta("authors_ranking") == {"needs": None, "source": "plot.frame_counts_csv"}
+    assert FIGURES.meta("authors_ranking") == {"needs": None, "source": "plot.frame_counts_csv", "keyed": True}
     csv, df = _authors_counts(tmp_path / "framewise_target_class_counts.csv")
     cache = tmp_path / "cache"
     args = ["+experiment=night_vs_acdc", "stages=[plot]", f"plot.frame_counts_csv={csv}", f"cache_dir={cache}",

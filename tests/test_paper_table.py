@@ -210,7 +210,7 @@ def test_table_from_the_csv_is_a_registered_figure_keyed_by_content(tmp_path):
     from pairedgta.figures import FIGURES
     from pairedgta.testing.cli import base_overrides, compose_cfg
 
-    assert FIGURES.meta("authors_table") == {"needs": None, "source": "plot.table_csv"}
+    assert FIGURES.meta("authors_table") == {"needs": None, "source": "plot.table_csv", "keyed": True}
     (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
     csv = small_csv(tmp_path / "a" / "results.csv")
     moved = tmp_path / "b" / "renamed.csv"

@@ -13,7 +13,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-import seaborn as sns
 
 from pairedgta.cityscapes import CLASS_NAMES, PALETTE
 from pairedgta import conditions
@@ -69,6 +68,8 @@ def model_display(name: str) -> str:
 
 def model_color(name: str) -> tuple[float, float, float]:
     import zlib
+
+    import seaborn as sns  # ~0.5 s (scipy.stats): only when a figure is drawn, not when a config is checked
 
     palette = sns.color_palette("tab10", 10) + sns.color_palette("Dark2", 8)
     idx = _MODEL_ORDER.index(name) if name in _MODEL_ORDER else zlib.crc32(name.encode())

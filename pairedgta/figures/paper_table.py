@@ -23,7 +23,6 @@ import pandas as pd
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures import xi as xi_fig
 from pairedgta.figures.common import MODEL_DISPLAY, slug
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import Convention, convention_from_config
@@ -187,6 +186,8 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
     if missing:
         log.warning("%s: %d (model, condition, class) rows missing; counted as classes without reference pixels", source, missing)
     out.mkdir(parents=True, exist_ok=True)
+    from pairedgta.figures import xi as xi_fig  # seaborn: only when a table is drawn (config checks read FILTERS)
+
     paths = xi_fig.write_tables(xi, REFERENCE, out, stem=stem)
     md = out / f"{stem}.md"
     digest = sha256_file(csv_path)[:16]
@@ -230,6 +231,8 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
     convention; the metrics are every Mean, `table/authors/xi_mean/<condition>/<model>`."""
     path, convention, filters = _options(opts)
     paths, xi = paper_table(path, out, convention, filters, opts.formats, opts.dpi)
+    from pairedgta.figures import xi as xi_fig
+
     metrics = {}
     for cond, table in xi_fig.xi_tables(xi, REFERENCE).items():  # the Means as the table prints them
         for model, value in table["mean"].items():

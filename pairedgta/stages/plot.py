@@ -130,8 +130,8 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
             inputs[f"{tag}/evaluate/{j}"] = e.key
     for name in figures:
         # a figure that reads files of its own (cost.csv, the paper's timings) puts their hashes in the key
-        cache_key = getattr(inspect.getmodule(FIGURES.resolve(name)), "cache_key", None)
-        if cache_key is not None:
+        if FIGURES.meta(name).get("keyed"):
+            cache_key = getattr(inspect.getmodule(FIGURES.resolve(name)), "cache_key")
             config[name], extra_inputs = cache_key(passes, options(ctx.cfg, passes))
             inputs.update(extra_inputs)
     result = run_cached(ctx, "plot", VERSION, config, inputs, lambda out: make_plots(ctx, passes, out),
