@@ -65,7 +65,12 @@ RULES = [
     _rule("renderer.timeout_s", float, lambda v: v > 0, "use seconds > 0"),
     _rule("renderer.retries", int, lambda v: v >= 0, "use an integer >= 0"),
     _rule("renderer.backoff_s", float, lambda v: v >= 0, "use seconds >= 0"),
-    _rule("generate.num_scenes", int, lambda v: v >= 1, "use an integer >= 1", optional=False),
+    _rule("generate.num_scenes", int, lambda v: 1 <= v <= 10_000_000, "use an integer from 1 to 10,000,000",
+          optional=False),
+    _rule("generate.camera.fov", float, lambda v: 0.0 < v < 180.0,
+          "use a horizontal field of view in degrees, 0 < fov < 180 (the paper's camera: 60)"),
+    _rule("renderer.max_distance", float, lambda v: v > 0, "use metres > 0 (how far the street is traced; default 150)"),
+    _rule("renderer.noise_std", float, lambda v: v >= 0, "use a standard deviation >= 0 (0 = no sensor noise)"),
     _rule("generate.workers", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("generate.seed", int, lambda v: True, "use an integer"),
     _rule("pseudolabel.tau", float, lambda v: 0.0 <= v <= 1.0, "use a softmax threshold in [0, 1]", optional=False),
@@ -159,6 +164,15 @@ def check_plot(cfg: dict[str, Any], names: set[str], where: str) -> None:
         bad = [c for c in listed if c not in names]
         if bad:
             raise ConfigError(f"{where}plot.qualitative_conditions: unknown condition(s) {bad}; known: {', '.join(sorted(names))}")
+    from pairedgta.cityscapes import CLASS_NAMES
+
+    for key, classes in (("plot.ranking.classes", (plot.get("ranking") or {}).get("classes")),
+                         ("metric.rho.classes", ((cfg.get("metric") or {}).get("rho") or {}).get("classes"))):
+        listed = [classes] if isinstance(classes, str) else list(classes or [])
+        unknown = [c for c in listed if c not in CLASS_NAMES]
+        if unknown:
+            raise ConfigError(f"{where}{key}: unknown class(es) {unknown}; use Cityscapes names, e.g. [person, car] "
+                              f"(known: {', '.join(CLASS_NAMES)})")
     cond = (plot.get("ranking") or {}).get("condition")
     if cond is not None and cond not in names:
         raise ConfigError(f"{where}plot.ranking.condition={cond!r} is not a condition of this run; known: {', '.join(sorted(names))}")
@@ -213,6 +227,10 @@ def check_table_filter(plot: dict[str, Any], where: str) -> None:
 def check_run_config(cfg: dict[str, Any]) -> None:
     """Raise one ConfigError for the first bad value of a resolved run config (see the module doc)."""
     check_cache_dir(cfg.get("cache_dir"))
+    stages = cfg.get("stages")
+    if stages is not None and not list(stages):
+        raise ConfigError("stages=[] runs nothing; list the stages to run, e.g. stages=[generate,pseudolabel,evaluate,plot] "
+                          "(the default) or stages=[plot]")
     configs = passes(cfg)
     names: set[str] = set()
     for where, pcfg in configs:

@@ -170,6 +170,15 @@ BAD_CONFIG = {
     "unknown_mean_exclude_class": (["metric.mean_exclude=[tram]"], "metric.mean_exclude: unknown class(es) ['tram']"),
     "headline_not_selected": (["metric.rho.headline=nonzero", "metric.rho.selections=[top_m]"],
                               "metric.rho.headline='nonzero' is not among metric.rho.selections=['top_m']"),
+    "num_scenes_astronomical": (["generate.num_scenes=1e20"], "generate.num_scenes=1e+20 is out of range"),
+    "fov_zero": (["generate.camera.fov=0"], "generate.camera.fov=0 is out of range; use a horizontal field of view"),
+    "fov_wider_than_a_half_turn": (["generate.camera.fov=270"], "generate.camera.fov=270 is out of range"),
+    "negative_noise": (["renderer.noise_std=-5"], "renderer.noise_std=-5 is out of range"),
+    "zero_trace_distance": (["renderer.max_distance=0"], "renderer.max_distance=0 is out of range"),
+    "no_stages": (["stages=[]"], "stages=[] runs nothing"),
+    "unknown_ranking_class": (["plot.ranking.classes=[unicorn]"], "plot.ranking.classes: unknown class(es) ['unicorn']"),
+    "unknown_rho_class": (["metric.rho.classes=[unicorn]"], "metric.rho.classes: unknown class(es) ['unicorn']"),
+    "negative_min_images": (["metric.min_images=-1"], "metric.min_images=-1 is invalid"),
 }
 
 
