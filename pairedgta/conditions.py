@@ -93,8 +93,10 @@ class ConditionGrid:
     def select(self, names: Iterable[str]) -> "ConditionGrid":
         wanted = list(names)
         picked = tuple(self[n] for n in wanted)
-        reference = self.reference if self.reference in wanted else wanted[0]
-        return ConditionGrid(picked, reference)
+        if self.reference not in wanted:  # silently promoting e.g. a rain image to the reference would be wrong
+            raise ConfigError(f"conditions.only={wanted} leaves out the reference condition {self.reference}, which every "
+                              f"adverse image is compared with; add it, or set conditions.reference to one of {wanted}")
+        return ConditionGrid(picked, self.reference)
 
 
 def condition_name(time: str, weather: str) -> str:

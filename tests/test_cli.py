@@ -176,6 +176,8 @@ BAD_CONFIG = {
     "negative_noise": (["renderer.noise_std=-5"], "renderer.noise_std=-5 is out of range"),
     "zero_trace_distance": (["renderer.max_distance=0"], "renderer.max_distance=0 is out of range"),
     "no_stages": (["stages=[]"], "stages=[] runs nothing"),
+    "only_without_the_reference": (["conditions.only=[Day-RAIN,Night-EXTRASUNNY]"],
+                                   "leaves out the reference condition Day-EXTRASUNNY"),
     "unknown_ranking_class": (["plot.ranking.classes=[unicorn]"], "plot.ranking.classes: unknown class(es) ['unicorn']"),
     "unknown_rho_class": (["metric.rho.classes=[unicorn]"], "metric.rho.classes: unknown class(es) ['unicorn']"),
     "negative_min_images": (["metric.min_images=-1"], "metric.min_images=-1 is invalid"),
