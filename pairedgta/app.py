@@ -21,9 +21,6 @@ log = logging.getLogger("pairedgta")
 
 def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, Any]:
     """`task_overrides`: the command line's overrides (Hydra's), to know whether `model=` was chosen."""
-    from pairedgta import configs
-
-    configs.reset_cache()
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
     check_run_config(container)

@@ -225,7 +225,11 @@ def check_table_filter(plot: dict[str, Any], where: str) -> None:
 
 
 def check_run_config(cfg: dict[str, Any]) -> None:
-    """Raise one ConfigError for the first bad value of a resolved run config (see the module doc)."""
+    """Raise one ConfigError for the first bad value of a resolved run config (see the module doc).
+    The first step of every run, so it also starts the run's cache of composed model configs."""
+    from pairedgta import configs
+
+    configs.reset_cache()
     check_cache_dir(cfg.get("cache_dir"))
     stages = cfg.get("stages")
     if stages is not None and not list(stages):

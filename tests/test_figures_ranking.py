@@ -113,4 +113,6 @@ def test_rho_valid_from_the_authors_frame_counts_through_the_cli(tmp_path):
         assert proc.returncode != 0 and re.search(message, proc.stderr), (name, proc.stderr[-2000:])
         assert "Traceback" not in proc.stderr
     proc = run_cli(args + ["plot.ranking.classes=[unicorn]"], tmp_path)
-    assert proc.returncode != 0 and "plot.ranking.classes: ['unicorn'] not in" in proc.stderr
+    assert proc.returncode == 2 and "plot.ranking.classes: unknown class(es) ['unicorn']" in proc.stderr
+    proc = run_cli(args + ["plot.ranking.classes=[bus]"], tmp_path)  # a class, but not in the file
+    assert proc.returncode != 0 and "plot.ranking.classes: ['bus'] not in" in proc.stderr
