@@ -101,10 +101,11 @@ def check_table(plot_dir: Path, evals: dict[str, Path], reference: str = "Day-EX
             csv_vals = wide[wide.condition == cond].set_index("model")[cls]
             for m in evals:
                 exact = float(part[(part.model == m) & (part.class_name == cls)].xi.iloc[0])
-                if cls == "mean" and paper:
+                tol = None
+                if cls == "mean" and paper:  # printed to one decimal
                     cells = part[(part.class_name != "mean") & part.in_mean & (part.model == m)]
-                    exact = cells.xi.mul(100).round(1).mean() / 100
-                assert (math.isnan(exact) and math.isnan(csv_vals[m])) or csv_vals[m] == pytest.approx(exact)
+                    exact, tol = cells.xi.mul(100).round(1).mean() / 100, 5e-4 + 1e-9
+                assert (math.isnan(exact) and math.isnan(csv_vals[m])) or csv_vals[m] == pytest.approx(exact, abs=tol)
     assert "\\toprule" in (plot_dir / "table1_xi.tex").read_text() and "\\bottomrule" in (plot_dir / "table1_xi.tex").read_text()
 
 

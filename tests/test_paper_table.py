@@ -75,7 +75,7 @@ def test_paper_convention_mean_over_17_classes_with_absent_as_zero(tmp_path):
     assert cell.at[("Day-RAIN", "segformer_b5"), "mean"] == pytest.approx(16 * 0.85 / 17)
     assert cell.at[("Day-RAIN", "segformer_b5"), "rider"] == 0.0
     assert cell.at[("Night-EXTRASUNNY", "segformer_b5"), "mean"] == pytest.approx(0.42)
-    assert cell.at[("Day-RAIN", "ddrnet_23"), "mean"] == pytest.approx(16 * 0.2 / 17)
+    assert cell.at[("Day-RAIN", "ddrnet_23"), "mean"] == pytest.approx(0.188)  # 16 x 20.0 / 17 = 18.82 -> 18.8 printed
     assert cell.at[("Night-EXTRASUNNY", "ddrnet_23"), "mean"] == pytest.approx(0.1)
     # conditions in the paper's grid order, the reference never a table of its own
     assert list(dict.fromkeys(wide["condition"])) == ["Day-RAIN", "Night-EXTRASUNNY"]
@@ -276,11 +276,25 @@ def test_paper_means_are_the_mean_of_the_printed_cells_and_the_raw_mean_stays_in
     printed = np.mean([round(v * 100, 1) for v in cells])
     assert round(raw, 1) != round(printed, 1)  # the case where the conventions part
     table = pd.read_csv(tmp_path / "out" / "table1_xi.csv")
-    assert table["mean"].item() * 100 == pytest.approx(printed)
-    assert f"{printed:.1f}" in (tmp_path / "out" / "table1_xi.md").read_text()
+    assert table["mean"].item() * 100 == pytest.approx(50.0)  # the mean of the printed cells, printed
+    md = (tmp_path / "out" / "table1_xi.md").read_text()
+    assert re.search(r"\| (\*\*)?50\.0(\*\*)? \|\n", md) and "50.1" not in md  # the Mean, last column
     long = pd.read_csv(tmp_path / "out" / "table1_xi_long.csv")
     assert long[long.class_name == "mean"].xi.item() * 100 == pytest.approx(raw)  # the raw mean, kept
     # the strict convention prints evaluate's mean as it is
     paper_table(csv, tmp_path / "strict", STRICT)
     strict = pd.read_csv(tmp_path / "strict" / "table1_xi.csv")
     assert strict["mean"].item() * 100 == pytest.approx(np.mean(list(ret.values())) * 100)
+
+
+def test_printed_means_round_half_up_in_exact_tenths():
+    """51.35 is the mean of the printed cells (e.g. 20 cells summing to 1027.0): it prints 51.4, however
+    the float sum of those cells happens to land."""
+    from pairedgta.figures.xi import printed_mean
+
+    cells = [51.3] * 10 + [51.4] * 10  # tenths sum 10270 over 20 -> 51.35 exactly
+    part = pd.DataFrame({"model": "m", "class_name": [f"c{i}" for i in range(20)], "xi": [c / 100 for c in cells],
+                         "in_mean": True})
+    assert printed_mean(part)["m"] == pytest.approx(0.514)
+    part.loc[19, "in_mean"] = False  # without one 51.4: 9756 / 19 = 513.47 tenths -> 51.3
+    assert printed_mean(part)["m"] == pytest.approx(0.513)
