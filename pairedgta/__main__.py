@@ -19,7 +19,17 @@ if not OmegaConf.has_resolver("pid"):
 
 
 def _terminate(signum: int, frame: object) -> None:
-    raise Terminated(f"stopped by {signal.Signals(signum).name}")
+    from pairedgta import interrupt
+
+    if not interrupt.request(signum):  # else raised by interrupt.check() once Cycles has returned
+        raise Terminated(f"stopped by {signal.Signals(signum).name}")
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    from pairedgta import interrupt
+
+    if not interrupt.request(signum):
+        raise KeyboardInterrupt
 
 
 @hydra.main(version_base="1.3", config_path="pkg://pairedgta.conf", config_name="config")
@@ -31,6 +41,7 @@ def main(cfg: DictConfig) -> None:
     logging.getLogger("fontTools").setLevel(logging.WARNING)
     # SIGTERM (kill, a scheduler's cancel) unwinds like Ctrl-C: temp folders go, MLflow marks KILLED
     previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
+    previous_int = signal.signal(signal.SIGINT, _interrupt) if _main_thread() else None
 
     from hydra.core.hydra_config import HydraConfig
 
@@ -42,12 +53,17 @@ def main(cfg: DictConfig) -> None:
         log.error("%s", exc)
         sys.exit(2)
     except (KeyboardInterrupt, Terminated) as exc:
-        print(f"error: interrupted ({exc or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
+        print(f"error: interrupted ({str(exc) or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
         sys.exit(130 if isinstance(exc, KeyboardInterrupt) else 143)
     finally:
         release_all()
+        from pairedgta import interrupt
+
+        interrupt.clear()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
     # a successful run also clears resumable work crashed runs left and nobody resumed
     StageCache(str(cfg.cache_dir)).sweep(partials=True)
     where = (summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")

@@ -405,3 +405,51 @@ def test_cycles_cuda_probe_stays_quiet_on_the_cpu_and_other_output_passes():
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "CUEW" not in proc.stdout + proc.stderr
     assert "kept line" in proc.stdout and proc.stdout.rstrip().endswith("done")
+
+
+def test_a_stop_that_cycles_swallows_is_raised_between_images(tmp_path):
+    """Ctrl-C/SIGTERM arriving while Cycles renders is raised inside Blender's Python RenderEngine
+    callback, where Blender prints it and renders on; the signal handlers also record it, and the
+    renderer raises it again as soon as the image is done."""
+    import signal
+    from types import SimpleNamespace
+
+    from pairedgta import interrupt
+    from pairedgta.errors import Terminated
+    from pairedgta.render.blender.renderer import BlenderRenderer
+
+    out = tmp_path / "x.png"
+    scene = SimpleNamespace(render=SimpleNamespace(filepath=""))
+
+    calls = []
+
+    def render(write_still):  # what Blender does with an exception raised in Cycles' callback
+        calls.append(1)
+        if len(calls) == 1:
+            try:
+                interrupt.request(signal.SIGTERM)
+                raise Terminated("stopped by SIGTERM")
+            except BaseException:
+                pass
+        out.write_bytes(b"png")
+
+    r = object.__new__(BlenderRenderer)
+    r._bpy = SimpleNamespace(context=SimpleNamespace(scene=scene), ops=SimpleNamespace(render=SimpleNamespace(render=render)))
+    r._tmp = str(tmp_path)
+    try:
+        with pytest.raises(Terminated, match="SIGTERM"):
+            r._render_to(str(out))
+        interrupt.clear()
+        r._render_to(str(out))  # no request pending: renders on
+        interrupt.request(signal.SIGINT)
+        with pytest.raises(KeyboardInterrupt):
+            interrupt.check()
+        interrupt.clear()
+        # during a render the handlers only record (nothing is raised into Cycles); raised right after
+        with pytest.raises(Terminated):
+            with interrupt.deferred():
+                assert interrupt.request(signal.SIGTERM) is True  # the handler returns without raising
+        interrupt.clear()
+        assert interrupt.request(signal.SIGTERM) is False  # outside a render the handler raises at once
+    finally:
+        interrupt.clear()

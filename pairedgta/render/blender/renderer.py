@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from pairedgta.conditions import Condition
+from pairedgta import interrupt
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render.base import Renderer, RenderResult
 from pairedgta.render.blender.geometry import OBJECT_MATERIAL, TOWN_MATERIAL, mesh_object
@@ -507,8 +508,11 @@ class BlenderRenderer(Renderer):
     def _render_to(self, path: str) -> None:
         sc = self._bpy.context.scene
         sc.render.filepath = path
-        with _quiet_stdout():  # Blender prints a "Saved: ..." line per render
+        # Ctrl-C or SIGTERM during the render would be raised inside Cycles' Python callback, where
+        # Blender prints it and renders on: recorded instead, and raised once the image is done
+        with _quiet_stdout(), interrupt.deferred():  # Blender prints a "Saved: ..." line per render
             self._bpy.ops.render.render(write_still=True)
+        interrupt.check()  # also one that reached a callback before `deferred` took effect
         if not os.path.exists(path):
             raise RendererError(f"Cycles wrote no image to {path}; check free space in {self._tmp}")
 
