@@ -26,7 +26,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     check_run_config(container)
     planning.check_roots(container)
     plan = planning.make_plan(container)
-    models = planning.run_models(container, planning.model_group_overridden(task_overrides))
+    models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
     pseudolabel.check_tau(container)
     cache = StageCache(container["cache_dir"])
     tracking = container.get("tracking") or {}

@@ -440,6 +440,12 @@ def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
     return result
 
 
+def will_compute(ctx: Context) -> bool:
+    """Whether `run` would render (no intact cached dataset for this config, or generate is forced)."""
+    key = stage_hash("generate", VERSION, hash_config(ctx.cfg, ctx.grid), {})
+    return "generate" in ctx.force or ctx.cache.problem("generate", key) is not None
+
+
 def run(ctx: Context) -> GeneratedData:
     cfg = ctx.cfg
     config = hash_config(cfg, ctx.grid)

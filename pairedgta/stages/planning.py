@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,6 +53,7 @@ class Plan:
     stages: list[str]
     force: set[str]
     needs: set[str]  # upstream stages the requested figures read
+    models: Any = None  # RunModels, once resolved: checked for availability before a new dataset is rendered
 
     @property
     def plotting(self) -> bool:
@@ -195,9 +197,16 @@ def check_roots(container: dict[str, Any]) -> None:
         return
     for _label, cfg in pass_configs(container):
         d = cfg["dataset"]
-        if d.get("root") == MISSING:
+        root = d.get("root")
+        if root == MISSING:
             key = _root_key(container, d, bool(container.get("variants")))
             raise ConfigError(missing_root_message(d, key))
+        if root is not None and not Path(str(root)).expanduser().is_dir():
+            # before the generated pass renders for minutes; named by the key the user typed (acdc.root)
+            key = _root_key(container, d, bool(container.get("variants")))
+            what = "is a file, not a directory" if Path(str(root)).expanduser().exists() else "does not exist"
+            raise ConfigError(f"{key}={root} {what}; point it at the {d.get('name', 'dataset')} folder "
+                              f"(the one that holds its images)")
 
 
 def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> PassResult:
@@ -212,6 +221,10 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
     if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
         return PassResult(label, cfg, grid)  # figures drawn from given files (cost.csv, the authors' CSVs) read no dataset
     if dcfg.get("root") is None:
+        if plan.models is not None and plan.run_pseudo and generate.will_compute(ctx):
+            from pairedgta.models.availability import check_available
+
+            check_available([*plan.models.evaluated, plan.models.reference])  # before minutes of rendering
         gen = generate.run(ctx)
         results["generate"] = gen
         if not gen.complete:  # a shard job: other shards still have scenes to render
