@@ -68,6 +68,9 @@ def _compose_option(group: str, name: str) -> dict[str, Any]:
     if not _NAME.fullmatch(name) or ".." in name:
         raise ConfigError(f"{group} name {name!r} is not a config name; choose one of: {', '.join(group_options(group))}")
     with _search_path():
+        plain = _plain_option(group, name)
+        if plain is not None:
+            return plain
         try:
             cfg = compose(config_name=f"{group}/{name}")
         except MissingConfigException:
@@ -76,6 +79,21 @@ def _compose_option(group: str, name: str) -> dict[str, Any]:
     assert isinstance(out, dict)
     # a group option composed on its own lands under its package (the group name)
     return dict(out[group]) if set(out) == {group} else out
+
+
+def _plain_option(group: str, name: str) -> dict[str, Any] | None:
+    """A group option without a defaults list or a package header, read straight from the search path
+    (~3 ms, where a compose takes ~120 ms inside the app); None when it needs a real compose."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    try:
+        result = GlobalHydra.instance().config_loader().repository.load_config(f"{group}/{name}")
+    except Exception:  # any trouble reading it: the compose below says what is wrong
+        return None
+    if result is None or "defaults" in result.config or (result.header or {}).get("package") not in (None, "", group):
+        return None
+    out = OmegaConf.to_container(result.config, resolve=True)
+    return dict(out) if isinstance(out, dict) else None
 
 
 __all__ = ["CONFIG_DIR", "CONFIG_MODULE", "group_option", "group_options", "merge_variant", "reset_cache"]

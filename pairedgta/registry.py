@@ -25,9 +25,11 @@ def accepted_keys(target: Callable[..., Any]) -> set[str] | None:
             and p.name != "self"}
 
 
-def check_keys(target: Callable[..., Any], keys: Iterable[str], where: str, runtime: Iterable[str] = ()) -> None:
-    """One-line error for keys `target` does not read. `where` is the config node, e.g. `renderer`."""
-    known = accepted_keys(target)
+def check_keys(target: Callable[..., Any] | set[str] | None, keys: Iterable[str], where: str,
+               runtime: Iterable[str] = ()) -> None:
+    """One-line error for keys `target` does not read (a callable, or the set of its keyword names).
+    `where` is the config node, e.g. `renderer`."""
+    known = set(target) if isinstance(target, (set, frozenset)) else accepted_keys(target) if target else None
     if known is None:
         return
     known -= set(runtime)
@@ -86,6 +88,27 @@ class Registry:
                 f"install the project as the README says (pip install -e .)"
             ) from None
         return getattr(module, attr)
+
+    def declared_keys(self, name: str) -> set[str] | None:
+        """The keyword names a plain-function target accepts, read from its module's source, so checking
+        a config does not import the module (a model family imports torch and transformers). None when
+        the source does not say (then `resolve` and `accepted_keys`)."""
+        import ast
+        import importlib.util
+
+        self._check_name(name)
+        module_name, attr = self._targets[name].split(":")
+        try:
+            spec = importlib.util.find_spec(module_name)
+            source = open(spec.origin, encoding="utf-8").read() if spec and spec.origin else None
+        except (ImportError, OSError, ValueError):
+            return None
+        for node in ast.parse(source).body if source else ():
+            if isinstance(node, ast.FunctionDef) and node.name == attr:
+                if node.args.kwarg is not None:
+                    return None
+                return {a.arg for a in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]} - {"self"}
+        return None
 
     def build(self, name: str, config: Mapping[str, Any], where: str | None = None, **runtime: Any) -> Any:
         """`target(**config, **runtime)` after checking that `config` holds only keys the target reads."""

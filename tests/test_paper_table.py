@@ -160,6 +160,18 @@ def test_several_thresholds_need_a_filter_and_bad_files_are_one_line_errors(tmp_
         paper_table(tmp_path / "dup.csv", tmp_path / "o6", PAPER)
     with pytest.raises(ConfigError, match="plot.table_csv=.*missing.csv: no such file"):
         paper_table(tmp_path / "missing.csv", tmp_path / "o7", PAPER)
+    # values that parse but cannot be right are refused, not printed as if fine
+    odd = df.copy()
+    odd.loc[5, "retention_masked"] = 7.5  # a percentage among fractions
+    odd.to_csv(tmp_path / "mixed.csv", index=False)
+    with pytest.raises(DataError, match=r"mixed.csv: retention_masked mixes fractions and percentages \(7.5 in row 7"):
+        paper_table(tmp_path / "mixed.csv", tmp_path / "o8", PAPER)
+    df.assign(mass_reference_masked=df.mass_reference_masked.where(df.index != 3, -10)).to_csv(tmp_path / "neg.csv", index=False)
+    with pytest.raises(DataError, match="mass_reference_masked -10 in row 5 is negative"):
+        paper_table(tmp_path / "neg.csv", tmp_path / "o9", PAPER)
+    df.assign(sec_condition=df.sec_condition.where(df.index != 0, "Dusk-Hail")).to_csv(tmp_path / "cond.csv", index=False)
+    with pytest.raises(DataError, match="sec_condition 'Dusk-Hail' is not one of the paper's conditions"):
+        paper_table(tmp_path / "cond.csv", tmp_path / "o10", PAPER)
 
 
 def test_missing_class_rows_count_as_absent(tmp_path):

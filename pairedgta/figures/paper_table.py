@@ -87,6 +87,21 @@ def read_results(path: str | Path) -> pd.DataFrame:
     if out_of_range.any():
         raise DataError(f"{path}: class_id {df.loc[out_of_range, 'class_id'].iloc[0]} is not a Cityscapes train id 0..{NUM_CLASSES - 1}")
     df["class_id"] = ids
+    negative = df["mass_reference_masked"] < 0
+    if negative.any():
+        raise DataError(f"{path}: mass_reference_masked {df.loc[negative, 'mass_reference_masked'].iloc[0]:g} in row "
+                        f"{int(negative.idxmax()) + 2} is negative; a pixel mass is >= 0")
+    conds = df["sec_condition"].astype(str)
+    unknown = sorted({c for c in conds if condition_name(c) not in GRID_ORDER})
+    if unknown:
+        raise DataError(f"{path}: sec_condition {unknown[0]!r} is not one of the paper's conditions (a time of day "
+                        f"Day/Sunset/Night and a weather Sunny/Rain/Foggy, e.g. Day-Rain)")
+    retention = df["retention_masked"].dropna()
+    fractions, percents = retention[(retention > 0) & (retention <= 1)], retention[retention > 1]
+    if len(percents) and len(fractions) > len(percents):
+        row = int(percents.index[0]) + 2
+        raise DataError(f"{path}: retention_masked mixes fractions and percentages ({percents.iloc[0]:g} in row {row} "
+                        "among values in [0, 1]); give every value in one scale")
     names = df["class_name"].astype(str).str.lower().str.replace("_", " ").str.strip()
     wrong = names != ids.map(lambda k: CLASS_NAMES[k])
     if wrong.any():

@@ -10,7 +10,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 AGREEMENT_MODES = ("pooled", "per_image")
 

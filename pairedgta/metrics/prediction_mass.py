@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import numpy as np
-import torch
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 
 def prediction_mass(probs: torch.Tensor, class_id: int | None, tau: float = 0.9) -> torch.Tensor:

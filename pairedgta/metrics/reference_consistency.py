@@ -11,7 +11,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 import numpy as np
-import torch
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 ABSENT_POLICIES = ("nan", "zero")
 

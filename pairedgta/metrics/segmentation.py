@@ -3,7 +3,10 @@ False positives count only on pixels whose ground truth is not void, as in citys
 from __future__ import annotations
 
 import numpy as np
-import torch
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 
 class ConfusionMatrix:

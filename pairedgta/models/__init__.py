@@ -43,7 +43,10 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     """Unknown keys of a model config are the same one-line error before anything is built."""
     from pairedgta.registry import check_keys
 
-    check_keys(FAMILIES.resolve(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
+    family = cfg.get("family")
+    keys = FAMILIES.declared_keys(family)  # from the source: no torch/transformers import for a check
+    check_keys(keys if keys is not None else FAMILIES.resolve(family), cfg, f"{where} ({cfg.get('name')})",
+               runtime=RUNTIME_KEYS)
 
 
 def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Segmenter:

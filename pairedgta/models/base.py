@@ -9,11 +9,14 @@ import abc
 from typing import Sequence
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import DataError, ModelError
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
+F = lazy_module("torch.nn.functional")
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -79,9 +82,12 @@ class Segmenter(abc.ABC):
             )
         return images.float()
 
-    @torch.inference_mode()
     def predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
         """B x 3 x H x W RGB in [0,1] -> B x num_classes x H x W probabilities (on the CPU)."""
+        with torch.inference_mode():
+            return self._predict_proba(images)
+
+    def _predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
         images = self._as_tensor(images)
         outputs = []
         for start in range(0, images.shape[0], self.batch_size):

@@ -5,11 +5,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import torch
-import torch.nn.functional as F
-
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ModelError, reason
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # the weights fingerprint of a cached run reads paths here, not tensors
+F = lazy_module("torch.nn.functional")
 
 log = logging.getLogger(__name__)
 

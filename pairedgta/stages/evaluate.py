@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
@@ -55,6 +54,10 @@ from pairedgta.stages.common import (
     torch_threads,
 )
 from pairedgta.stages.pseudolabel import PseudoLabels
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 log = logging.getLogger("pairedgta.evaluate")
 VERSION = "5"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
@@ -268,7 +271,7 @@ def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: 
     return [clean, weathers[int(rng.integers(len(weathers)))]]
 
 
-class _GroupInputs(torch.utils.data.Dataset):
+class _GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __getitem__)
     """Decodes one group's images and label maps, in DataLoader workers (`evaluate.num_workers`), so the
     model forward, not PNG decoding, bounds evaluation. Errors come back as values, so the main process
     raises the same one-line error a sequential run would."""

@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
@@ -19,6 +18,10 @@ from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
+
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "2"  # 2: miou_on_kept in the Cityscapes convention (classes with TP + FP + FN > 0)
