@@ -21,7 +21,7 @@ import socket
 from pathlib import Path
 from typing import Any, Iterator
 
-from pairedgta.errors import Terminated
+from pairedgta.errors import ConfigError, Terminated
 from pairedgta.jsonio import dumps
 
 log = logging.getLogger("pairedgta.tracking")
@@ -124,12 +124,26 @@ def _store_lock(uri: str) -> Iterator[None]:
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 
 
+URI_SCHEMES = ("", "file", "sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks")
+
+
+def check_uri(uri: str) -> None:
+    """An MLflow store URI this project can use; anything else is one line before any stage runs."""
+    from urllib.parse import urlparse
+
+    scheme = urlparse(str(uri)).scheme.split("+", 1)[0].lower()
+    if scheme not in URI_SCHEMES:
+        raise ConfigError(f"tracking.uri={uri}: unknown scheme '{scheme}'; use sqlite:///PATH (the default "
+                          "sqlite:///outputs/mlflow.db), a folder, http(s)://SERVER, or tracking.enabled=false")
+
+
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
         self.enabled = enabled
         self.uri = uri
         self.experiment = experiment
         if enabled:
+            check_uri(uri)
             import mlflow
 
             mlflow.set_tracking_uri(uri)

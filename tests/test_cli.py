@@ -149,6 +149,7 @@ BAD_CONFIG = {
     "cache_dir_under_a_file": (["cache_dir={tmp}/afile/cache"], "is a file, not a directory"),
     "cache_dir_under_proc": (["cache_dir=/proc/pairedgta-cache"], "cache_dir=/proc/pairedgta-cache is under /proc"),
     "cache_dir_read_only": (["cache_dir={tmp}/ro/cache"], "is not writable"),
+    "stage_folder_is_a_file": (["cache_dir={tmp}/filled"], "filled/evaluate is a file, but the evaluate stage keeps"),
     "width_zero": (["renderer.width=0"], "renderer.width=0 is out of range"),
     "height_negative": (["renderer.height=-3"], "renderer.height=-3 is out of range"),
     "num_scenes_not_a_number": (["generate.num_scenes=abc"], "generate.num_scenes='abc' is not a number"),
@@ -183,6 +184,10 @@ BAD_CONFIG = {
     "unknown_ranking_class": (["plot.ranking.classes=[unicorn]"], "plot.ranking.classes: unknown class(es) ['unicorn']"),
     "unknown_rho_class": (["metric.rho.classes=[unicorn]"], "metric.rho.classes: unknown class(es) ['unicorn']"),
     "negative_min_images": (["metric.min_images=-1"], "metric.min_images=-1 is invalid"),
+    "two_channel_mean": (["model.mean=[0.5,0.5]"], "mean=[0.5, 0.5] must be 3 numbers, one per RGB channel"),
+    "zero_std": (["model.std=[0.2,0,0.2]"], "must be 3 numbers > 0"),
+    "unknown_tracking_scheme": (["tracking.enabled=true", "tracking.uri=nosuchscheme://x"],
+                                "tracking.uri=nosuchscheme://x: unknown scheme 'nosuchscheme'"),
 }
 
 
@@ -197,6 +202,8 @@ def test_bad_config_value_is_one_line_before_any_stage(tmp_path, case):
     keys = {o.split("=", 1)[0] for o in overrides}
     args = [o for o in fast_overrides(tmp_path) if o.split("=", 1)[0] not in keys] + overrides
     (tmp_path / "afile").write_text("not a directory")
+    (tmp_path / "filled").mkdir()
+    (tmp_path / "filled" / "evaluate").write_text("not a stage folder")
     ro = tmp_path / "ro"
     _read_only_dir(ro)
     try:
@@ -226,3 +233,20 @@ def test_corrupt_hf_weights_from_the_cli_are_one_line(tmp_path):
     assert len(errors) == 1 and f"model.path={weights}" in errors[0], proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     assert not list((tmp_path / "cache" / "evaluate").glob("[!.]*")) if (tmp_path / "cache" / "evaluate").exists() else True
+
+
+def test_cuda_without_a_gpu_is_one_line(monkeypatch):
+    import torch
+
+    from pairedgta.errors import ConfigError
+    from pairedgta.stages.planning import check_cuda
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match="device=cuda: no CUDA GPU is visible here.*use device=cpu"):
+        check_cuda("cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    check_cuda("cuda:0")
+    with pytest.raises(ConfigError, match="device=cuda:3: this machine has 1 CUDA GPU"):
+        check_cuda("cuda:3")
+    check_cuda("cpu")

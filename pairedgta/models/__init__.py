@@ -14,6 +14,7 @@ import logging
 from typing import Any, Iterator, Mapping
 
 from pairedgta.configs import group_option, group_options
+from pairedgta.errors import ConfigError
 from pairedgta.models.base import Segmenter, resolve_device
 from pairedgta.registry import Registry
 
@@ -43,6 +44,17 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     """Unknown keys of a model config are the same one-line error before anything is built."""
     from pairedgta.registry import check_keys
 
+    examples = {"mean": "[0.485,0.456,0.406]", "std": "[0.229,0.224,0.225]"}
+    for key, example in examples.items():  # per RGB channel: a wrong length is a reshape traceback in the model
+        value = cfg.get(key)
+        if value is None:
+            continue
+        numbers = isinstance(value, (list, tuple)) and len(value) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        if not numbers or (key == "std" and min(value) <= 0):
+            need = "3 numbers > 0" if key == "std" else "3 numbers"
+            raise ConfigError(f"{where} ({cfg.get('name')}): {key}={list(value) if isinstance(value, (list, tuple)) else value!r} "
+                              f"must be {need}, one per RGB channel, e.g. {key}={example}")
     family = cfg.get("family")
     keys = FAMILIES.declared_keys(family)  # from the source: no torch/transformers import for a check
     check_keys(keys if keys is not None else FAMILIES.resolve(family), cfg, f"{where} ({cfg.get('name')})",

@@ -99,12 +99,28 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     device = str(cfg.get("device"))
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
         raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
+    check_cuda(device)
     sourced = plot.sourced(cfg)
     if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
         raise ConfigError(f"{', '.join(sorted(set(sourced.values())))} draws {', '.join(sourced)} from that file and runs no "
                           f"data stage; use stages=[plot] (stages={stages})")
     needs = plot.needed_stages(cfg) if "plot" in stages else set()
     return Plan(stages, force, needs)
+
+
+def check_cuda(device: str) -> None:
+    """device=cuda[:N] needs that GPU here: said before anything runs, not as torch's driver traceback."""
+    if not device.startswith("cuda"):
+        return
+    import torch
+
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    index = int(device.split(":", 1)[1]) if ":" in device and device.split(":", 1)[1].isdigit() else 0
+    if count == 0:
+        raise ConfigError(f"device={device}: no CUDA GPU is visible here (torch.cuda.is_available() is False); "
+                          "use device=cpu, or device=auto to take a GPU where there is one")
+    if index >= count:
+        raise ConfigError(f"device={device}: this machine has {count} CUDA GPU(s) (cuda:0..cuda:{count - 1})")
 
 
 # -- models -------------------------------------------------------------------------------------------
