@@ -46,6 +46,9 @@ def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     try:
+        from pairedgta.config_checks import check_added_keys
+
+        check_added_keys(list(HydraConfig.get().overrides.task))
         summary = run(cfg, task_overrides=list(HydraConfig.get().overrides.task))
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix

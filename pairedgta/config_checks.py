@@ -262,3 +262,55 @@ def check_run_config(cfg: dict[str, Any]) -> None:
         check_evaluate(pcfg, where)
     for i, name in enumerate(cfg.get("models") or []):
         _known_model(name, f"models[{i}]")
+
+
+# -- keys added on the command line (`+key=value`) -------------------------------------------------
+OPEN_KEYS = ("model_overrides", "variants", "hydra")  # mappings whose keys are the user's to choose
+# nodes whose builder checks its keys itself, naming the keys it reads (pairedgta/registry.py: check_keys)
+BUILT_NODES = ("model", "renderer", "region", "dataset")
+
+
+def _paths(node: Any, prefix: str = "") -> set[str]:
+    out: set[str] = set()
+    if isinstance(node, dict):
+        for k, v in node.items():
+            if k == "defaults":
+                continue
+            key = f"{prefix}{k}"
+            out.add(key)
+            out |= _paths(v, key + ".")
+    return out
+
+
+def known_key_paths() -> set[str]:
+    """Every dotted key some config file of the package defines: config.yaml and the experiments (global),
+    each group option under its group (renderer.noise_std), the groups themselves."""
+    from omegaconf import OmegaConf
+
+    from pairedgta.configs import CONFIG_DIR
+
+    known: set[str] = set()
+    for path in [CONFIG_DIR / "config.yaml", *sorted((CONFIG_DIR / "experiment").glob("*.yaml"))]:
+        known |= _paths(OmegaConf.to_container(OmegaConf.load(path)))
+    for group in (p for p in CONFIG_DIR.iterdir() if p.is_dir() and p.name not in ("experiment", "hydra", "zoo")):
+        known.add(group.name)
+        for option in group.glob("*.yaml"):
+            known |= _paths(OmegaConf.to_container(OmegaConf.load(option)), f"{group.name}.")
+    return known
+
+
+def check_added_keys(overrides: list[str]) -> None:
+    """A `+key=value` whose key no config reads would be silently ignored: one line instead."""
+    added = [o[1:] for o in overrides if o.startswith("+") and not o.startswith("++") and "=" in o]
+    if not added:
+        return
+    known = None
+    for item in added:
+        key = item.split("=", 1)[0].strip()
+        if key.split(".")[0] in OPEN_KEYS + BUILT_NODES or key.startswith("experiment"):
+            continue
+        known = known if known is not None else known_key_paths()
+        if key not in known:
+            close = sorted(k for k in known if k.split(".")[-1] == key.split(".")[-1])[:3]
+            hint = f"; did you mean {', '.join(close)}?" if close else "; see python -m pairedgta --cfg job for the keys"
+            raise ConfigError(f"+{key}: no part of pairedgta reads this key, so it would be ignored{hint}")

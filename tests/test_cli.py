@@ -149,6 +149,8 @@ BAD_CONFIG = {
     "cache_dir_under_a_file": (["cache_dir={tmp}/afile/cache"], "is a file, not a directory"),
     "cache_dir_under_proc": (["cache_dir=/proc/pairedgta-cache"], "cache_dir=/proc/pairedgta-cache is under /proc"),
     "cache_dir_read_only": (["cache_dir={tmp}/ro/cache"], "is not writable"),
+    "unknown_added_key": (["+bogus_key=3"], "+bogus_key: no part of pairedgta reads this key"),
+    "unknown_added_nested_key": (["+generate.num_scene=3"], "+generate.num_scene: no part of pairedgta reads this key"),
     "stage_folder_is_a_file": (["cache_dir={tmp}/filled"], "filled/evaluate is a file, but the evaluate stage keeps"),
     "width_zero": (["renderer.width=0"], "renderer.width=0 is out of range"),
     "height_negative": (["renderer.height=-3"], "renderer.height=-3 is out of range"),
