@@ -16,6 +16,7 @@ import pandas as pd
 
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
+from pairedgta.figures.common import read_checked_csv
 from pairedgta.figures.ranking import RankingInput, ranking_figure, rho_table
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import convention_from_config
@@ -32,17 +33,7 @@ ACDC = re.compile(r"/rgb_anon/(fog|night|rain|snow)/")
 def read_counts(path: str | Path) -> pd.DataFrame:
     """The CSV, checked: the columns, counts that are non-negative integers, one row per frame."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{KEY}={path}: no such file; give the authors' framewise_target_class_counts.csv")
-    try:
-        df = pd.read_csv(path, dtype={"pair_id": str})
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: not a readable CSV ({exc.__class__.__name__}); expected columns {', '.join(COLUMNS)}") from None
-    missing = [c for c in COLUMNS if c not in df.columns]
-    if missing:
-        raise DataError(f"{path}: missing column(s) {missing}; expected {', '.join(COLUMNS)}")
-    if df.empty:
-        raise DataError(f"{path}: no rows")
+    df = read_checked_csv(path, KEY, "framewise_target_class_counts.csv", COLUMNS, dtype={"pair_id": str})
     for col in ("clean_count", "adv_count"):
         values = pd.to_numeric(df[col], errors="coerce")
         bad = values.isna() | (values < 0) | (values != values.round())

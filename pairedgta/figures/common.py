@@ -134,3 +134,22 @@ _LATEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"
 
 def latex_escape(text: str) -> str:
     return "".join(_LATEX.get(ch, ch) for ch in text)
+
+
+def read_checked_csv(path: Path, key: str, expected: str, columns: tuple[str, ...], **read: Any) -> pd.DataFrame:
+    """A CSV the user gives to a figure (the authors' released files): present, readable, with every
+    column and a row; each failure one line naming the key or the file. `expected` names the file."""
+    from pairedgta.errors import ConfigError, DataError
+
+    if not path.is_file():
+        raise ConfigError(f"{key}={path}: no such file; give the authors' {expected}")
+    try:
+        df = pd.read_csv(path, **read)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: not a readable CSV ({exc.__class__.__name__}); expected columns {', '.join(columns)}") from None
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {missing}; expected {', '.join(columns)}")
+    if df.empty:
+        raise DataError(f"{path}: no rows")
+    return df

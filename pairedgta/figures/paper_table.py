@@ -23,7 +23,7 @@ import pandas as pd
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.common import MODEL_DISPLAY, slug
+from pairedgta.figures.common import MODEL_DISPLAY, read_checked_csv, slug
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics.reference_consistency import class_mean
@@ -62,17 +62,7 @@ def model_name(raw: str) -> str:
 def read_results(path: str | Path) -> pd.DataFrame:
     """The CSV, checked: every column present, class ids 0..18 with matching names, numbers numeric."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"plot.table_csv={path}: no such file; give the authors' results_class_retention_by_condition.csv")
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: not a readable CSV ({exc.__class__.__name__}); expected columns {', '.join(COLUMNS)}") from None
-    missing = [c for c in COLUMNS if c not in df.columns]
-    if missing:
-        raise DataError(f"{path}: missing column(s) {missing}; expected {', '.join(COLUMNS)}")
-    if df.empty:
-        raise DataError(f"{path}: no rows")
+    df = read_checked_csv(path, "plot.table_csv", "results_class_retention_by_condition.csv", COLUMNS)
     for col in ("class_id", "retention_masked", "mass_reference_masked"):
         values = pd.to_numeric(df[col], errors="coerce")
         bad = values.isna() & df[col].notna()
