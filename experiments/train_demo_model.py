@@ -486,11 +486,13 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
-        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU threads", "",
+        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU thread{'s' if t['threads'] != 1 else ''}", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],
     ]
     (out / "README.md").write_text("\n".join(lines) + "\n")
+    for f in out.iterdir():  # shipped in the wheel: readable by every user (temp files are written 0600)
+        f.chmod(0o644)
     print(f"{name}: val mIoU {m:.3f}, {n_params} parameters -> {out}")
 
 
