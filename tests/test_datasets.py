@@ -48,3 +48,27 @@ def test_corrupt_and_mismatched_images(tmp_path, grid):
     Image.new("RGB", (20, 32)).save(bad)
     with pytest.raises(DataError, match="differ in size"):
         load_group_images(ds.groups[0], grid.names)
+
+
+def test_wide_images_and_out_of_range_label_ids(tmp_path):
+    """A 16-bit greyscale image is scaled to 8 bits (PIL's convert would clip it to white); label values
+    that are not train ids are one line (16-bit ids used to wrap modulo 256; labelIds gave mIoU 0.005)."""
+    import numpy as np
+    import pytest
+    from PIL import Image
+
+    from pairedgta.datasets import load_image, load_label
+    from pairedgta.errors import DataError
+
+    grey = np.array([[0, 257 * 128, 65535]], dtype=np.uint16)
+    Image.fromarray(grey).save(tmp_path / "g16.png")
+    img = load_image(tmp_path / "g16.png")
+    assert img.shape == (1, 3, 3) and img[0, :, 0].tolist() == [0, 128, 255] and (img[..., 0] == img[..., 2]).all()
+    Image.fromarray(np.array([[0, 18, 255]], dtype=np.uint8)).save(tmp_path / "ok.png")
+    assert load_label(tmp_path / "ok.png").tolist() == [[0, 18, 255]]
+    Image.fromarray(np.array([[7, 26, 0]], dtype=np.uint8)).save(tmp_path / "labelids.png")
+    with pytest.raises(DataError, match=r"labelids.png: label values \[26\] are not Cityscapes train ids.*labelIds"):
+        load_label(tmp_path / "labelids.png")
+    Image.fromarray(np.array([[1, 256 + 13]], dtype=np.uint16)).save(tmp_path / "wide.png")
+    with pytest.raises(DataError, match=r"label values \[269\] are not Cityscapes train ids.*re-export"):
+        load_label(tmp_path / "wide.png")

@@ -386,3 +386,18 @@ def test_model_configs_have_the_shared_layout():
             assert raw["channels_last"] is False and raw["compile"] is False
             assert "checkpoint_path" in raw and raw["checkpoint_path"] is None
             assert raw["random_init"] is (name == tiny)
+
+
+def test_a_model_with_nan_weights_stops_naming_the_model():
+    import numpy as np
+    import pytest
+    import torch
+
+    from pairedgta.errors import ModelError
+    from pairedgta.models import build_segmenter
+
+    seg = build_segmenter("tiny_ddrnet")
+    with torch.no_grad():
+        next(seg.module.parameters()).fill_(float("nan"))
+    with pytest.raises(ModelError, match="tiny_ddrnet: the model's outputs are not finite"):
+        seg.predict(np.zeros((1, 3, 64, 128), dtype=np.float32))

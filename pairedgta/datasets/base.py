@@ -63,6 +63,10 @@ def load_image(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             im.load()
+            if im.mode.startswith("I"):  # 16/32-bit greyscale: PIL's convert("RGB") clips it to white
+                return _wide_grey_to_rgb(path, np.asarray(im))
+            if im.mode == "F":
+                raise DataError(f"{path}: a floating-point image; export it as 8-bit (or 16-bit) RGB or greyscale PNG")
             return np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise DataError(f"{path}: image not found; regenerate the dataset or fix dataset.root") from None
@@ -70,17 +74,35 @@ def load_image(path: Path) -> np.ndarray:
         raise DataError(f"{path}: not a readable image ({type(exc).__name__}); re-export or delete the file") from None
 
 
+def _wide_grey_to_rgb(path: Path, arr: np.ndarray) -> np.ndarray:
+    """A 16-bit (or 32-bit int) greyscale image as 8-bit RGB, scaled from its bit depth."""
+    top = int(arr.max()) if arr.size else 0
+    if top > 65535 or int(arr.min()) < 0:
+        raise DataError(f"{path}: greyscale values {int(arr.min())}..{top} fit no 8- or 16-bit range; re-export the image")
+    grey = arr if top <= 255 else arr / 257.0  # 65535 -> 255
+    grey = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
 def load_label(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             im.load()
-            if im.mode not in ("L", "P", "I;16", "I"):
+            if im.mode not in ("L", "P", "I;16", "I;16B", "I;16L", "I"):
                 raise DataError(f"{path}: label map has mode {im.mode}; expected a single-channel PNG of train ids")
-            return np.asarray(im).astype(np.uint8)
+            arr = np.asarray(im)
     except FileNotFoundError:
         raise DataError(f"{path}: label map not found") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise DataError(f"{path}: not a readable label map ({type(exc).__name__}); regenerate it") from None
+    # anything but 0..18 and 255 would wrap (16-bit) or count as a class no model predicts (labelIds)
+    bad = (arr > 18) & (arr != 255)
+    if bad.any():
+        found = sorted(int(v) for v in np.unique(arr[bad]))[:6]
+        hint = ("these look like Cityscapes labelIds (road = 7, car = 26): use the *_labelTrainIds.png files or convert "
+                "them with cityscapesscripts" if max(found) <= 33 else "re-export it with train ids")
+        raise DataError(f"{path}: label values {found} are not Cityscapes train ids (0-18, 255 = void); {hint}")
+    return arr.astype(np.uint8)
 
 
 def image_size(path: Path) -> tuple[int, int]:

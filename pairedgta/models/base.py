@@ -109,6 +109,9 @@ class Segmenter(abc.ABC):
                     f"{self.name}: forward failed on a {chunk.shape[-1]}x{chunk.shape[-2]} image ({first}); "
                     "check the image size the model accepts"
                 ) from None
+            if not bool(torch.isfinite(probs).all()):  # NaN weights would score xi 0 everywhere, silently
+                raise ModelError(f"{self.name}: the model's outputs are not finite (NaN or inf); its weights are "
+                                 "broken: re-export or download them again")
             outputs.append(probs.float().cpu())
         return torch.cat(outputs, dim=0)
 
