@@ -84,7 +84,9 @@ def _wide_grey_to_rgb(path: Path, arr: np.ndarray) -> np.ndarray:
     return np.repeat(grey[..., None], 3, axis=2)
 
 
-def load_label(path: Path) -> np.ndarray:
+def load_label(path: Path, train_ids: bool = True) -> np.ndarray:
+    """uint8 label map. train_ids: values must be 0-18 or 255 (void); else any 8-bit id (Cityscapes
+    labelIds, mapped by their reader)."""
     try:
         with Image.open(path) as im:
             im.load()
@@ -96,11 +98,13 @@ def load_label(path: Path) -> np.ndarray:
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise DataError(f"{path}: not a readable label map ({type(exc).__name__}); regenerate it") from None
     # anything but 0..18 and 255 would wrap (16-bit) or count as a class no model predicts (labelIds)
-    bad = (arr > 18) & (arr != 255)
+    bad = (arr > 18) & (arr != 255) if train_ids else arr > 255
     if bad.any():
         found = sorted(int(v) for v in np.unique(arr[bad]))[:6]
         hint = ("these look like Cityscapes labelIds (road = 7, car = 26): use the *_labelTrainIds.png files or convert "
                 "them with cityscapesscripts" if max(found) <= 33 else "re-export it with train ids")
+        if not train_ids:
+            raise DataError(f"{path}: label values {found} do not fit 8 bits; re-export the label map")
         raise DataError(f"{path}: label values {found} are not Cityscapes train ids (0-18, 255 = void); {hint}")
     return arr.astype(np.uint8)
 

@@ -86,7 +86,7 @@ class CityscapesSplit:
 
 def load_ground_truth(sample: CityscapesSample) -> np.ndarray:
     """Train ids (0..18, 255 = ignore) from either label file; a file that is not what its name says is a DataError."""
-    raw = load_label(sample.label)
+    raw = load_label(sample.label, train_ids=sample.label_kind != "labelIds")
     if sample.label_kind == "labelIds":
         return label_ids_to_train_ids(raw)
     bad = (raw >= NUM_CLASSES) & (raw != IGNORE_INDEX)
