@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 from pairedgta.errors import ConfigError
@@ -100,7 +101,7 @@ class Registry:
         module_name, attr = self._targets[name].split(":")
         try:
             spec = importlib.util.find_spec(module_name)
-            source = open(spec.origin, encoding="utf-8").read() if spec and spec.origin else None
+            source = Path(spec.origin).read_text(encoding="utf-8") if spec and spec.origin else None
         except (ImportError, OSError, ValueError):
             return None
         for node in ast.parse(source).body if source else ():

@@ -512,7 +512,6 @@ class BlenderRenderer(Renderer):
         # Blender prints it and renders on: recorded instead, and raised once the image is done
         with _quiet_stdout(), interrupt.deferred():  # Blender prints a "Saved: ..." line per render
             self._bpy.ops.render.render(write_still=True)
-        interrupt.check()  # also one that reached a callback before `deferred` took effect
         if not os.path.exists(path):
             raise RendererError(f"Cycles wrote no image to {path}; check free space in {self._tmp}")
 
