@@ -72,3 +72,22 @@ def test_wide_images_and_out_of_range_label_ids(tmp_path):
     Image.fromarray(np.array([[1, 256 + 13]], dtype=np.uint16)).save(tmp_path / "wide.png")
     with pytest.raises(DataError, match=r"label values \[269\] are not Cityscapes train ids.*re-export"):
         load_label(tmp_path / "wide.png")
+
+
+def test_a_generated_index_with_wrong_types_is_one_line(tmp_path):
+    import json
+
+    import pytest
+    from omegaconf import OmegaConf
+
+    from pairedgta.conditions import build_condition_grid
+    from pairedgta.configs import CONFIG_DIR
+    from pairedgta.datasets.generated import open_generated
+    from pairedgta.errors import DataError
+
+    grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "conditions" / "paper.yaml")))
+    for index in ({"scenes": "abc"}, {"scenes": [{"scene_id": 1, "dir": 5}]}, [1, 2],
+                  {"scenes": [{"scene_id": "00000", "dir": "../../etc"}]}):
+        (tmp_path / "index.json").write_text(json.dumps(index))
+        with pytest.raises(DataError, match="index.json: not a generated dataset's index"):
+            open_generated(root=tmp_path, grid=grid)

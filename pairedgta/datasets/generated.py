@@ -36,8 +36,15 @@ def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "genera
         index = json.loads(index_path.read_text())
     except json.JSONDecodeError as exc:
         raise DataError(f"{index_path}: corrupt index ({exc.msg}); rerun the generate stage") from None
+    scenes = index.get("scenes", []) if isinstance(index, dict) else None
+    if not isinstance(scenes, list) or not all(
+            isinstance(sc, dict) and isinstance(sc.get("dir"), str) and isinstance(sc.get("scene_id"), (str, int))
+            and not Path(sc["dir"]).is_absolute() and ".." not in Path(sc["dir"]).parts  # stays inside root
+            for sc in scenes):
+        raise DataError(f"{index_path}: not a generated dataset's index (expected scenes: a list of "
+                        "{scene_id, dir: a folder inside the dataset}); rerun the generate stage")
     groups, skipped = [], 0
-    for scene in index.get("scenes", []):
+    for scene in scenes:
         scene_dir = root / scene["dir"]
         images, labels = {}, {}
         for cond in grid.names:
