@@ -27,11 +27,8 @@ class Convention:
     min_pixels: int = 0            # ... and >= min_pixels reference pixels in all (0 and 0: every defined class)
 
     def supported(self, images, pixels):
-        """Boolean mask over classes: enough support for the class-wise mean (images, pixels: per class).
-        Without it a class seen in one image with 7 pixels weighs as much as road in the mean."""
-        import numpy as np
-
-        return (np.asarray(images) >= self.min_images) & (np.asarray(pixels) >= self.min_pixels)
+        """Boolean mask over classes: enough support for the class-wise mean (images, pixels: per class)."""
+        return support_mask(images, pixels, self.min_images, self.min_pixels)
 
     def mean_classes(self):
         """Boolean mask over the 19 Cityscapes classes: which enter the class-wise mean."""
@@ -41,6 +38,14 @@ class Convention:
         d = asdict(self)
         d["mean_exclude"] = list(self.mean_exclude)
         return d
+
+
+def support_mask(images, pixels, min_images: int, min_pixels: int):
+    """The strict convention's support rule, per class: reference pixels in >= min_images images and
+    >= min_pixels in all. Without it a class seen in one image with 7 pixels weighs as much as road."""
+    import numpy as np
+
+    return (np.asarray(images) >= min_images) & (np.asarray(pixels) >= min_pixels)
 
 
 def convention_from_config(metric: dict[str, Any], selections: list[str] | None = None) -> Convention:

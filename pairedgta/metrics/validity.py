@@ -18,6 +18,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from pairedgta.metrics.conventions import support_mask
 from pairedgta.metrics.bootstrap import resample_weights
 from pairedgta.metrics.reference_consistency import xi_from_counts
 
@@ -74,9 +75,9 @@ def miou(cm: np.ndarray) -> np.ndarray:
 
 def supported(reference: np.ndarray, min_images: int = 0, min_pixels: int = 0) -> np.ndarray:
     """C x K: which classes have the support the class-wise mean asks for (metric.min_images/min_pixels),
-    judged on the data itself and kept fixed across resamples (as evaluate's mean is)."""
+    judged on the data itself (G x C x K counts) and kept fixed across resamples, as evaluate's mean is."""
     reference = np.asarray(reference)
-    return ((reference > 0).sum(axis=0) >= min_images) & (reference.sum(axis=0) >= min_pixels)
+    return support_mask((reference > 0).sum(axis=0), reference.sum(axis=0), min_images, min_pixels)
 
 
 def cell_measures(g: GroupCounts, weights: np.ndarray, clean: str, include: np.ndarray,

@@ -26,7 +26,7 @@ from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_i
 from pairedgta.datasets import PairedDataset, load_group_images, load_label
 from pairedgta.errors import ConfigError, DataError, PairedGTAError
 from pairedgta.metrics.bootstrap import class_mean_ci
-from pairedgta.metrics.conventions import Convention, convention_from_config
+from pairedgta.metrics.conventions import convention_from_config, support_mask
 from pairedgta.metrics import (
     reference_consistency_counts,
     SELECTIONS,
@@ -567,8 +567,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             # a class seen in one image: every resample that defines it gives the same ratio, so the
             # bootstrap cannot vary and a zero-width interval would claim certainty
             lo, hi = np.where(images < 2, np.nan, lo), np.where(images < 2, np.nan, hi)
-        supported = Convention(**{**conv, "mean_exclude": tuple(conv["mean_exclude"])}).supported(
-            images, a.metric.reference.numpy())
+        supported = support_mask(images, a.metric.reference.numpy(), conv["min_images"], conv["min_pixels"])
         ref_name = reference_model if source == "pseudo_label" else GT
         # which classes the mean covers: the convention's classes, minus the undefined (NaN) and unsupported ones
         included = in_mean & ~np.isnan(xi) & supported
