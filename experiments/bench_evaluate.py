@@ -34,7 +34,7 @@ def make_release_dataset(root: Path, n: int, width: int, height: int) -> None:
 
     r = SyntheticRenderer(width=width, height=height)
     conds = [Condition("Day-EXTRASUNNY", "Day", "EXTRASUNNY"),
-             Condition("Day-RAIN", "Day", "RAIN", cloud_cover=0.9, rain_intensity=0.7, wetness=1.0),
+             Condition("Day-RAIN", "Day", "RAIN", cloud_cover=0.9, rain_mm_h=25.0, visibility_m=350.0, wetness=1.0),
              Condition("Night-EXTRASUNNY", "Night", "EXTRASUNNY", clock_hour=0, sun_elevation_deg=-30)]
     for k in range(n):
         d = SceneDescriptor(scene_id=str(k), seed=k, location=Location(0, 0))

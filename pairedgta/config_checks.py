@@ -79,6 +79,8 @@ RULES = [
     _rule("threads", int, lambda v: v >= 1, "use the number of CPU threads for inference, >= 1"),
     _rule("evaluate.sampling_seed", int, lambda v: True, "use an integer"),
     _rule("metric.tau_mass", float, lambda v: 0.0 <= v <= 1.0, "use a threshold in [0, 1]"),
+    _rule("metric.min_transmittance", float, lambda v: 0.0 <= v < 1.0,
+          "use a transmittance in [0, 1): 0 scores every pixel (the paper), e.g. 0.05 leaves out what the air hides"),
     _rule("metric.rho.m", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("metric.bootstrap.resamples", int, lambda v: v >= 0, "use an integer >= 0 (0 = no intervals)"),
     _rule("metric.bootstrap.confidence", float, lambda v: 0.0 < v < 1.0, "use a level strictly between 0 and 1, e.g. 0.95"),
@@ -86,6 +88,8 @@ RULES = [
     _rule("plot.dpi", float, lambda v: v > 0, "use dots per inch > 0, e.g. 150"),
     _rule("plot.qualitative_groups", int, lambda v: v >= 0, "use an integer >= 0"),
     _rule("plot.ranking.window", int, lambda v: v >= 1, "use an integer >= 1"),
+    _rule("plot.robustness.break_below", float, lambda v: 0.0 < v <= 1.0,
+          "use a mean-xi level in (0, 1]: the breaking point is the first ladder step below it (default 0.5)"),
 ]
 
 
@@ -174,6 +178,7 @@ def check_plot(cfg: dict[str, Any], names: set[str], where: str) -> None:
     from pairedgta.cityscapes import CLASS_NAMES
 
     for key, classes in (("plot.ranking.classes", (plot.get("ranking") or {}).get("classes")),
+                         ("plot.robustness.classes", (plot.get("robustness") or {}).get("classes")),
                          ("metric.rho.classes", ((cfg.get("metric") or {}).get("rho") or {}).get("classes"))):
         listed = [classes] if isinstance(classes, str) else list(classes or [])
         unknown = [c for c in listed if c not in CLASS_NAMES]
@@ -201,6 +206,13 @@ def check_metric(cfg: dict[str, Any], where: str) -> None:
         convention_from_config(metric)
     except ConfigError as exc:
         raise ConfigError(f"{where}{exc}") from None
+    if float(metric.get("min_transmittance") or 0.0) > 0.0:
+        kind = (cfg.get("dataset") or {}).get("kind")
+        backend = (cfg.get("renderer") or {}).get("backend")
+        if kind != "generated" or backend == "deepgtav":
+            source = f"dataset={kind}" if kind != "generated" else "renderer=deepgtav (GTA V gives no depth)"
+            raise ConfigError(f"{where}metric.min_transmittance>0 needs transmittance maps, which {source} does not have; "
+                              "set metric.min_transmittance=0 or generate with renderer=blender or synthetic")
     reference = metric.get("reference")
     if reference is not None and reference not in REFERENCE_SOURCES:
         raise ConfigError(f"{where}metric.reference={reference!r}; use one of {', '.join(REFERENCE_SOURCES)}")

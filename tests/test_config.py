@@ -1,6 +1,7 @@
 """Every option of every config group composes, and the condition grid is the paper's."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
@@ -95,8 +96,36 @@ def test_paper_grid_and_reference_come_from_config():
     assert grid.reference == "Day-EXTRASUNNY"
     assert set(grid.names) == {f"{t}-{w}" for t in ("Day", "Sunset", "Night") for w in ("EXTRASUNNY", "RAIN", "FOGGY")}
     assert grid["Night-FOGGY"].sun_elevation_deg < 0 < grid["Day-RAIN"].sun_elevation_deg
-    sweep = build_condition_grid(OmegaConf.to_container(compose_cfg(["conditions=fog_sweep"]).conditions))
-    assert [c.fog_density for c in sweep] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    # every condition in physical units: Koschmieder's extinction from the visibility, plus the rain's own
+    assert grid["Day-FOGGY"].extinction_per_m == pytest.approx(3.912 / grid["Day-FOGGY"].visibility_m)
+    assert grid["Day-RAIN"].rain_mm_h == 25.0 and grid["Day-RAIN"].extinction_per_m > 3.912 / grid["Day-RAIN"].visibility_m
+    assert grid["Day-EXTRASUNNY"].extinction_per_m == 0.0 and grid["Day-EXTRASUNNY"].effective_visibility_m == float("inf")
+
+
+@pytest.mark.parametrize("ladder, parameter, values, names", [
+    ("fog_ladder", "visibility_m", [1000, 600, 300, 150, 75], ["Day-FOG-1000m", "Day-FOG-75m"]),
+    ("rain_ladder", "rain_mm_h", [2.5, 10, 25, 50, 100], ["Day-RAIN-2.5mmh", "Day-RAIN-100mmh"]),
+    ("light_ladder", "sun_elevation_deg", [30, 15, 5, 0, -3, -6, -12, -18], ["SUN-30deg", "SUN-minus6deg"]),
+])
+def test_ladders_name_their_value_and_unit_and_grow_in_severity(ladder, parameter, values, names):
+    grid = build_condition_grid(OmegaConf.to_container(compose_cfg([f"conditions={ladder}"]).conditions))
+    assert grid.reference == "Day-EXTRASUNNY" and grid.ladder.parameter == parameter
+    assert [getattr(c, parameter) for c in grid.conditions[1:]] == values
+    assert set(names) <= set(grid.names)
+    assert grid.ladder.tick(grid["Day-EXTRASUNNY"]) in ("clear", "0 mm/h", "55 deg")
+    if parameter == "visibility_m":  # each step hides more: the extinction grows along the ladder
+        ext = [c.extinction_per_m for c in grid]
+        assert ext == sorted(ext) and ext[0] == 0.0
+    if parameter == "rain_mm_h":  # haze, wetness and darkening follow the rate
+        assert [c.rain_level for c in grid] == sorted(c.rain_level for c in grid)
+        assert [c.extinction_per_m for c in grid] == sorted(c.extinction_per_m for c in grid)
+
+
+def test_transmittance_is_koschmieder_and_clear_air_hides_nothing():
+    fog = Condition(name="f", time="Day", weather="FOGGY", visibility_m=300.0)
+    t = fog.transmittance(np.array([0.0, 300.0, np.inf]))
+    assert t == pytest.approx([1.0, 0.02, 0.0], abs=1e-3)  # at the visibility the contrast is 2 %
+    assert (Condition(name="c", time="Day", weather="EXTRASUNNY").transmittance(np.array([5.0, np.inf])) == 1.0).all()
 
 
 def test_bad_conditions_are_one_line_errors():
@@ -105,7 +134,16 @@ def test_bad_conditions_are_one_line_errors():
         build_condition_grid({**cfg, "reference": "Noon-SUNNY"})
     with pytest.raises(ConfigError, match="unknown condition 'Day-SNOW'"):
         build_condition_grid({**cfg, "only": ["Day-EXTRASUNNY", "Day-SNOW"]})
-    with pytest.raises(ConfigError, match="fog_density"):
-        Condition(name="x", time="Day", weather="FOGGY", fog_density=1.5)
+    with pytest.raises(ConfigError, match="cloud_cover"):
+        Condition(name="x", time="Day", weather="FOGGY", cloud_cover=1.5)
+    with pytest.raises(ConfigError, match=r"visibility_m=0.*metres"):
+        Condition(name="x", time="Day", weather="FOGGY", visibility_m=0)
+    with pytest.raises(ConfigError, match=r"rain_mm_h=-1.*mm/h"):
+        Condition(name="x", time="Day", weather="RAIN", rain_mm_h=-1)
+    # the unitless keys of earlier versions say what replaced them and how to convert
+    with pytest.raises(ConfigError, match=r"fog_density is no longer a condition key; use visibility_m.*0.7 -> 93 m"):
+        build_condition_grid({**cfg, "weathers": {**cfg["weathers"], "FOGGY": {"fog_density": 0.7}}})
+    with pytest.raises(ConfigError, match=r"conditions.ladder.parameter='fog'"):
+        build_condition_grid({**cfg, "ladder": {"parameter": "fog"}})
     with pytest.raises(ConfigError, match="duplicate"):
         ConditionGrid((Condition("a", "Day", "X"), Condition("a", "Day", "X")), "a")

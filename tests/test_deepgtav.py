@@ -46,8 +46,8 @@ DESCRIPTOR = SceneDescriptor(
 )
 CONDITIONS = [
     Condition("Day-Sunny", "Day", "EXTRASUNNY", clock_hour=12),
-    Condition("Sunset-Foggy", "Sunset", "FOGGY", clock_hour=19, clock_minute=30, fog_density=0.7),
-    Condition("Night-Rain", "Night", "RAIN", clock_hour=23, rain_intensity=0.8),
+    Condition("Sunset-Foggy", "Sunset", "FOGGY", clock_hour=19, clock_minute=30, visibility_m=300.0),
+    Condition("Night-Rain", "Night", "RAIN", clock_hour=23, rain_mm_h=30.0),
 ]
 
 

@@ -101,11 +101,11 @@ def test_light_model_is_continuous_and_ordered():
     assert day["exposure"] < sunset["exposure"] < night["exposure"]
     assert night["lamps"] == 1.0 and day["lamps"] == 0.0
     # a small change of any physical field makes a small change of every parameter
-    base = Condition(name="x", time="Day", weather="w", sun_elevation_deg=20.0, cloud_cover=0.3, fog_density=0.3,
-                     rain_intensity=0.3, wetness=0.3)
+    base = Condition(name="x", time="Day", weather="w", sun_elevation_deg=20.0, cloud_cover=0.3, visibility_m=400.0,
+                     rain_mm_h=5.0, wetness=0.3)
     p0 = lighting(base)
-    for field in ("sun_elevation_deg", "cloud_cover", "fog_density", "rain_intensity", "wetness"):
-        p1 = lighting(dataclasses.replace(base, **{field: getattr(base, field) + 1e-4}))
+    for field in ("sun_elevation_deg", "cloud_cover", "visibility_m", "rain_mm_h", "wetness"):
+        p1 = lighting(dataclasses.replace(base, **{field: getattr(base, field) + 1e-3}))
         for key, value in p0.items():
             assert np.allclose(value, p1[key], atol=1e-2), (field, key)
 

@@ -37,7 +37,7 @@ def test_shards_build_the_unsharded_dataset(tmp_path):
     (key_many, e_many), = entries(many / "cache").items()
     assert key_one == key_many  # shard keys are not part of the dataset's hash
     a, b = files(e_one), files(e_many)
-    assert len(a) == 5 * 3 * 3 and a == b  # images, label and instance maps byte-identical
+    assert len(a) == 5 * 3 * 4 and a == b  # images, label, instance and transmittance maps byte-identical
     assert json.loads((e_one / "index.json").read_text()) == json.loads((e_many / "index.json").read_text())
 
 

@@ -31,9 +31,9 @@ URL = "https://acdc.vision.ee.ethz.ch"
 ADVERSE_RE = re.compile(r"^(?P<seq>.+)_frame_(?P<n>\d+)_rgb_anon$")
 # backend-neutral physical parameters of the adverse condition (descriptive only: nothing is rendered)
 _PHYSICAL = {
-    "fog": {"fog_density": 0.7, "cloud_cover": 0.6},
+    "fog": {"visibility_m": 150.0, "cloud_cover": 0.6},  # descriptive: dense road fog (below 1 km by definition)
     "night": {"clock_hour": 0, "sun_elevation_deg": -30.0},
-    "rain": {"rain_intensity": 0.7, "wetness": 1.0, "cloud_cover": 0.9},
+    "rain": {"rain_mm_h": 10.0, "wetness": 1.0, "cloud_cover": 0.9},
     "snow": {"cloud_cover": 0.9, "wetness": 0.5},
 }
 

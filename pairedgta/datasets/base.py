@@ -26,6 +26,7 @@ class Group:
     images: dict[str, Path]
     labels: dict[str, Path] = field(default_factory=dict)
     descriptor: Path | None = None
+    transmittance: dict[str, Path] = field(default_factory=dict)  # generated datasets from backends with depth
 
 
 @dataclass
@@ -50,7 +51,7 @@ class PairedDataset:
         memo = default()
         h = hashlib.sha256()
         for g in self.groups:
-            for kind, files in (("", g.images), ("L|", g.labels)):
+            for kind, files in (("", g.images), ("L|", g.labels), ("T|", g.transmittance)):
                 for cond in sorted(files):
                     p = files[cond]
                     st = p.stat()
@@ -107,6 +108,24 @@ def load_label(path: Path, train_ids: bool = True) -> np.ndarray:
             raise DataError(f"{path}: label values {found} do not fit 8 bits; re-export the label map")
         raise DataError(f"{path}: label values {found} are not Cityscapes train ids (0-18, 255 = void); {hint}")
     return arr.astype(np.uint8)
+
+
+def load_transmittance(path: Path) -> np.ndarray:
+    """float32 in [0, 1] from a 16-bit transmittance map (generate stage: 65535 = fully visible)."""
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                raise DataError(f"{path}: transmittance map has mode {im.mode}; expected a 16-bit greyscale PNG "
+                                "(regenerate the dataset)")
+            arr = np.asarray(im)
+    except FileNotFoundError:
+        raise DataError(f"{path}: transmittance map not found; regenerate the dataset or set metric.min_transmittance=0") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise DataError(f"{path}: not a readable transmittance map ({type(exc).__name__}); regenerate it") from None
+    if arr.size and (int(arr.min()) < 0 or int(arr.max()) > 65535):
+        raise DataError(f"{path}: transmittance values outside 0..65535; regenerate the dataset")
+    return (arr / 65535.0).astype(np.float32)
 
 
 def image_size(path: Path) -> tuple[int, int]:

@@ -4,6 +4,7 @@
     <root>/scenes/<scene_id>/<condition>.png           image
     <root>/scenes/<scene_id>/<condition>_labels.png    train ids (backends with labels)
     <root>/scenes/<scene_id>/<condition>_instances.png instance ids
+    <root>/scenes/<scene_id>/<condition>_transmittance.png  exp(-extinction * distance), 16-bit (backends with depth)
     <root>/scenes/<scene_id>/descriptor.json           the replay file
     <root>/scenes/<scene_id>/timings.json
 """
@@ -12,6 +13,8 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+
+import numpy as np
 
 from pairedgta.conditions import ConditionGrid
 from pairedgta.datasets.base import Group, PairedDataset
@@ -23,6 +26,18 @@ INDEX = "index.json"
 
 def scene_files(scene_dir: Path, condition: str) -> tuple[Path, Path, Path]:
     return scene_dir / f"{condition}.png", scene_dir / f"{condition}_labels.png", scene_dir / f"{condition}_instances.png"
+
+
+def transmittance_file(scene_dir: Path, condition: str) -> Path:
+    return scene_dir / f"{condition}_transmittance.png"
+
+
+TRANSMITTANCE_SCALE = 65535
+
+
+def transmittance_png(transmittance: np.ndarray) -> np.ndarray:
+    """Transmittance in [0, 1] as 16-bit levels (resolution 1.5e-5: a threshold near 0 stays meaningful)."""
+    return np.rint(np.clip(transmittance, 0.0, 1.0) * TRANSMITTANCE_SCALE).astype(np.uint16)
 
 
 def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "generated") -> PairedDataset:
@@ -46,18 +61,20 @@ def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "genera
     groups, skipped = [], 0
     for scene in scenes:
         scene_dir = root / scene["dir"]
-        images, labels = {}, {}
+        images, labels, transmittance = {}, {}, {}
         for cond in grid.names:
             img, lab, _ = scene_files(scene_dir, cond)
             if img.is_file():
                 images[cond] = img
                 if lab.is_file():
                     labels[cond] = lab
+                if transmittance_file(scene_dir, cond).is_file():
+                    transmittance[cond] = transmittance_file(scene_dir, cond)
         if grid.reference not in images:
             skipped += 1
             continue
         desc = scene_dir / "descriptor.json"
-        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None))
+        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None, transmittance))
     if skipped:
         log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
     if not groups:

@@ -23,6 +23,7 @@ FIGURES.register("metric_validity", "pairedgta.figures.validity:draw", needs="ev
 FIGURES.register("ablation", "pairedgta.figures.ablation:draw", needs="evaluate")
 FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel")
 FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")
+FIGURES.register("robustness", "pairedgta.figures.robustness:draw", needs="evaluate")  # ladders only
 # keyed: the module has a `cache_key(passes, opts)` (files of its own enter the plot hash); declared here
 # so that a cached run imports no figure module (seaborn alone costs ~0.5 s)
 FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv", keyed=True)

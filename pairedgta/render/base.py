@@ -17,12 +17,15 @@ from pairedgta.scene.descriptor import SceneDescriptor
 @dataclass
 class RenderResult:
     """Layers of one rendered image: RGB uint8 HxWx3, optional Cityscapes train-id labels HxW uint8
-    (255 = unlabeled), optional instance ids HxW uint16, and the backend-reported entity state."""
+    (255 = unlabeled), optional instance ids HxW uint16, the backend-reported entity state, and the
+    optional distance from the camera along each pixel's ray in metres (float32, inf where the ray
+    leaves the scene): the generate stage turns it into the condition's transmittance map."""
 
     image: np.ndarray
     labels: np.ndarray | None = None
     instances: np.ndarray | None = None
     state: dict[str, Any] = field(default_factory=dict)
+    distance: np.ndarray | None = None
 
 
 class Renderer(abc.ABC):

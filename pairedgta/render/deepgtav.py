@@ -509,6 +509,7 @@ class DeepGTAVRenderer(Renderer):
         self.settle_s, self.settle_frames, self.rate = float(settle_s), int(settle_frames), float(rate)
         self.ego_vehicle, self.despawn_s = ego_vehicle, float(despawn_s)
         self.construction_weather, self.construction_time = construction_weather, (ct[0], ct[1])  # type: ignore[index]
+        self._gta_requests: dict[str, tuple[str, int, int]] = {}  # condition -> (weather, hour, minute) asked of GTA
         self.object_heading, self.place_on_ground = object_heading, bool(place_on_ground)
         self.check_state, self.clock_tolerance_min = bool(check_state), int(clock_tolerance_min)
         self.ego_tolerance_m = float(ego_tolerance_m)
@@ -621,6 +622,27 @@ class DeepGTAVRenderer(Renderer):
             "heading": heading, "placeOnGround": self.place_on_ground, "animDict": "", "animName": "",
             "task": 0,
         }}
+
+    def gta_mapping(self, condition: Condition) -> dict[str, Any]:
+        """What GTA V is asked for, and the physical parameters it cannot honour: GTA has discrete
+        weathers and a clock, no visibility, rain-rate or sun-elevation control. The config names the
+        nearest weather and clock per condition (a ladder's steps say theirs); this says so once per
+        condition, and warns when two conditions of the run collapse onto the same request."""
+        request = (condition.weather, int(condition.clock_hour), int(condition.clock_minute))
+        physical = {k: v for k, v in (("visibility_m", condition.visibility_m), ("rain_mm_h", condition.rain_mm_h),
+                                      ("sun_elevation_deg", condition.sun_elevation_deg)) if v}
+        seen = self._gta_requests
+        if condition.name not in seen:
+            twins = [n for n, r in seen.items() if r == request]
+            seen[condition.name] = request
+            units = ", ".join(f"{k}={v:g}" for k, v in physical.items())
+            log.info("DeepGTAV: %s (%s) is rendered as GTA weather %s at %02d:%02d; GTA V has no continuous "
+                     "visibility, rain-rate or sun-elevation control", condition.name, units or "clear", *request)
+            if twins:
+                log.warning("DeepGTAV: %s asks GTA V for the same weather and clock as %s (%s at %02d:%02d): their "
+                            "images differ only by what GTA varies between captures; use renderer=blender for a "
+                            "severity ladder", condition.name, ", ".join(twins), *request)
+        return {"gta_weather": request[0], "gta_clock": f"{request[1]:02d}:{request[2]:02d}", "not_rendered": physical}
 
     def condition_messages(self, condition: Condition) -> list[dict[str, Any]]:
         msgs = [
@@ -755,7 +777,8 @@ class DeepGTAVRenderer(Renderer):
             self._next_frame()
         frame, state = self._await(lambda s: self._condition_objection(condition, s), f"condition '{condition.name}'")
         self.last_state = state
-        return RenderResult(image=decode_frame(frame, self.width, self.height), state=state)
+        return RenderResult(image=decode_frame(frame, self.width, self.height),
+                            state={**state, "gta_mapping": self.gta_mapping(condition)})
 
     def _discard_pending(self) -> None:
         assert self._conn is not None

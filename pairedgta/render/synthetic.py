@@ -211,16 +211,14 @@ class SyntheticRenderer(Renderer):
                 if 0 <= row < H:
                     img[max(0, row - 1) : row + 2, cols] = (255, 240, 200)
         # fog: exponential attenuation towards the fog colour
-        if condition.fog_density > 0:
-            k = 0.09 * condition.fog_density
-            t = np.where(np.isfinite(depth), depth, 300.0)
-            trans = np.exp(-k * t)[..., None]
+        if condition.extinction_per_m > 0:  # fog, mist and rain haze (conditions.py: Koschmieder)
+            trans = condition.transmittance(depth)[..., None]
             fog_rgb = np.array([200, 200, 205]) * (0.12 + 0.88 * light)
             img = img * trans + fog_rgb * (1 - trans)
         rng = np.random.default_rng(_stable_seed("condition", descriptor.seed, condition.name))
-        if condition.rain_intensity > 0:
+        if condition.rain_level > 0:
             H, W = labels.shape
-            n = int(condition.rain_intensity * W * H / 60)
+            n = int(condition.rain_level * W * H / 60)
             ys = rng.integers(0, H, n)
             xs = rng.integers(0, W, n)
             for dy in range(4):
@@ -236,4 +234,5 @@ class SyntheticRenderer(Renderer):
             "weather": condition.weather,
             "clock": [condition.clock_hour, condition.clock_minute],
         }
-        return RenderResult(image=image, labels=labels.copy(), instances=g["instances"].copy(), state=state)
+        return RenderResult(image=image, labels=labels.copy(), instances=g["instances"].copy(), state=state,
+                            distance=depth.astype(np.float32))

@@ -23,7 +23,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
-from pairedgta.datasets import PairedDataset, load_group_images, load_label
+from pairedgta.datasets import PairedDataset, load_group_images, load_label, load_transmittance
 from pairedgta.errors import ConfigError, DataError, PairedGTAError
 from pairedgta.metrics.bootstrap import class_mean_ci
 from pairedgta.metrics.conventions import convention_from_config, support_mask
@@ -60,7 +60,7 @@ from pairedgta.lazy import lazy_module
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "5"  # 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "6"  # 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 # 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
 # 5: xi.csv `images`/`supported` (metric.min_images/min_pixels); no interval for a class seen in one image;
 #    random_one draws a time of day, then a weather of it (the authors' loader)
@@ -237,8 +237,11 @@ def metric_settings(cfg: dict[str, Any], grid_names: list[str], reference: str) 
     sampling = str(ev.get("sampling") or "all")
     if sampling not in SAMPLINGS:
         raise ConfigError(f"evaluate.sampling={sampling!r}; use one of {', '.join(SAMPLINGS)}")
+    min_t = float(metric.get("min_transmittance") or 0.0)
+    if not 0.0 <= min_t < 1.0:
+        raise ConfigError(f"metric.min_transmittance={min_t}; use a transmittance in [0, 1)")
     settings = {
-        "tau_mass": tau, "m": m, "selections": selections, "class_ids": class_ids, "reference_mode": ref_mode,
+        "tau_mass": tau, "m": m, "min_transmittance": min_t, "selections": selections, "class_ids": class_ids, "reference_mode": ref_mode,
         "resamples": int(boot.get("resamples", 1000)), "confidence": float(boot.get("confidence", 0.95)),
         "seed": int(boot.get("seed", 0)), "clean": clean,
         "convention": convention_from_config(metric, selections).as_dict(),
@@ -277,10 +280,12 @@ class _GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __g
     raises the same one-line error a sequential run would."""
 
     def __init__(self, dataset: PairedDataset, groups: list[Any], order: list[str], clean: str,
-                 pseudo: PseudoLabels, use_gt: bool, sampling: str = "all", sampling_seed: int = 0) -> None:
+                 pseudo: PseudoLabels, use_gt: bool, sampling: str = "all", sampling_seed: int = 0,
+                 min_transmittance: float = 0.0) -> None:
         self.dataset, self.groups, self.order, self.clean = dataset, groups, order, clean
         self.labels, self.use_gt = pseudo.labels, use_gt
         self.sampling, self.sampling_seed = sampling, sampling_seed
+        self.min_transmittance = min_transmittance
 
     def __len__(self) -> int:
         return len(self.groups)
@@ -311,7 +316,23 @@ class _GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __g
                 own[c] = load_label(group.labels[c])
                 if own[c].shape != shape:
                     raise DataError(f"{group.labels[c]}: label map size differs from its image")
-        return {"group_id": group.group_id, "present": present, "images": images, "pseudo": pseudo, "own": own}
+        return {"group_id": group.group_id, "present": present, "images": images, "pseudo": pseudo, "own": own,
+                "visible": self._visible(group, present, shape)}
+
+    def _visible(self, group: Any, present: list[str], shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+        """metric.min_transmittance > 0: per condition, the pixels visible in it and in the clean image."""
+        if self.min_transmittance <= 0.0:
+            return {}
+        seen: dict[str, np.ndarray] = {}
+        for c in present:
+            if c not in group.transmittance:
+                raise DataError(f"group {group.group_id} of {self.dataset.root} has no transmittance map for {c}; "
+                                "regenerate it with renderer=blender or synthetic, or set metric.min_transmittance=0")
+            t = load_transmittance(group.transmittance[c])
+            if t.shape != shape:
+                raise DataError(f"{group.transmittance[c]}: transmittance map size differs from its image")
+            seen[c] = t >= self.min_transmittance
+        return {c: seen[c] & seen[self.clean] for c in present}
 
 
 def decode_workers(value: Any, device: str) -> int:
@@ -348,46 +369,56 @@ def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], refere
     images, pseudo_t = item["images"], item["pseudo"].astype(np.int64)
     own = item["own"]
     gt_t = own[reference].astype(np.int64) if reference in own else None
+    visible = item.get("visible") or {}  # metric.min_transmittance: what each condition leaves visible
+
+    def hide(label: np.ndarray | None, c: str) -> np.ndarray | None:
+        return label if label is None or c not in visible else np.where(visible[c], label, IGNORE_INDEX)
+
     preds: dict[str, np.ndarray] = {}
-    masses: dict[str, np.ndarray] = {}
+    confs: dict[str, np.ndarray] = {}
     for start in range(0, len(present), batch):
         names = present[start : start + batch]
         labels, conf = segmenter.predict(np.stack([images[c] for c in names]))
-        mass = prediction_mass_from_labels(labels, conf, NUM_CLASSES, s["tau_mass"]).numpy()
-        labels = labels.numpy()
+        labels, conf = labels.numpy(), np.asarray(conf)
         for i, c in enumerate(names):
-            preds[c] = labels[i]
-            masses[c] = mass[i]
+            preds[c], confs[c] = labels[i], conf[i]
+
+    def mass(c: str, seen: str) -> np.ndarray:
+        """phi counts of c's prediction over the pixels visible in condition `seen`."""
+        conf = confs[c] if seen not in visible else np.where(visible[seen], confs[c], -1.0)
+        return prediction_mass_from_labels(preds[c], conf, NUM_CLASSES, s["tau_mass"]).numpy()[0]
+
     out: dict[str, Any] = {"group_id": item["group_id"], "xi": {}, "cm": {}, "agreement": [], "counts": []}
-    valid = pseudo_t != IGNORE_INDEX
-    n_valid = int(valid.sum())
     for c in present:
         pred = preds[c]
+        pseudo_c = hide(pseudo_t, c)
         if use_pl:
-            r, t = reference_consistency_counts(pseudo_t, pred, NUM_CLASSES, IGNORE_INDEX)
+            r, t = reference_consistency_counts(pseudo_c, pred, NUM_CLASSES, IGNORE_INDEX)
             out["xi"][f"pseudo_label|{c}"] = [r.tolist(), t.tolist()]
         if gt_t is not None:
-            r, t = reference_consistency_counts(gt_t, pred, NUM_CLASSES, IGNORE_INDEX)
+            r, t = reference_consistency_counts(hide(gt_t, c), pred, NUM_CLASSES, IGNORE_INDEX)
             out["xi"][f"{GT}|{c}"] = [r.tolist(), t.tolist()]
         # IoU of condition c needs c's own truth; the reference's truth stands in only where the
         # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
         # only: they are never used as reference truth nor for the reference image)
-        target = own[c].astype(np.int64) if c in own else gt_t
+        target = hide(own[c].astype(np.int64) if c in own else gt_t, c)
         if target is not None:
             cm = ConfusionMatrix(NUM_CLASSES)
             cm.update(target, pred)
             out["cm"][c] = cm.mat.tolist()
-        agree_ref = int(((pred == pseudo_t) & valid).sum())
+        valid = pseudo_c != IGNORE_INDEX
+        agree_ref = int(((pred == pseudo_c) & valid).sum())
         agree_clean = int(((pred == preds[clean]) & valid).sum())
         out["agreement"].append({
-            "model": model, "condition": c, "pair_id": item["group_id"], "valid_pixels": n_valid,
+            "model": model, "condition": c, "pair_id": item["group_id"], "valid_pixels": int(valid.sum()),
             "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
         })
         if c != clean:
+            clean_mass, adv_mass = mass(clean, c), mass(c, c)
             for k in s["class_ids"]:
                 out["counts"].append({
                     "dataset": dataset_name, "model": model, "class_name": CLASS_NAMES[k], "pair_id": item["group_id"],
-                    "condition": c, "clean_count": int(masses[clean][k]), "adv_count": int(masses[c][k]),
+                    "condition": c, "clean_count": int(clean_mass[k]), "adv_count": int(adv_mass[k]),
                 })
     return out
 
@@ -405,7 +436,8 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabe
     ecfg = ctx.cfg.get("evaluate") or {}
     batch = int(ecfg.get("batch_size", 4))
     workers = decode_workers(ecfg.get("num_workers", "auto"), str(ctx.cfg.get("device", "cpu")))
-    inputs = _GroupInputs(dataset, groups, order, clean, pseudo_labels, use_gt, s["sampling"], s["sampling_seed"])
+    inputs = _GroupInputs(dataset, groups, order, clean, pseudo_labels, use_gt, s["sampling"], s["sampling_seed"],
+                          s["min_transmittance"])
     results = []
     with torch_threads(inference_threads(ctx.cfg)):
         for item in tqdm(_loader(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
@@ -551,7 +583,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
     conv = s["convention"]
     name = conv["name"]
     summary: dict[str, Any] = {"model": model, "reference_model": reference_model, "dataset": dataset.name,
-                               "convention": conv, "sampling": s["sampling"],
+                               "convention": conv, "sampling": s["sampling"], "min_transmittance": s["min_transmittance"],
                                "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "rho_valid_headline": {},
                                "gt_miou": {}, "agreement": {}, "n_pairs": {}, **(coverage or {})}
     if s["sampling"] == "random_one":
@@ -578,6 +610,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
                 "reference_pixels": int(a.metric.reference[k]), "retained_pixels": int(a.metric.retained[k]),
                 "images": int(images[k]), "supported": bool(supported[k]),
                 "in_mean": bool(included[k]), "n_pairs": len(a.retained), "convention": name,
+                "min_transmittance": s["min_transmittance"],
             })
         # the class-wise mean under the convention, with its own bootstrap over images
         mean = class_mean(xi, included)
@@ -587,6 +620,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             "xi": mean, "ci_low": mlo, "ci_high": mhi,
             "reference_pixels": int(a.metric.reference.sum()), "retained_pixels": int(a.metric.retained.sum()),
             "images": len(a.retained), "supported": bool(included.any()), "in_mean": False, "n_pairs": len(a.retained), "convention": name,
+            "min_transmittance": s["min_transmittance"],
         })
         summary["xi_mean" if source == "pseudo_label" else "xi_mean_gt"][cond] = mean
         if source == "pseudo_label" or not summary["n_pairs"].get(cond):

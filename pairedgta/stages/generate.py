@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
-from pairedgta.datasets.generated import INDEX, scene_files
+from pairedgta.datasets.generated import INDEX, scene_files, transmittance_file, transmittance_png
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError
 from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer
@@ -39,9 +39,10 @@ from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
-VERSION = "5"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
+VERSION = "6"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
 # 4: signs along every street, board and railing fences, garden walls, guard railings;
-# 5: analytic fog by default, and clear skies lit by the sun (the fog box no longer shadows it)
+# 5: analytic fog by default, and clear skies lit by the sun (the fog box no longer shadows it);
+# 6: conditions in physical units (visibility, rain rate) and a transmittance map per condition
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
@@ -203,6 +204,9 @@ def render_scene(
                 )
             img_path, lab_path, inst_path = scene_files(tmp, condition.name)
             save_png_atomic(result.image, img_path)
+            if result.distance is not None:  # what the air hides: metric.min_transmittance scores only the rest
+                save_png_atomic(transmittance_png(condition.transmittance(result.distance)),
+                                transmittance_file(tmp, condition.name))
             if result.labels is not None:
                 save_png_atomic(result.labels.astype(np.uint8), lab_path)
             if result.instances is not None:

@@ -1,5 +1,6 @@
-"""Label pass: every surface emits its object's pass index (class + 32 * instance), rendered with
-one centred sample per pixel into a float EXR and decoded exactly."""
+"""Label pass: every surface emits its object's pass index (class + 32 * instance) in red and its
+distance from the camera in green, rendered with one centred sample per pixel into a float EXR and
+decoded exactly."""
 from __future__ import annotations
 
 import os
@@ -28,8 +29,10 @@ def label_code(label: str, instance: int = 0) -> int:
     return instance * 32 + cls
 
 
-def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None], tmp_dir: str) -> tuple[np.ndarray, np.ndarray]:
-    """Render the index pass of the current scene and return (train ids, instance ids).
+def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None],
+                      tmp_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render the index pass of the current scene and return (train ids, instance ids, distance in m;
+    inf for the sky).
 
     Only values change (label_mode, fog_on, compositing, sampling settings) and are restored afterwards:
     toggling visibility would reorder Cycles' scene and so the beauty pass's sampling."""
@@ -64,8 +67,10 @@ def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None], tmp_d
         image.pixels.foreach_get(px)
     finally:
         bpy.data.images.remove(image)
-    code = px.reshape(h, w, -1)[::-1, :, 0]
-    return decode_labels(code)
+    px = px.reshape(h, w, -1)[::-1]
+    train, instances = decode_labels(px[..., 0])
+    distance = np.where(np.rint(px[..., 0]) == 0, np.inf, px[..., 1]).astype(np.float32)
+    return train, instances, distance
 
 
 __all__ = ["LABEL_CODE_VOID", "MAX_INSTANCES", "decode_labels", "label_code", "render_label_pass"]

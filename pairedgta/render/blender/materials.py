@@ -41,14 +41,15 @@ def sun_transmittance(elevation_deg: float) -> np.ndarray:
     return np.exp(-np.array([0.06, 0.11, 0.24]) * airmass)
 
 
-def lighting(cond: Condition, exposure_override: float | None = None, exposure_bias: float = 0.0,
-             fog_max_density: float = 0.06, rain_haze: float = 0.006) -> dict[str, Any]:
-    """All condition-dependent render parameters; continuous in every physical field."""
+def lighting(cond: Condition, exposure_override: float | None = None, exposure_bias: float = 0.0) -> dict[str, Any]:
+    """All condition-dependent render parameters; continuous in every physical field. The extinction
+    is the condition's own (visibility and rain rate, conditions.py), so the image and the
+    transmittance map written beside it attenuate alike."""
     el = float(cond.sun_elevation_deg)
-    rain = float(cond.rain_intensity)
+    rain = cond.rain_level
     cloud = max(float(cond.cloud_cover), rain)
     wet = max(float(cond.wetness), rain)
-    fog = float(cond.fog_density)
+    fog = cond.fog_level
     trans = sun_transmittance(el)
     sun_vis = _smoothstep(-1.0, 2.0, el)
     sun_strength = 4.5 * sun_vis * float(trans.max()) * (1.0 - 0.92 * cloud)
@@ -68,7 +69,7 @@ def lighting(cond: Condition, exposure_override: float | None = None, exposure_b
     vehicle_lights = max(lamps, _smoothstep(0.2, 0.6, max(rain, fog)))
     # exposure: partial compensation of the estimated scene illuminance (real cameras keep night dark)
     sky_light = 2.6 * float(np.mean(zenith + horizon) / 2 * (1 - cloud) + np.mean(grey) * cloud)
-    extinction = fog_max_density * fog + rain_haze * rain  # 1/m
+    extinction = cond.extinction_per_m  # 1/m
     # radiance that fog and rain haze scatter toward the camera (renderer.fog_model=analytic): albedo
     # times the light arriving from the sky (cloud-grey as cover grows), the sun (isotropic share) and,
     # at night, the street lamps and the city glow
@@ -198,8 +199,14 @@ class Shading:
         nt = mat.node_tree
         info = nt.nodes.new("ShaderNodeObjectInfo")
         em = nt.nodes.new("ShaderNodeEmission")
-        em.inputs["Color"].default_value = (1, 1, 1, 1)
-        nt.links.new(info.outputs["Object Index"], em.inputs["Strength"])
+        # red: the pass index; green: the distance from the camera, for the transmittance maps
+        # (View Distance, not Ray Length: a ray through the volume box's transparent surface restarts there)
+        rgb = nt.nodes.new("ShaderNodeCombineColor")
+        nt.links.new(info.outputs["Object Index"], rgb.inputs["Red"])
+        nt.links.new(nt.nodes.new("ShaderNodeCameraData").outputs["View Distance"], rgb.inputs["Green"])
+        rgb.inputs["Blue"].default_value = 0.0
+        nt.links.new(rgb.outputs[0], em.inputs["Color"])
+        em.inputs["Strength"].default_value = 1.0
         mix = nt.nodes.new("ShaderNodeMixShader")
         nt.links.new(self._knob(nt, "label_mode", 0.0), mix.inputs[0])
         nt.links.new(surface, mix.inputs[1])

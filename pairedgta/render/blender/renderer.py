@@ -97,8 +97,8 @@ class BlenderRenderer(Renderer):
                  denoise: bool = True, denoiser_quality: str = "FAST", max_bounces: int = 2,
                  fast_gi: bool = True, town: Mapping[str, Any] | None = None, seed: int = 0,
                  exposure: Mapping[str, float] | None = None, exposure_bias: float = 0.0,
-                 threads: int = 0, fog_max_density: float = 0.06, fog_extent: float = 220.0,
-                 fog_height: float = 45.0, rain_haze: float = 0.006, volume_step_rate: float = 4.0,
+                 threads: int = 0, fog_extent: float = 220.0,
+                 fog_height: float = 45.0, volume_step_rate: float = 4.0,
                  view_transform: str = "AgX", look: str = "None", filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
                  max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
@@ -110,7 +110,6 @@ class BlenderRenderer(Renderer):
             ("device", str(device).upper() in ("CPU", "GPU"), "CPU or GPU"),
             ("denoiser_quality", str(denoiser_quality).upper() in ("FAST", "BALANCED", "HIGH"),
              "FAST, BALANCED or HIGH"),
-            ("fog_max_density", float(fog_max_density) >= 0, ">= 0 (1/m)"),
             ("threads", int(threads) >= 0, ">= 0 (0 = all cores)"),
             ("fog_model", str(fog_model) in FOG_MODELS, " or ".join(FOG_MODELS)),
         )
@@ -134,10 +133,8 @@ class BlenderRenderer(Renderer):
         self.exposure_bias = float(exposure_bias)
         self.threads = int(threads)
         self.fog_model = str(fog_model)
-        self.fog_max_density = float(fog_max_density)
         self.fog_extent = float(fog_extent)
         self.fog_height = float(fog_height)
-        self.rain_haze = float(rain_haze)
         self.volume_step_rate = float(volume_step_rate)
         self.view_transform = str(view_transform)
         self.look = str(look)
@@ -157,7 +154,7 @@ class BlenderRenderer(Renderer):
         self._town: ProceduralTownRegion | None = None
         self._town_key: tuple | None = None
         self._prepared: SceneDescriptor | None = None
-        self._labels: tuple[np.ndarray, np.ndarray] | None = None
+        self._labels: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._shading: Shading | None = None
         self._scene_meshes: list[Any] = []
         self._scene_state: dict[str, Any] = {}
@@ -498,8 +495,7 @@ class BlenderRenderer(Renderer):
 
     # ---- conditions -----------------------------------------------------------------------
     def _apply_condition(self, cond: Condition) -> dict[str, Any]:
-        p = lighting(cond, self.exposure.get(cond.name, self.exposure.get(cond.time)), self.exposure_bias,
-                     self.fog_max_density, self.rain_haze)
+        p = lighting(cond, self.exposure.get(cond.name, self.exposure.get(cond.time)), self.exposure_bias)
         self._shading.apply(p, self._lamps_used, self._heads_used,
                             self._town.lit_window_fraction if self._town else 0.0)
         return p
@@ -515,7 +511,7 @@ class BlenderRenderer(Renderer):
         if not os.path.exists(path):
             raise RendererError(f"Cycles wrote no image to {path}; check free space in {self._tmp}")
 
-    def _render_labels(self) -> tuple[np.ndarray, np.ndarray]:
+    def _render_labels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return render_label_pass(self._bpy, self._shading, self._render_to, self._tmp or tempfile.gettempdir())
 
     def _render_beauty(self) -> np.ndarray:
@@ -539,22 +535,23 @@ class BlenderRenderer(Renderer):
         image = self._render_beauty()
         t1 = time.perf_counter()
         if self.labels_per_condition or self._labels is None:
-            labels, instances = self._render_labels()
+            labels, instances, distance = self._render_labels()
             if not self.labels_per_condition:
-                self._labels = (labels, instances)
+                self._labels = (labels, instances, distance)
         else:
-            labels, instances = self._labels
+            labels, instances, distance = self._labels
         t2 = time.perf_counter()
         self.timings["render"] = t1 - t0
         self.timings["labels"] = t2 - t1
         state = {
             **self._scene_state, "backend": "blender", "condition": condition.name,
             "exposure_ev": round(float(p["exposure"]), 4), "samples": self.samples,
-            "sun_strength": round(float(p["sun_strength"]), 4), "fog_density_per_m": round(float(p["extinction"]), 5),
+            "sun_strength": round(float(p["sun_strength"]), 4), "extinction_per_m": round(float(p["extinction"]), 5),
             "fog_model": self.fog_model,
             "seconds": round(t2 - t0, 4),
         }
-        return RenderResult(image=image, labels=labels.copy(), instances=instances.copy(), state=state)
+        return RenderResult(image=image, labels=labels.copy(), instances=instances.copy(), state=state,
+                            distance=distance.copy())
 
 
 
