@@ -21,7 +21,7 @@ KOSCHMIEDER = 3.912  # -ln(0.02): visibility is the distance at which contrast f
 RAIN_EXTINCTION_COEF, RAIN_EXTINCTION_EXP = 1.076 / 4.3429 / 1000.0, 0.67
 RAIN_FULL_MM_H = 50.0  # the rate at which streaks, wetness and cloud saturate (upper end of heavy rain)
 # keys of the unitless model the physical ones replaced: a config that still uses them is told how to convert
-_REPLACED = {
+REPLACED_KEYS = {
     "fog_density": "visibility_m (meteorological visibility in m; the old Blender fog_density d had "
                    "visibility 3.912 / (0.06 d) m, e.g. 0.7 -> 93 m)",
     "rain_intensity": "rain_mm_h (rain rate in mm/h; the old rain_intensity r is about 50 r^2 mm/h, e.g. 0.7 -> 25)",
@@ -179,8 +179,8 @@ def condition_display(name: str) -> str:
 
 def _check_keys(where: str, params: Mapping[str, Any], fields: set[str]) -> None:
     unknown = set(params) - fields
-    for key in sorted(unknown & set(_REPLACED)):
-        raise ConfigError(f"{where}: {key} is no longer a condition key; use {_REPLACED[key]}")
+    for key in sorted(unknown & set(REPLACED_KEYS)):
+        raise ConfigError(f"{where}: {key} is no longer a condition key; use {REPLACED_KEYS[key]}")
     if unknown:
         raise ConfigError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(fields - {'name', 'time', 'weather'})}")
 

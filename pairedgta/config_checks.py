@@ -323,6 +323,11 @@ def check_added_keys(overrides: list[str]) -> None:
             continue
         known = known if known is not None else known_key_paths()
         if key not in known:
+            from pairedgta.conditions import REPLACED_KEYS
+
+            if key.startswith("conditions.") and key.split(".")[-1] in REPLACED_KEYS:
+                raise ConfigError(f"+{key}: {key.split('.')[-1]} is no longer a condition key; use "
+                                  f"{REPLACED_KEYS[key.split('.')[-1]]}")
             close = sorted(k for k in known if k.split(".")[-1] == key.split(".")[-1])[:3]
             hint = f"; did you mean {', '.join(close)}?" if close else "; see python -m pairedgta --cfg job for the keys"
             raise ConfigError(f"+{key}: no part of pairedgta reads this key, so it would be ignored{hint}")

@@ -230,6 +230,48 @@ def test_labels_contain_the_scene_and_the_placed_objects(rendered):
     assert res.state["objects"][0]["category"] == "car"
 
 
+def test_the_label_pass_measures_the_distance_of_every_pixel(rendered):
+    """Green channel of the label pass: the camera distance (View Distance), the same in every condition,
+    inf for the sky; the placed car 12 m ahead is about 12 m away (its rear is nearer, its roof farther)."""
+    _, results, _ = rendered
+    ref = results[CONDITIONS[0]]
+    assert ref.distance.shape == (48, 96) and ref.distance.dtype == np.float32
+    sky = ref.labels == SKY
+    assert np.isinf(ref.distance[sky]).all() and np.isfinite(ref.distance[~sky]).all()
+    car = ref.instances == 1
+    assert 9.0 < float(np.median(ref.distance[car])) < 14.0
+    road = ref.labels == ROAD
+    rows = np.nonzero(road)[0]  # the road recedes: lower rows are nearer
+    near, far = road & (np.arange(48)[:, None] > np.percentile(rows, 80)), road & (np.arange(48)[:, None] < np.percentile(rows, 20))
+    assert np.median(ref.distance[near]) < np.median(ref.distance[far])
+    for name in CONDITIONS[1:]:
+        np.testing.assert_array_equal(results[name].distance, ref.distance, err_msg=name)
+
+
+def test_a_blender_fog_ladder_writes_maps_that_follow_the_images(tmp_path):
+    """One scene of the fog ladder through the CLI: the images lose contrast step by step and each
+    condition's transmittance map is exp(-3.912 d / V) of the same distances."""
+    from PIL import Image
+
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    proc = run_cli(base_overrides(tmp_path) + [
+        "conditions=fog_ladder", "stages=[generate]", "generate.num_scenes=1", "renderer.width=96", "renderer.height=48",
+        "renderer.samples=1", "tracking.enabled=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    scene, = (tmp_path / "cache" / "generate").glob("*/scenes/*")
+    steps = ["Day-EXTRASUNNY", "Day-FOG-1000m", "Day-FOG-600m", "Day-FOG-300m", "Day-FOG-150m", "Day-FOG-75m"]
+    contrast = [np.asarray(Image.open(scene / f"{c}.png")).mean(axis=2).std() for c in steps[1:]]
+    assert contrast == sorted(contrast, reverse=True), contrast
+    t = {c: np.asarray(Image.open(scene / f"{c}_transmittance.png")) / 65535.0 for c in steps}
+    assert (t["Day-EXTRASUNNY"] == 1.0).all()
+    ok = (t["Day-FOG-600m"] > 0.6) & (t["Day-FOG-600m"] < 0.99)  # 75 m: T^8 still above 16-bit resolution
+    assert ok.sum() > 100
+    for c, v in (("Day-FOG-300m", 300.0), ("Day-FOG-75m", 75.0)):
+        np.testing.assert_allclose(np.log(np.maximum(t[c][ok], 1e-9)), np.log(t["Day-FOG-600m"][ok]) * 600.0 / v,
+                                   rtol=0.02, atol=2e-4 * 600.0 / v)
+
+
 def test_physical_order_of_conditions(rendered):
     _, results, _ = rendered
     day, fog, night = (results[n].image.astype(float) for n in ("Day-EXTRASUNNY", "Day-FOGGY", "Night-RAIN"))
@@ -251,6 +293,9 @@ def test_both_fog_models_light_clear_skies_alike_and_fog_the_same_scene():
     assert abs(clear[0].mean() - clear[1].mean()) < 3.0, (clear[0].mean(), clear[1].mean())
     road = out["analytic"]["Day-EXTRASUNNY"].labels == ROAD
     assert abs(clear[0][road].mean() - clear[1][road].mean()) < 4.0
+    # the distance is the camera's, not a ray's last segment: the volume box's surface changes nothing
+    np.testing.assert_allclose(out["volume"]["Day-EXTRASUNNY"].distance, out["analytic"]["Day-EXTRASUNNY"].distance,
+                               rtol=1e-5)
     for model in ("analytic", "volume"):
         fogged = out[model]["Day-FOGGY"]
         np.testing.assert_array_equal(fogged.labels, out[model]["Day-EXTRASUNNY"].labels)
