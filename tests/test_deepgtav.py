@@ -127,6 +127,21 @@ def test_full_scene_three_conditions(server):
     assert wait_for(lambda: server.received[-1] == "stop")  # close() ends the session
 
 
+def test_physical_parameters_are_mapped_to_gta_and_collapsed_steps_are_named(server, caplog):
+    """GTA V has weathers and a clock only: each condition says what it asks GTA for and which physical
+    parameters it cannot honour; two fog steps asking for the same FOGGY noon are a warning."""
+    fog = [Condition(f"Day-FOG-{v}m", "Day", "FOGGY", clock_hour=12, visibility_m=float(v)) for v in (300, 150)]
+    with caplog.at_level("INFO", logger="pairedgta.render.deepgtav"), make_renderer(server) as r:
+        r.prepare(DESCRIPTOR)
+        first, second = (r.render(DESCRIPTOR, c) for c in fog)
+    assert first.state["gta_mapping"] == {"gta_weather": "FOGGY", "gta_clock": "12:00",
+                                          "not_rendered": {"visibility_m": 300.0, "sun_elevation_deg": 55.0}}
+    info = [m for m in caplog.messages if "is rendered as GTA weather" in m]
+    assert len(info) == 2 and "visibility_m=300" in info[0]
+    warned = [r for r in caplog.records if r.levelname == "WARNING" and "same weather and clock" in r.getMessage()]
+    assert len(warned) == 1 and "Day-FOG-150m" in warned[0].getMessage() and "Day-FOG-300m" in warned[0].getMessage()
+
+
 def test_render_builds_scene_and_switches_with_config(server):
     other = SceneDescriptor(
         "s0002", 8, Location(-900.0, 300.0, 40.0, 270.0),
