@@ -88,6 +88,13 @@ def _axes_style(ax, steps: list[int], ticks: list[str], ladder: Any) -> None:
     ax.grid(True, linewidth=0.3, alpha=0.5)
 
 
+def _legend(fig, ax) -> None:
+    """One legend row above the panels, where it hides no curve."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=max(1, len(labels)), fontsize=6, frameon=False,
+               bbox_to_anchor=(0.5, 1.0 - 0.25 / fig.get_figheight()))
+
+
 def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     metrics: dict[str, float] = {}
@@ -141,11 +148,11 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
                 if col == "rpc":
                     ax.set_ylim(-0.02, max(1.05, float(np.nanmax(curves[col])) + 0.05))
                 ax.set_title(title)
-            axes[0][0].legend(fontsize=5.5, frameon=False, loc="lower left")
+            _legend(fig, axes[0][0])
             fig.suptitle(f"Robustness along the {ladder.label} ladder (reference {p.grid.reference}, "
                          f"{int(p.evaluations[0].summary().get('n_pairs', {}).get(p.grid.reference, 0)) or '?'} scenes)",
-                         fontsize=7)
-            fig.tight_layout()
+                         fontsize=7, y=0.99)
+            fig.tight_layout(rect=(0, 0, 1, 0.9))
             files += save(fig, out, stem, opts.formats, opts.dpi)
         if classes:
             files += _draw_classes(p, classes, steps, ticks, ladder, below, out, opts)
@@ -160,7 +167,7 @@ def _draw_classes(p: Any, classes: list[str], steps: list[int], ticks: list[str]
     cols = min(3, len(classes))
     nrows = math.ceil(len(classes) / cols)
     with paper_style():
-        fig, axes = plt.subplots(nrows, cols, figsize=(TEXT_WIDTH, 2.2 * nrows), squeeze=False)
+        fig, axes = plt.subplots(nrows, cols, figsize=(TEXT_WIDTH, 2.2 * nrows + 0.3), squeeze=False)
         for i, cls in enumerate(classes):
             ax = axes[i // cols][i % cols]
             for model, g in table[table["class_name"] == cls].groupby("model", sort=False):
@@ -170,8 +177,11 @@ def _draw_classes(p: Any, classes: list[str], steps: list[int], ticks: list[str]
             ax.axhline(below, color="0.4", linestyle="--", linewidth=0.7)
             _axes_style(ax, steps, ticks, ladder)
             ax.set_title(f"ξ of {cls}")
+            if table[table["class_name"] == cls]["xi"].isna().all():  # say why the panel is empty
+                ax.text(0.5, 0.75, "no supported ξ:\ntoo few pseudo-label pixels", transform=ax.transAxes,
+                        ha="center", va="center", fontsize=6, color="0.4")
         for j in range(len(classes), nrows * cols):
             axes[j // cols][j % cols].axis("off")
-        axes[0][0].legend(fontsize=5.5, frameon=False, loc="lower left")
-        fig.tight_layout()
+        _legend(fig, axes[0][0])
+        fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
         return [out / f"{stem}.csv", *save(fig, out, stem, opts.formats, opts.dpi)]
