@@ -28,7 +28,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     plan = planning.make_plan(container)
     models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
     pseudolabel.check_tau(container)
-    cache = StageCache(container["cache_dir"])
+    cache = StageCache(container["cache_dir"], str((container.get("cache") or {}).get("verify", "stat")))
     tracking = container.get("tracking") or {}
     experiment = str(tracking.get("experiment_name") or container.get("name", "default"))
     tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)))

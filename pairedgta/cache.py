@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import IO, Any, Iterator
 
 from pairedgta import filehash
+from pairedgta.errors import ConfigError
 from pairedgta.jsonio import dumps, write_json
 
 log = logging.getLogger(__name__)
@@ -108,10 +109,20 @@ def release_all() -> None:
         cache.release()
 
 
+VERIFY_MODES = ("stat", "content")
+
+
 class StageCache:
-    def __init__(self, root: str | os.PathLike) -> None:
+    def __init__(self, root: str | os.PathLike, verify: str = "stat") -> None:
+        """verify: `stat` trusts a file whose size and mtime match the memo (as DVC does); `content`
+        re-hashes every file of an entry on every hit, and every file of an external dataset."""
+        if verify not in VERIFY_MODES:
+            raise ConfigError(f"cache.verify={verify!r}; use stat (trust size + mtime, the default) or content "
+                              "(re-hash every file on every hit)")
         self.root = Path(root)
-        self.memo = filehash.set_default(self.root)  # external datasets are fingerprinted with it too
+        self.verify = verify
+        # external datasets are fingerprinted with it too
+        self.memo = filehash.set_default(self.root, verify_content=verify == "content")
         self._readers: dict[tuple[str, str], IO[Any]] = {}
         self.built: set[tuple[str, str]] = set()  # entries this process built (a second force reuses them)
         self._swept = False

@@ -250,6 +250,12 @@ def check_run_config(cfg: dict[str, Any]) -> None:
 
     configs.reset_cache()
     check_cache_dir(cfg.get("cache_dir"))
+    from pairedgta.cache import VERIFY_MODES
+
+    verify = (cfg.get("cache") or {}).get("verify", "stat")
+    if verify not in VERIFY_MODES:
+        raise ConfigError(f"cache.verify={verify!r}; use stat (trust size + mtime, the default) or content "
+                          "(re-hash every file on every hit)")
     stages = cfg.get("stages")
     if stages is not None and not list(stages):
         raise ConfigError("stages=[] runs nothing; list the stages to run, e.g. stages=[generate,pseudolabel,evaluate,plot] "

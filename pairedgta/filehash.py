@@ -28,8 +28,10 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 class HashMemo:
-    def __init__(self, db: str | os.PathLike | None) -> None:
+    def __init__(self, db: str | os.PathLike | None, verify_content: bool = False) -> None:
         self.db = Path(db) if db else None
+        # cache.verify=content: every lookup re-reads the file (the memo is still written, for stat mode later)
+        self.verify_content = bool(verify_content)
         self.hashed = 0  # files actually read by this object (the memo missed)
         self._conn: sqlite3.Connection | None = None
 
@@ -54,7 +56,7 @@ class HashMemo:
         path = os.path.abspath(path)
         st = st or os.stat(path)
         conn = self._connect()
-        if conn is not None:
+        if conn is not None and not self.verify_content:
             row = conn.execute("SELECT size, mtime_ns, sha256 FROM memo WHERE path = ?", (path,)).fetchone()
             if row and row[0] == st.st_size and row[1] == st.st_mtime_ns:
                 return str(row[2])
@@ -86,13 +88,13 @@ class HashMemo:
             log.warning("hash memo %s: cannot record %d files (%s)", self.db, len(items), exc)
 
 
-def set_default(cache_root: str | os.PathLike | None) -> HashMemo:
+def set_default(cache_root: str | os.PathLike | None, verify_content: bool = False) -> HashMemo:
     """Use the memo under `cache_root` for every later `default()` caller (set by the stage cache)."""
     global _default
     with _default_lock:
         db = Path(cache_root) / MEMO_NAME if cache_root else None
-        if _default is None or _default.db != db:
-            _default = HashMemo(db)
+        if _default is None or _default.db != db or _default.verify_content != bool(verify_content):
+            _default = HashMemo(db, verify_content)
         return _default
 
 

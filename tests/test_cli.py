@@ -188,6 +188,7 @@ BAD_CONFIG = {
     "negative_min_images": (["metric.min_images=-1"], "metric.min_images=-1 is invalid"),
     "two_channel_mean": (["model.mean=[0.5,0.5]"], "mean=[0.5, 0.5] must be 3 numbers, one per RGB channel"),
     "zero_std": (["model.std=[0.2,0,0.2]"], "must be 3 numbers > 0"),
+    "cache_verify": (["cache.verify=sha"], "cache.verify='sha'; use stat"),
     "min_transmittance_out_of_range": (["metric.min_transmittance=1.5"], "metric.min_transmittance=1.5 is out of range"),
     "min_transmittance_without_maps": (["metric.min_transmittance=0.1", "renderer=deepgtav", "region=los_santos"],
                                        "metric.min_transmittance>0 needs transmittance maps, which renderer=deepgtav"),

@@ -161,6 +161,24 @@ def test_damaged_cache_entries_are_rebuilt_and_the_log_says_why(tmp_path, caplog
         run(compose_cfg(base + ["stages=[plot]"]))
 
 
+def test_cache_verify_content_sees_an_edit_that_kept_size_and_mtime(tmp_path, caplog):
+    """As in DVC, the default trusts a file whose size and mtime match the memo; cache.verify=content
+    re-hashes every file of an entry on every hit and so sees the edit."""
+    caplog.set_level(logging.INFO)
+    base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "stages=[generate]"]
+    run(compose_cfg(base))
+    scene = entries(tmp_path / "cache", "generate")[0] / "scenes" / "00001" / "Day-RAIN.png"
+    st = scene.stat()
+    data = bytearray(scene.read_bytes())
+    data[-20] ^= 0xFF
+    scene.write_bytes(bytes(data))
+    os.utime(scene, ns=(st.st_atime_ns, st.st_mtime_ns))  # the edit keeps size and mtime
+    assert hits(run(compose_cfg(base)))[("generate", "")]  # stat: the memo's hash is trusted
+    caplog.clear()
+    assert not hits(run(compose_cfg(base + ["cache.verify=content"])))[("generate", "")]
+    assert "scenes/00001/Day-RAIN.png changed content" in caplog.text
+
+
 def test_a_collected_evaluation_missing_a_file_is_an_error_not_a_missing_model(tmp_path):
     base = fast_overrides(tmp_path)
     run(compose_cfg(base + ["models=[tiny_segformer]", "stages=[generate,pseudolabel,evaluate]"]))
