@@ -57,26 +57,26 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
             _log_invocation(tracker, container)
             return cityscapes_val.run(ctx, models.evaluated, tracker)
 
-    passes = []
-    configs = planning.pass_configs(container)
-    for label, pcfg in configs:
-        ctx = planning.pass_context(pcfg, cache, plan, results)
-        p = planning.open_pass(label, ctx, plan, results)
-        passes.append((ctx, p))
-        if p.dataset is not None:
-            log.info("dataset %s%s: %d groups, reference %s", p.dataset.name, f" ({label})" if len(configs) > 1 else "",
-                     len(p.dataset), p.dataset.reference)
-            summary["dataset"] = summary["dataset"] or str(p.dataset.root)
-    if "generate" in results:
-        summary["generate"] = str(results["generate"].path)
-    if not (plan.run_pseudo or plan.plotting):
-        return summary
-    datasets = [dataset_label(p.dataset.name, p.dataset_key) for _, p in passes if p.dataset is not None]
-    with tracker.run(run_name(experiment, model_names, datasets)):
+    passes, configs = [], planning.pass_configs(container)  # the run opens before generation: a stop there is recorded
+    with tracker.run(run_name(experiment, model_names, [str(c.get("dataset", {}).get("name")) for _, c in configs])):
         _log_invocation(tracker, container)
+        for label, pcfg in configs:
+            ctx = planning.pass_context(pcfg, cache, plan, results)
+            p = planning.open_pass(label, ctx, plan, results)
+            passes.append((ctx, p))
+            if p.dataset is not None:
+                log.info("dataset %s%s: %d groups, reference %s", p.dataset.name, f" ({label})" if len(configs) > 1 else "",
+                         len(p.dataset), p.dataset.reference)
+                summary["dataset"] = summary["dataset"] or str(p.dataset.root)
+        if "generate" in results:
+            summary["generate"] = str(results["generate"].path)
+        tracker.rename(run_name(experiment, model_names, [dataset_label(p.dataset.name, p.dataset_key) for _, p in passes
+                                                           if p.dataset is not None]))
         tracker.tags({"dataset": passes[0][1].dataset.name if passes[0][1].dataset else "none",
                       "dataset_key": str(passes[0][1].dataset_key), "passes": ", ".join(p.label for _, p in passes),
                       "models": ", ".join(model_names)})
+        if not (plan.run_pseudo or plan.plotting):
+            return summary
         model_runs: list[tuple[str | None, str, str]] = []  # (nested run, model, pass) for the figures
         for ctx, p in passes:
             if p.dataset is not None and plan.run_pseudo:

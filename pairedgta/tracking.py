@@ -9,17 +9,23 @@ imports mlflow when tracking is disabled.
 Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
 a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
 that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
+
+MLflow is a record, not the source of truth: the stage results live in the cache. A store that fails
+(locked, read-only, corrupt, full, unreachable) is retried briefly; then the run goes on without MLflow
+after one warning, and its results are the same.
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
 import re
 import socket
+import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator, TypeVar
 
 from pairedgta.errors import ConfigError, Terminated
 from pairedgta.jsonio import dumps
@@ -137,40 +143,92 @@ def check_uri(uri: str) -> None:
                           "sqlite:///outputs/mlflow.db), a folder, http(s)://SERVER, or tracking.enabled=false")
 
 
+RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second
+T = TypeVar("T")
+
+
+def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
+    """Run a Tracker method with retries; when the store keeps failing, switch MLflow off for the rest
+    of the run with one warning (the stages go on: their results are in the cache)."""
+    def wrap(method: Callable[..., T]) -> Callable[..., T | None]:
+        @functools.wraps(method)
+        def call(self: "Tracker", *args: Any, **kwargs: Any) -> T | None:
+            for delay in (*RETRY_DELAYS_S, None):
+                if not self.enabled:
+                    return None
+                try:
+                    return method(self, *args, **kwargs)
+                except (KeyboardInterrupt, Terminated, ConfigError):
+                    raise
+                except Exception as exc:  # sqlite, SQLAlchemy, HTTP, OSError: MLflow raises them all
+                    if delay is None:
+                        self.give_up(what, exc)
+                        return None
+                    time.sleep(delay)
+            return None
+        return call
+    return wrap
+
+
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
         self.enabled = enabled
         self.uri = uri
         self.experiment = experiment
+        self.failed: str | None = None  # why MLflow was switched off mid-run
         if enabled:
             check_uri(uri)
-            import mlflow
+            self._open()
 
-            mlflow.set_tracking_uri(uri)
-            with _store_lock(uri):
-                # parallel jobs would race on creating the sqlite schema and the experiment
-                if mlflow.get_experiment_by_name(experiment) is None:
-                    try:
-                        mlflow.create_experiment(experiment, artifact_location=artifact_location(uri, experiment))
-                    except mlflow.exceptions.MlflowException:  # another job (another host) created it first
-                        if mlflow.get_experiment_by_name(experiment) is None:
-                            raise
-                found = mlflow.set_experiment(experiment)
-                self.experiment_id = found.experiment_id
-                if EXPERIMENT_KIND[0] not in (found.tags or {}):
-                    # MLflow 3's UI opens an experiment without this tag on the GenAI overview, not its runs
-                    mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
-                self.mlflow = mlflow
-                self.end_orphans()
+    def give_up(self, what: str, exc: BaseException) -> None:
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        self.failed = f"{what}: {type(exc).__name__}: {reason}"
+        log.warning("MLflow store %s failed while %s (%s: %s); this run goes on without MLflow and its results in "
+                    "the cache are complete; fix the store (permissions, free space, a lock held by another program, "
+                    "a corrupt database) or run with tracking.enabled=false", self.uri, what, type(exc).__name__, reason)
+        if getattr(self, "mlflow", None) is not None:
+            with contextlib.suppress(Exception):
+                self.mlflow.end_run("FAILED")  # do not leave a half-written run RUNNING
+        self.enabled = False
+
+    @guarded("opening the experiment")
+    def _open(self) -> None:
+        import mlflow
+
+        mlflow.set_tracking_uri(self.uri)
+        experiment, uri = self.experiment, self.uri
+        with _store_lock(uri):
+            # parallel jobs would race on creating the sqlite schema and the experiment
+            if mlflow.get_experiment_by_name(experiment) is None:
+                try:
+                    mlflow.create_experiment(experiment, artifact_location=artifact_location(uri, experiment))
+                except mlflow.exceptions.MlflowException:  # another job (another host) created it first
+                    if mlflow.get_experiment_by_name(experiment) is None:
+                        raise
+            found = mlflow.set_experiment(experiment)
+            self.experiment_id = found.experiment_id
+            if EXPERIMENT_KIND[0] not in (found.tags or {}):
+                # MLflow 3's UI opens an experiment without this tag on the GenAI overview, not its runs
+                mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
+            self.mlflow = mlflow
+            self.end_orphans()
+
+    @guarded("starting a run")
+    def _start(self, name: str | None, nested: bool, run_id: str | None) -> Any:
+        return self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
+                                     tags=None if run_id else owner_tags())
+
+    @guarded("ending a run")
+    def _end(self, status: str) -> None:
+        self.mlflow.end_run(status)
 
     @contextlib.contextmanager
     def run(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Iterator[Any]:
         """A new run, or (`run_id`) one this invocation opened before, e.g. to add a model's figures."""
-        if not self.enabled:
+        run = self._start(name, nested, run_id) if self.enabled else None
+        if run is None:
             yield None
             return
-        run = self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
-                                    tags=None if run_id else owner_tags())
         status = "FAILED"
         try:
             yield run
@@ -180,7 +238,13 @@ class Tracker:
             raise
         finally:
             # end this run explicitly: mlflow's own context manager would end whatever run is active
-            self.mlflow.end_run(status)
+            self._end(status)
+
+    @guarded("naming the run")
+    def rename(self, name: str) -> None:
+        """The parent run is opened before generation (so a run that stops there is recorded); it gets
+        its dataset's name once that is known."""
+        self.mlflow.set_tag("mlflow.runName", name)
 
     def end_orphans(self) -> list[str]:
         """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
@@ -205,6 +269,7 @@ class Tracker:
             log.warning("MLflow: %d run(s) of a process that died were still RUNNING; marked KILLED", len(ended))
         return ended
 
+    @guarded("logging parameters")
     def params(self, params: dict[str, Any]) -> None:
         if not self.enabled:
             return
@@ -213,6 +278,7 @@ class Tracker:
         for i in range(0, len(items), 100):
             self.mlflow.log_params(dict(items[i : i + 100]))
 
+    @guarded("logging metrics")
     def metrics(self, metrics: dict[str, float]) -> None:
         if not self.enabled:
             return
@@ -220,6 +286,7 @@ class Tracker:
         if clean:
             self.mlflow.log_metrics(clean)
 
+    @guarded("uploading artifacts")
     def artifacts(self, paths: list[Path], artifact_path: str | None = None) -> None:
         if not self.enabled:
             return
@@ -227,6 +294,7 @@ class Tracker:
             if p.is_file():
                 self.mlflow.log_artifact(str(p), artifact_path=artifact_path)
 
+    @guarded("setting tags")
     def tags(self, tags: dict[str, str]) -> None:
         if self.enabled:
             self.mlflow.set_tags(tags)
@@ -244,6 +312,7 @@ class Tracker:
                                        order_by=["attributes.start_time ASC"], max_results=1, output_format="list")
         return runs[0] if runs else None
 
+    @guarded("recording stage files")
     def stage_files(self, bundle: str, hit: bool, paths: list[Path], artifact_path: str | None = None,
                     tables: dict[str, Any] | None = None) -> str | None:
         """Upload one stage result's files (`bundle` = `<stage>.<hash>[.<part>]`) and MLflow tables
@@ -275,6 +344,7 @@ class Tracker:
         if line not in old:
             self.mlflow.set_tag("mlflow.note.content", (old + "\n\n" if old else "") + line)
 
+    @guarded("recording the dataset")
     def dataset(self, name: str, source: Path | str, digest: str, tags: dict[str, str] | None = None) -> None:
         """`log_input` of the data a run read: name, where it lies, and its hash as the digest."""
         if not self.enabled:
@@ -285,10 +355,12 @@ class Tracker:
         data = MetaDataset(LocalArtifactDatasetSource(str(source)), name=name, digest=digest)
         self.mlflow.log_input(data, context="evaluation", tags={k: str(v) for k, v in (tags or {}).items()})
 
+    @guarded("uploading the config")
     def config(self, config: dict[str, Any], artifact_file: str = "config.yaml") -> None:
         if self.enabled:
             self.mlflow.log_dict(config, artifact_file)
 
+    @guarded("uploading the Hydra files")
     def hydra_config(self) -> None:
         """The Hydra files of this job (`.hydra/config.yaml`, `hydra.yaml`, `overrides.yaml`) under `hydra/`,
         and the command-line overrides as a tag; nothing outside a Hydra app."""

@@ -159,3 +159,73 @@ def test_a_user_given_store_gets_the_artifacts_next_to_it(tmp_path, monkeypatch,
     assert (run_dir / "artifacts" / "config.yaml").is_file()
     assert mlflow.get_experiment_by_name("exp").artifact_location.startswith(db.parent.as_uri())
     assert not (tmp_path / "mlruns").exists()
+
+
+# --------------------------------------------------------------------------- every run recorded, MLflow not the truth
+
+
+def _statuses(db: Path) -> list[tuple[str, str]]:
+    import mlflow
+
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
+    exp = client.get_experiment_by_name("trk")
+    return [(r.info.status, r.data.tags.get("dataset_key", "")) for r in
+            client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"])]
+
+
+def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(tmp_path, monkeypatch):
+    from pairedgta.errors import RendererError
+    from pairedgta.render.synthetic import SyntheticRenderer
+
+    db = tmp_path / "mlflow.db"
+    run(compose_cfg(_tracked(tmp_path, db, ["stages=[generate]"])))
+    assert _statuses(db) == [("FINISHED", _statuses(db)[0][1])] and _statuses(db)[0][1].startswith("generate:")
+
+    def broken(self, descriptor, condition):
+        raise RendererError("the renderer stopped answering")
+
+    monkeypatch.setattr(SyntheticRenderer, "render", broken)
+    with pytest.raises(RendererError):
+        run(compose_cfg(_tracked(tmp_path, db, ["generate.num_scenes=4"])))
+    assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED"]
+
+    def interrupted(self, descriptor, condition):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(SyntheticRenderer, "render", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run(compose_cfg(_tracked(tmp_path, db, ["generate.num_scenes=5"])))
+    assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED", "KILLED"]
+
+
+def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog):
+    db = tmp_path / "mlflow.db"
+    db.write_text("not an sqlite database")
+    summary = run(compose_cfg(_tracked(tmp_path, db, ["models=[tiny_segformer]", "plot.figures=[xi_models]"])))
+    assert Path(summary["plot"], "xi_models.csv").is_file()  # every stage ran and wrote its results
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and r.name == "pairedgta.tracking"]
+    assert len(warned) == 1 and "failed while opening the experiment" in warned[0] and "tracking.enabled=false" in warned[0]
+
+
+def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, caplog, monkeypatch):
+    import sqlite3
+
+    import mlflow
+
+    from pairedgta import tracking
+
+    monkeypatch.setattr(tracking, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
+    calls = []
+
+    def locked(*args, **kwargs):
+        calls.append(1)
+        raise sqlite3.OperationalError("database is locked")
+
+    monkeypatch.setattr(mlflow, "log_metrics", locked)
+    db = tmp_path / "mlflow.db"
+    summary = run(compose_cfg(_tracked(tmp_path, db, ["models=[tiny_segformer]", "plot.figures=[xi_models]"])))
+    assert Path(summary["plot"], "xi_models.csv").is_file()
+    assert len(calls) == 4  # tried, retried three times, then MLflow is off for the rest of the run
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and r.name == "pairedgta.tracking"]
+    assert len(warned) == 1 and "failed while logging metrics (OperationalError: database is locked)" in warned[0]
+    assert "FAILED" in [s for s, _ in _statuses(db)]  # the half-written run is not left RUNNING
