@@ -1,6 +1,7 @@
 """`python -m pairedgta +experiment=<name>`: compose the config, run the stage graph, log to MLflow."""
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import signal
@@ -12,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from pairedgta.errors import PairedGTAError, Terminated
 
 log = logging.getLogger("pairedgta")
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)  # no space left, disk quota exceeded
 
 # run folders carry the pid: two runs started in the same second never share one
 if not OmegaConf.has_resolver("pid"):
@@ -58,6 +60,16 @@ def main(cfg: DictConfig) -> None:
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"error: interrupted ({str(exc) or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
         sys.exit(130 if isinstance(exc, KeyboardInterrupt) else 143)
+    except OSError as exc:
+        if exc.errno not in DISK_FULL:
+            raise
+        where = exc.filename or cfg.get("cache_dir")
+        line = (f"no space left on the disk of {where}; every artifact is written under a temporary name, so nothing "
+                "half-written was kept: free space there or set cache_dir= to a folder on another disk, then rerun "
+                "(finished scenes and stages are kept)")
+        print(f"error: {line}", file=sys.stderr)
+        log.error("%s", line)
+        sys.exit(2)
     finally:
         release_all()
         from pairedgta import interrupt

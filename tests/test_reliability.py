@@ -535,3 +535,35 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     keyed = run(compose_cfg(fast(tmp_path / "1", "models=[demo_segformer]", "reference_model=demo_segformer",
                                  "stages=[generate,pseudolabel,evaluate]", "threads=3")))
     assert not hits(keyed)[("evaluate", "[demo_segformer]")]  # the thread count is part of the hash
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """ENOSPC in the middle of rendering: one line naming the place and the fix, exit 2, no traceback,
+    no temporary scene folder or file left, and the scenes finished before it are kept for the rerun."""
+    import errno
+
+    from pairedgta.stages import generate as generate_stage
+    from pairedgta.testing.cli import run_cli
+
+    real = generate_stage.save_png_atomic
+    written = []
+
+    def filling(array, path):
+        if len(written) >= 26:  # the disk fills up in the third scene (3 conditions x 4 maps a scene)
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        written.append(path)
+        real(array, path)
+
+    monkeypatch.setattr(generate_stage, "save_png_atomic", filling)
+    args = fast_overrides(tmp_path) + ["stages=[generate]", "generate.num_scenes=3"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "no space left on the disk of" in errors[0] and "cache_dir=" in errors[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    cache = tmp_path / "cache" / "generate"
+    assert not list(cache.rglob(".tmp-*")) and not list(cache.rglob("*.tmp"))
+    assert entries(tmp_path / "cache", "generate") == []  # no entry claims to be complete
+    assert len([d for d in cache.glob(".partial-*/scenes/*") if d.is_dir()]) == 2  # finished scenes are kept
+    monkeypatch.setattr(generate_stage, "save_png_atomic", real)
+    assert run_cli(args, tmp_path).returncode == 0  # the rerun resumes

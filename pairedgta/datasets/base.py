@@ -169,9 +169,14 @@ class LabelMaps:
 
 
 def save_png_atomic(array: np.ndarray, path: Path) -> None:
+    """Under a temporary name, renamed when complete; a failed write (a full disk) leaves nothing behind."""
     tmp = path.with_name(f".{path.name}.tmp")
-    Image.fromarray(array).save(tmp, format="PNG")
-    os.replace(tmp, path)
+    try:
+        Image.fromarray(array).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def select_conditions(available: Iterable[str], wanted: Sequence[str] | None, known: Sequence[str]) -> list[str]:
