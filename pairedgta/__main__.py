@@ -1,7 +1,6 @@
 """`python -m pairedgta +experiment=<name>`: compose the config, run the stage graph, log to MLflow."""
 from __future__ import annotations
 
-import errno
 import logging
 import os
 import signal
@@ -10,10 +9,9 @@ import sys
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from pairedgta.errors import PairedGTAError, Terminated
+from pairedgta.errors import PairedGTAError, Terminated, disk_full
 
 log = logging.getLogger("pairedgta")
-DISK_FULL = (errno.ENOSPC, errno.EDQUOT)  # no space left, disk quota exceeded
 
 # run folders carry the pid: two runs started in the same second never share one
 if not OmegaConf.has_resolver("pid"):
@@ -60,15 +58,12 @@ def main(cfg: DictConfig) -> None:
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"error: interrupted ({str(exc) or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
         sys.exit(130 if isinstance(exc, KeyboardInterrupt) else 143)
-    except OSError as exc:
-        if exc.errno not in DISK_FULL:
+    except OSError as exc:  # a full disk outside a cache entry's build (which says so itself)
+        full = disk_full(exc, os.path.dirname(str(exc.filename)) if exc.filename else cfg.get("cache_dir"))
+        if full is None:
             raise
-        where = exc.filename or cfg.get("cache_dir")
-        line = (f"no space left on the disk of {where}; every artifact is written under a temporary name, so nothing "
-                "half-written was kept: free space there or set cache_dir= to a folder on another disk, then rerun "
-                "(finished scenes and stages are kept)")
-        print(f"error: {line}", file=sys.stderr)
-        log.error("%s", line)
+        print(f"error: {full}", file=sys.stderr)
+        log.error("%s", full)
         sys.exit(2)
     finally:
         release_all()

@@ -29,9 +29,8 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
     pseudolabel.check_tau(container)
     cache = StageCache(container["cache_dir"], str((container.get("cache") or {}).get("verify", "stat")))
-    tracking = container.get("tracking") or {}
-    experiment = str(tracking.get("experiment_name") or container.get("name", "default"))
-    tracker = Tracker(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)))
+    tracker = Tracker.from_config(container)  # MLflow is a record: a failing store costs one warning, not the run
+    experiment = tracker.experiment
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once():
         return _run(container, plan, models, cache, tracker, experiment, model_names)

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import IO, Any, Iterator
 
 from pairedgta import filehash
-from pairedgta.errors import ConfigError
+from pairedgta.errors import ConfigError, disk_full
 from pairedgta.jsonio import dumps, write_json
 
 log = logging.getLogger(__name__)
@@ -186,7 +186,9 @@ class StageCache:
               replace: bool = False) -> Iterator[Path]:
         """Yield a temporary directory; on success record every file in the manifest and swap it into
         place. An existing entry is replaced only now, never before: always when `replace` (force=),
-        else only when it is damaged (a valid one was completed by a racing job: theirs is kept)."""
+        else only when it is damaged (a valid one was completed by a racing job: theirs is kept). On
+        failure the temporary directory goes (a resumable `work_dir` keeps its finished parts), and a
+        full disk becomes a DiskFullError naming the entry."""
         final = self.path(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
         tmp = work_dir or final.with_name(f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
@@ -207,9 +209,12 @@ class StageCache:
             # renaming keeps size and mtime: the hits that follow need not read the files again
             self.memo.remember_many([(str(final / rel), st, d) for rel, st, d in stats])
             self.built.add((stage, key))
-        except BaseException:
+        except BaseException as exc:
             if work_dir is None:
                 shutil.rmtree(tmp, ignore_errors=True)
+            full = disk_full(exc, final)  # a full disk is one line naming the entry, not a traceback
+            if full is not None:
+                raise full from exc
             raise
 
     def _swap_in(self, stage: str, key: str, tmp: Path, final: Path, replace: bool) -> None:

@@ -1,4 +1,8 @@
 """User-facing errors: one line that names the file or key and the fix."""
+from __future__ import annotations
+
+import errno
+import os
 
 
 class PairedGTAError(RuntimeError):
@@ -19,6 +23,23 @@ class ModelError(PairedGTAError):
 
 class RendererError(PairedGTAError):
     pass
+
+
+class DiskFullError(PairedGTAError):
+    """No space left (or the quota reached) while writing results."""
+
+
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)  # no space left on device, disk quota exceeded
+
+
+def disk_full(exc: BaseException, folder: str | os.PathLike) -> DiskFullError | None:
+    """`exc` as the one line a full disk deserves (the folder being written, and the fix), or None when
+    `exc` is something else. Writes go to temporary names that a failure removes, so nothing is half-written."""
+    if not isinstance(exc, OSError) or exc.errno not in DISK_FULL:
+        return None
+    return DiskFullError(f"no space left on the disk of {folder} while writing it ({os.strerror(exc.errno)}); nothing "
+                         "half-written was kept: free space there or set cache_dir=/another/disk, then rerun "
+                         "(finished scenes and stages are kept)")
 
 
 # boilerplate lines libraries put around the actual cause (torch's weights-only refusal)

@@ -11,8 +11,10 @@ a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run lef
 that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
 
 MLflow is a record, not the source of truth: the stage results live in the cache. A store that fails
-(locked, read-only, corrupt, full, unreachable) is retried briefly; then the run goes on without MLflow
-after one warning, and its results are the same.
+(locked, read-only, corrupt, full, unreachable) is retried for a few seconds; then the run goes on without
+MLflow after one warning that names the store, where the results are and the fix, and its results are the
+same. A local sqlite store is probed before MLflow opens it (MLflow would wait 20 s on a lock per statement
+and retry creating its engine for minutes), and MLflow's own waits on it are shortened to BUSY_TIMEOUT_MS.
 """
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ from pairedgta.jsonio import dumps
 
 log = logging.getLogger("pairedgta.tracking")
 TAG = "pairedgta."
+SWEEP_TAG = f"{TAG}sweep"  # search: tags.`pairedgta.sweep` = '<sweep folder name>' (parent and model runs)
+RUN_COLOR_TAG = "mlflow.runColor"  # the MLflow UI draws a run in this colour instead of one hashed from its id
 
 
 def artifact_location(uri: str, experiment: str) -> str | None:
@@ -89,6 +93,23 @@ def process_alive(pid: int, started: str) -> bool:
     return not started or process_start(pid) in ("", started)
 
 
+def model_run_color(model: str) -> str:
+    """The colour every figure gives `model` (`figures.common.model_color`: tab10 then Dark2, by the model's
+    place in a fixed order), as the hex the MLflow UI reads from a run's RUN_COLOR_TAG. Without it the UI
+    hashes each run id into 29 colours, so 4 model runs share one about one time in five. Matplotlib's
+    colormaps are seaborn's "tab10" and "Dark2": seaborn stays unimported."""
+    import zlib
+
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    from pairedgta.figures.common import _MODEL_ORDER
+
+    palette = [*colormaps["tab10"].colors, *colormaps["Dark2"].colors]
+    idx = _MODEL_ORDER.index(model) if model in _MODEL_ORDER else zlib.crc32(model.encode())
+    return to_hex(palette[idx % len(palette)])
+
+
 def owner_tags() -> dict[str, str]:
     pid = os.getpid()
     return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
@@ -144,15 +165,31 @@ def check_uri(uri: str) -> None:
 
 
 RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second
+RETRY_BUDGET_S = 3.0  # no new try once a call has spent this long: the run does not wait on its record
+SQLITE_WAIT_S = 1.0  # how long the probe waits for a lock on a sqlite store
+BUSY_TIMEOUT_MS = 2000  # MLflow's own wait on a locked sqlite store per statement (its default is 20000)
 T = TypeVar("T")
 
 
+class _Reported(logging.Filter):
+    """Drops MLflow's own warnings and errors (tracebacks included) about its store: `guarded` retries
+    those calls and, if they keep failing, says so in one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno < logging.WARNING
+
+
+_REPORTED = _Reported()
+
+
 def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
-    """Run a Tracker method with retries; when the store keeps failing, switch MLflow off for the rest
-    of the run with one warning (the stages go on: their results are in the cache)."""
+    """Run a Tracker method with retries (RETRY_DELAYS_S, within RETRY_BUDGET_S); when the store keeps
+    failing, switch MLflow off for the rest of the run with one warning (the stages go on: their results
+    are in the cache)."""
     def wrap(method: Callable[..., T]) -> Callable[..., T | None]:
         @functools.wraps(method)
         def call(self: "Tracker", *args: Any, **kwargs: Any) -> T | None:
+            start = time.monotonic()
             for delay in (*RETRY_DELAYS_S, None):
                 if not self.enabled:
                     return None
@@ -161,7 +198,7 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
                 except (KeyboardInterrupt, Terminated, ConfigError):
                     raise
                 except Exception as exc:  # sqlite, SQLAlchemy, HTTP, OSError: MLflow raises them all
-                    if delay is None:
+                    if delay is None or time.monotonic() - start + delay > RETRY_BUDGET_S:
                         self.give_up(what, exc)
                         return None
                     time.sleep(delay)
@@ -170,29 +207,94 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
     return wrap
 
 
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a `sqlite:///PATH` store, None for any other store."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return Path(uri[len("sqlite:///"):].split("?", 1)[0])
+
+
+def probe_sqlite(uri: str) -> None:
+    """Raise what MLflow's first write to a sqlite store would (locked, read-only, a folder that cannot be
+    made, not a database) within SQLITE_WAIT_S: a write in a transaction that is rolled back."""
+    import sqlite3
+
+    db = sqlite_path(uri)
+    if db is None:
+        return
+    db.parent.mkdir(parents=True, exist_ok=True)
+    conn = sqlite3.connect(db, timeout=SQLITE_WAIT_S, isolation_level=None)
+    try:
+        conn.execute("BEGIN IMMEDIATE")
+        conn.execute("CREATE TABLE IF NOT EXISTS pairedgta_probe (x)")
+        conn.execute("ROLLBACK")
+    finally:
+        conn.close()
+
+
+_short_waits_installed = False
+
+
+def _shorten_sqlite_waits() -> None:
+    """MLflow sets `PRAGMA busy_timeout = 20000` on every session of a sqlite store, and a retry would
+    wait that long again; rewrite it to BUSY_TIMEOUT_MS (only that pragma, only on sqlite engines)."""
+    global _short_waits_installed
+    if _short_waits_installed:
+        return
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    def shorten(conn: Any, cursor: Any, statement: str, parameters: Any, context: Any, executemany: bool) -> Any:
+        if conn.dialect.name == "sqlite" and statement.lstrip().upper().startswith("PRAGMA BUSY_TIMEOUT"):
+            statement = f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_MS)};"
+        return statement, parameters
+
+    event.listen(Engine, "before_cursor_execute", shorten, retval=True)
+    logging.getLogger("mlflow.store.db.utils").addFilter(_REPORTED)
+    _short_waits_installed = True
+
+
 class Tracker:
-    def __init__(self, uri: str, experiment: str, enabled: bool = True) -> None:
+    def __init__(self, uri: str, experiment: str, enabled: bool = True,
+                 results: str | os.PathLike | None = None) -> None:
+        """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning."""
         self.enabled = enabled
         self.uri = uri
         self.experiment = experiment
+        self.results = str(results) if results is not None else "the cache"
         self.failed: str | None = None  # why MLflow was switched off mid-run
+        self.nested_tags: dict[str, str] = {}  # tags every nested run of this invocation carries (a sweep's)
         if enabled:
             check_uri(uri)
             self._open()
 
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> "Tracker":
+        """The run's tracker: `tracking.{uri,experiment_name,enabled}` (the experiment defaults to `name`)."""
+        tracking = cfg.get("tracking") or {}
+        experiment = str(tracking.get("experiment_name") or cfg.get("name", "default"))
+        return cls(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)),
+                   results=cfg.get("cache_dir"))
+
     def give_up(self, what: str, exc: BaseException) -> None:
         reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
         self.failed = f"{what}: {type(exc).__name__}: {reason}"
-        log.warning("MLflow store %s failed while %s (%s: %s); this run goes on without MLflow and its results in "
-                    "the cache are complete; fix the store (permissions, free space, a lock held by another program, "
-                    "a corrupt database) or run with tracking.enabled=false", self.uri, what, type(exc).__name__, reason)
-        if getattr(self, "mlflow", None) is not None:
+        log.warning("MLflow store %s failed while %s (%s: %s); the run goes on without it and its results are in %s; "
+                    "fix the store (permissions, free space, a lock another program holds, a corrupt database), or "
+                    "set tracking.uri= to another store or tracking.enabled=false", self.uri, what,
+                    type(exc).__name__, reason, self.results)
+        for _ in range(16):  # nested and parent: none is left RUNNING, nor on this process's run stack
+            if getattr(self, "mlflow", None) is None or self.mlflow.active_run() is None:
+                break
             with contextlib.suppress(Exception):
-                self.mlflow.end_run("FAILED")  # do not leave a half-written run RUNNING
+                self.mlflow.end_run("FAILED")  # leaves the stack even when the store refuses the status
         self.enabled = False
 
     @guarded("opening the experiment")
     def _open(self) -> None:
+        _shorten_sqlite_waits()
+        with _store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
+            probe_sqlite(self.uri)
         import mlflow
 
         mlflow.set_tracking_uri(self.uri)
@@ -208,7 +310,8 @@ class Tracker:
             found = mlflow.set_experiment(experiment)
             self.experiment_id = found.experiment_id
             if EXPERIMENT_KIND[0] not in (found.tags or {}):
-                # MLflow 3's UI opens an experiment without this tag on the GenAI overview, not its runs
+                # earlier MLflow 3 UIs open an experiment without this tag on the GenAI overview, not its runs;
+                # 3.17 follows its sidebar switch (GenAI / Model training) instead: README says to pick the latter
                 mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
             self.mlflow = mlflow
             self.end_orphans()
@@ -216,7 +319,7 @@ class Tracker:
     @guarded("starting a run")
     def _start(self, name: str | None, nested: bool, run_id: str | None) -> Any:
         return self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
-                                     tags=None if run_id else owner_tags())
+                                     tags=None if run_id else {**owner_tags(), **(self.nested_tags if nested else {})})
 
     @guarded("ending a run")
     def _end(self, status: str) -> None:
@@ -296,7 +399,11 @@ class Tracker:
 
     @guarded("setting tags")
     def tags(self, tags: dict[str, str]) -> None:
+        """Tags of the active run; a model's run (tag `model`, which only the nested runs set) also gets the
+        model's figure colour (RUN_COLOR_TAG), so the UI tells the models apart as the figures do."""
         if self.enabled:
+            if "model" in tags and RUN_COLOR_TAG not in tags:
+                tags = {**tags, RUN_COLOR_TAG: model_run_color(str(tags["model"]))}
             self.mlflow.set_tags(tags)
 
     # -- richer records: stage files once per hash, tables, datasets, configs ------------------------------
@@ -376,4 +483,9 @@ class Tracker:
             return  # Hydra's compose API (no job, no output folder)
         if hc.output_subdir is not None:
             self.artifacts(sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")), "hydra")
-        self.tags({f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)})
+        tags = {f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)}
+        if str(getattr(hc, "mode", "")).endswith("MULTIRUN"):  # the jobs of one -m sweep share this tag
+            # the model runs too: a search by the tag finds them, and one chart of theirs compares the models
+            self.nested_tags = {SWEEP_TAG: Path(str(hc.sweep.dir)).name, f"{TAG}sweep_job": str(hc.job.num)}
+            tags.update(self.nested_tags)
+        self.tags(tags)

@@ -3,9 +3,13 @@ that carry their own table, figures, dataset and config, and cache-hit reruns th
 uploading the same files again. Disabled tracking touches nothing."""
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -174,7 +178,11 @@ def _statuses(db: Path) -> list[tuple[str, str]]:
 
 
 def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(tmp_path, monkeypatch):
-    from pairedgta.errors import RendererError
+    """The parent run opens before generation: stages=[generate] ends FINISHED, a failure there (a renderer
+    error, a full disk) FAILED, an interrupt KILLED."""
+    import errno
+
+    from pairedgta.errors import DiskFullError, RendererError
     from pairedgta.render.synthetic import SyntheticRenderer
 
     db = tmp_path / "mlflow.db"
@@ -189,13 +197,21 @@ def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(
         run(compose_cfg(_tracked(tmp_path, db, ["generate.num_scenes=4"])))
     assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED"]
 
+    def disk_full(self, descriptor, condition):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(SyntheticRenderer, "render", disk_full)
+    with pytest.raises(DiskFullError):  # a full disk is a failure like any other: FAILED, not KILLED
+        run(compose_cfg(_tracked(tmp_path, db, ["generate.num_scenes=6"])))
+    assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED", "FAILED"]
+
     def interrupted(self, descriptor, condition):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(SyntheticRenderer, "render", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run(compose_cfg(_tracked(tmp_path, db, ["generate.num_scenes=5"])))
-    assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED", "KILLED"]
+    assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED", "FAILED", "KILLED"]
 
 
 def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog):
@@ -229,3 +245,113 @@ def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, ca
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and r.name == "pairedgta.tracking"]
     assert len(warned) == 1 and "failed while logging metrics (OperationalError: database is locked)" in warned[0]
     assert "FAILED" in [s for s, _ in _statuses(db)]  # the half-written run is not left RUNNING
+
+
+@contextlib.contextmanager
+def _locked(db: Path):
+    """Another program holding the sqlite store's write lock (a DB browser mid-transaction)."""
+    import sqlite3
+
+    holder = sqlite3.connect(db, isolation_level=None)
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        yield
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+
+
+@contextlib.contextmanager
+def _read_only(path: Path):
+    """`path` unwritable even for root (immutable), or by its mode for anyone else; skips where neither works."""
+    if os.geteuid() != 0:
+        path.chmod(0o444)
+        try:
+            yield
+        finally:
+            path.chmod(0o644)
+        return
+    if subprocess.run(["chattr", "+i", str(path)], capture_output=True).returncode != 0:
+        pytest.skip("running as root where chattr +i is refused: no way to make a read-only file")
+    try:
+        yield
+    finally:
+        subprocess.run(["chattr", "-i", str(path)], check=True)
+
+
+def _store_warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name == "pairedgta.tracking"]
+
+
+def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_results(tmp_path, caplog):
+    """MLflow alone waits 20 s per statement on a locked sqlite store and retries creating its engine, so
+    the run used to take minutes; the store is probed first: a few seconds, one warning naming the store,
+    where the results are and the fix, and every stage's result in the cache."""
+    import sqlite3
+
+    db = tmp_path / "mlflow.db"
+    sqlite3.connect(db).close()
+    cache = tmp_path / "cache"
+    with _locked(db):
+        start = time.monotonic()
+        summary = run(compose_cfg(_tracked(tmp_path, db, ["stages=[generate]"])))
+        took = time.monotonic() - start
+    assert Path(summary["generate"], "index.json").is_file()
+    (warning,) = _store_warnings(caplog)
+    assert took < 15, took  # retried for a few seconds, not MLflow's 4 x 20 s
+    assert f"MLflow store sqlite:///{db} failed while opening the experiment (OperationalError: database is locked)" \
+        in warning and f"its results are in {cache}" in warning and "set tracking.uri=" in warning
+    caplog.clear()
+    with _read_only(db):
+        summary = run(compose_cfg(_tracked(tmp_path, db, ["stages=[generate]", "generate.num_scenes=2"])))
+    assert Path(summary["generate"], "index.json").is_file()
+    (warning,) = _store_warnings(caplog)
+    assert "readonly database" in warning and f"its results are in {cache}" in warning
+
+
+def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks(tmp_path, caplog, monkeypatch):
+    """A lock taken after the run opened: MLflow's 20 s wait per statement is shortened (BUSY_TIMEOUT_MS)
+    and its own error log with tracebacks is left out, so the run says it in one line and goes on."""
+    from pairedgta.render.synthetic import SyntheticRenderer
+
+    db = tmp_path / "mlflow.db"
+    took, lock = [], contextlib.ExitStack()
+    real = SyntheticRenderer.render
+
+    def render_then_lock(self, descriptor, condition):
+        if not took:
+            lock.enter_context(_locked(db))
+            took.append(time.monotonic())
+        return real(self, descriptor, condition)
+
+    monkeypatch.setattr(SyntheticRenderer, "render", render_then_lock)
+    mlflow_log = logging.getLogger("mlflow.store.db.utils")
+    mlflow_log.addHandler(caplog.handler)
+    try:
+        with lock:
+            summary = run(compose_cfg(_tracked(tmp_path, db, ["stages=[generate]"])))
+            took.append(time.monotonic())
+    finally:
+        mlflow_log.removeHandler(caplog.handler)
+    assert Path(summary["generate"], "index.json").is_file()
+    assert took[1] - took[0] < 15, took  # MLflow's own waits and retries would take 80 s or more
+    (warning,) = _store_warnings(caplog)
+    assert "database is locked" in warning
+    assert not [r for r in caplog.records if r.name.startswith("mlflow") and r.levelno >= logging.WARNING]
+
+
+def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypatch):
+    """Through the CLI: a store that cannot even be created still lets the stages finish, exit 0, the
+    results line printed, and MLflow's failure said once."""
+    from pairedgta import tracking
+    from pairedgta.testing.cli import run_cli
+
+    monkeypatch.setattr(tracking, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
+    (tmp_path / "not_a_folder").write_text("")
+    db = tmp_path / "not_a_folder" / "mlflow.db"
+    proc = run_cli(_tracked(tmp_path, db, ["stages=[generate]"]), tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    said = [line for line in (proc.stdout + proc.stderr).splitlines() if "MLflow store" in line]
+    assert len(said) == 1 and f"sqlite:///{db}" in said[0] and "tracking.enabled=false" in said[0], said
+    assert f"its results are in {tmp_path / 'cache'}" in said[0]
+    assert "results: " in proc.stdout and "error:" not in proc.stderr

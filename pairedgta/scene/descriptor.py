@@ -111,8 +111,12 @@ class SceneDescriptor:
     def save(self, path: str | os.PathLike) -> None:
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(self.to_json())
-        os.replace(tmp, path)
+        try:  # a failed write (a full disk) leaves no temporary behind
+            tmp.write_text(self.to_json())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SceneDescriptor":
