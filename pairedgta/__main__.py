@@ -79,6 +79,8 @@ def main(cfg: DictConfig) -> None:
     where = (summary.get("plot") or next(iter(summary.get("evaluate", {}).values()), None) or summary.get("dataset")
              or summary.get("generate"))
     lines = [f"results: {where}"] + [f"  evaluate [{name}]: {path}" for name, path in summary.get("evaluate", {}).items()]
+    if summary.get("mlflow"):
+        lines.append(f"  mlflow: {summary['mlflow']}")
     print("\n".join(lines))
     _to_log_files(lines)
 

@@ -57,6 +57,7 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
             return cityscapes_val.run(ctx, models.evaluated, tracker)
 
     passes, configs = [], planning.pass_configs(container)  # the run opens before generation: a stop there is recorded
+    summary["mlflow"] = tracker.ui_link()
     with tracker.run(run_name(experiment, model_names, [str(c.get("dataset", {}).get("name")) for _, c in configs])):
         _log_invocation(tracker, container)
         for label, pcfg in configs:

@@ -290,6 +290,17 @@ class Tracker:
                 self.mlflow.end_run("FAILED")  # leaves the stack even when the store refuses the status
         self.enabled = False
 
+    def ui_link(self) -> str | None:
+        """Where to look at this run's experiment: MLflow 3.17's UI opens an experiment on its GenAI
+        overview unless the link asks for the runs (`workflowType=machine_learning`)."""
+        eid = getattr(self, "experiment_id", None)
+        if not self.enabled or eid is None:
+            return None
+        page = f"#/experiments/{eid}?workflowType=machine_learning"
+        if self.uri.startswith(("http://", "https://")):
+            return f"{self.uri.rstrip('/')}/{page}"
+        return f"mlflow ui --backend-store-uri {self.uri}, then http://127.0.0.1:5000/{page}"
+
     @guarded("opening the experiment")
     def _open(self) -> None:
         _shorten_sqlite_waits()

@@ -15,7 +15,7 @@ from PIL import Image
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError
 from pairedgta.models import build_segmenter
-from pairedgta.testing.cli import run_cli
+from pairedgta.testing.cli import mlflow_store, run_cli
 
 # (city, seq, frame, which ground-truth files exist)
 FRAMES = [
@@ -76,7 +76,7 @@ def write_tree(root: Path) -> list[tuple[np.ndarray, np.ndarray]]:
 def args_for(root: Path, tmp: Path, tracking: bool) -> list[str]:
     args = ["+experiment=cityscapes_val_check", f"dataset.root={root}", "models=[tiny_segformer]",
             f"cache_dir={tmp / 'cache'}"]
-    return args + ([f"tracking.uri=sqlite:///{tmp / 'mlflow.db'}"] if tracking else ["tracking.enabled=false"])
+    return args + ([f"tracking.uri={mlflow_store(tmp / 'mlflow.db')}"] if tracking else ["tracking.enabled=false"])
 
 
 @pytest.fixture(scope="module")

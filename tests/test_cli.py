@@ -12,7 +12,7 @@ from PIL import Image
 
 from pairedgta.metrics import ReferenceConsistency, prediction_mass, rho_valid
 from pairedgta.models import build_segmenter
-from pairedgta.testing.cli import run_cli
+from pairedgta.testing.cli import mlflow_store, run_cli
 from pairedgta.testing.datasets import write_release
 
 
@@ -23,7 +23,7 @@ def stage_dirs(cache: Path) -> set[str]:
 def test_smoke_experiment_end_to_end(tmp_path):
     cache = tmp_path / "cache"
     db = tmp_path / "mlflow.db"
-    proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri=sqlite:///{db}",
+    proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri={mlflow_store(db)}",
                     "generate.num_scenes=3", "metric.bootstrap.resamples=50"], tmp_path, subprocess_=True)  # true end to end
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "results: " in proc.stdout
@@ -63,6 +63,9 @@ def test_smoke_experiment_end_to_end(tmp_path):
 
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
     exp = client.get_experiment_by_name("smoke")
+    # the results lines say where to look: the UI's runs of this experiment, not its GenAI overview
+    assert (f"  mlflow: mlflow ui --backend-store-uri sqlite:///{db}, then "
+            f"http://127.0.0.1:5000/#/experiments/{exp.experiment_id}?workflowType=machine_learning") in proc.stdout
     runs = client.search_runs([exp.experiment_id])
     nested = {r.data.tags["model"]: r for r in runs if r.data.tags.get("mlflow.parentRunId")}
     assert len(runs) == 3 and set(nested) == {"tiny_segformer", "tiny_mask2former"}

@@ -19,7 +19,7 @@ from pairedgta.datasets.acdc import REFERENCE, open_acdc, write_standin
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.metrics import prediction_mass, rho_valid
 from pairedgta.models import build_segmenter
-from pairedgta.testing.cli import compose_cfg, fast_overrides, run_cli
+from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store, run_cli
 
 TINY = ["models=[tiny_segformer,tiny_mask2former]", "reference_model=tiny_segformer"]
 
@@ -267,7 +267,7 @@ def test_missing_acdc_root_is_a_one_line_cli_error(tmp_path):
 def test_cost_analysis_cli_with_mlflow(tmp_path):
     db = tmp_path / "mlflow.db"
     proc = run_cli(["+experiment=cost_analysis", "renderer=synthetic", "region=synthetic_street",
-                    f"cache_dir={tmp_path / 'cache'}", f"tracking.uri=sqlite:///{db}",
+                    f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={mlflow_store(db)}",
                     "generate.num_scenes=4", "renderer.width=64", "renderer.height=32",
                     "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY]", "plot.dpi=60"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]

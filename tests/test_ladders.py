@@ -13,7 +13,7 @@ from PIL import Image
 
 from pairedgta.app import run
 from pairedgta.cityscapes import CLASS_NAMES
-from pairedgta.testing.cli import compose_cfg, fast_overrides
+from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
 
 SKY = CLASS_NAMES.index("sky")
 LADDER = ["conditions=fog_ladder", "conditions.only=null", "generate.num_scenes=4", "renderer.width=96",
@@ -24,6 +24,7 @@ LADDER = ["conditions=fog_ladder", "conditions.only=null", "generate.num_scenes=
 def ladder(tmp_path_factory):
     """One fog ladder (6 conditions x 4 scenes) evaluated with min_transmittance 0 and 0.2."""
     tmp = tmp_path_factory.mktemp("ladder")
+    mlflow_store(tmp / "mlflow.db")  # fast_overrides' store, seeded: tracking is on here
     base = fast_overrides(tmp) + LADDER + ["tracking.enabled=true", "plot.robustness.classes=[road,car]"]
     plain = {**run(compose_cfg(base)), "_cache": tmp / "cache"}
     masked = {**run(compose_cfg(base + ["metric.min_transmittance=0.2"])), "_cache": tmp / "cache"}

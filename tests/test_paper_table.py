@@ -17,7 +17,7 @@ from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures.paper_table import COLUMNS, condition_name, model_name, paper_table
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.data import PAPER_TABLE1
-from pairedgta.testing.cli import run_cli
+from pairedgta.testing.cli import mlflow_store, run_cli
 
 PAPER = convention_from_config({"convention": "paper", "absent": "zero", "mean_exclude": ["bus", "train"],
                                 "agreement": "per_image", "rho": {"headline": "nonzero", "selections": ["nonzero", "top_m"]}})
@@ -192,7 +192,7 @@ def test_cli_writes_table1_from_the_csv_without_data_stages(tmp_path):
     csv = small_csv(tmp_path / "results.csv")
     cache = tmp_path / "cache"
     args = ["+experiment=paper_table", "stages=[plot]", f"plot.table_csv={csv}", f"cache_dir={cache}",
-            f"tracking.uri=sqlite:///{tmp_path / 'mlflow.db'}", "plot.formats=[png]", "plot.dpi=60"]
+            f"tracking.uri={mlflow_store(tmp_path / 'mlflow.db')}", "plot.formats=[png]", "plot.dpi=60"]
     proc = run_cli(args, tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     # nothing generated, pseudo-labelled or evaluated (dot files are the cache's own bookkeeping)

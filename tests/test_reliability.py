@@ -27,7 +27,7 @@ from pairedgta.cache import MANIFEST, StageCache
 from pairedgta.conditions import build_condition_grid
 from pairedgta.errors import DataError, ModelError, PairedGTAError, RendererError
 from pairedgta.stages.common import Context, run_cached
-from pairedgta.testing.cli import compose_cfg, fast_overrides
+from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -382,10 +382,29 @@ def cli(args: list[str], cwd: Path, run_dir: bool = True) -> subprocess.Popen:
 
 
 def slow_args(tmp_path: Path, scenes: int = 200) -> list[str]:
-    return [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri=sqlite:///{tmp_path / 'mlflow.db'}", "renderer=synthetic",
+    return [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={mlflow_store(tmp_path / 'mlflow.db')}", "renderer=synthetic",
             "region=synthetic_street", "model=tiny_segformer", "reference_model=tiny_segformer", f"generate.num_scenes={scenes}",
             "renderer.width=256", "renderer.height=128", FAST3, "metric.bootstrap.resamples=20", "plot.formats=[png]",
             "plot.dpi=40", "name=crash"]
+
+
+@pytest.fixture(scope="module")
+def slow_dataset(tmp_path_factory) -> Path:
+    """The 200-scene dataset of `slow_args`, generated once in-process: the kill and SIGTERM tests start
+    their child from a copy, so it is caught in pseudolabel/evaluate without rendering 200 scenes each."""
+    from pairedgta.testing.cli import run_cli
+
+    base = tmp_path_factory.mktemp("slow")
+    proc = run_cli(slow_args(base) + ["stages=[generate]", "tracking.enabled=false"], base)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (entry,) = entries(base / "cache", "generate")
+    return entry
+
+
+def with_dataset(tmp_path: Path, dataset: Path) -> None:
+    import shutil
+
+    shutil.copytree(dataset, tmp_path / "cache" / "generate" / dataset.name)
 
 
 def mlflow_runs(tmp_path: Path):
@@ -410,8 +429,9 @@ def running_with_tmp(tmp_path: Path) -> bool:
         return False
 
 
-def test_kill_9_mid_run_leaves_nothing_after_the_next_run(tmp_path):
+def test_kill_9_mid_run_leaves_nothing_after_the_next_run(tmp_path, slow_dataset):
     cache = tmp_path / "cache"
+    with_dataset(tmp_path, slow_dataset)
     proc = cli(slow_args(tmp_path), tmp_path)
     try:
         assert wait_until(lambda: running_with_tmp(tmp_path), 300, proc), proc.communicate()[1][-2000:]
@@ -433,8 +453,9 @@ def test_kill_9_mid_run_leaves_nothing_after_the_next_run(tmp_path):
     assert [r.info.status for r in mlflow_runs(tmp_path) if r.data.tags.get("pairedgta.pid") == str(nxt.pid)] == ["FINISHED"]
 
 
-def test_sigterm_unwinds_marks_the_run_killed_and_keeps_finished_work(tmp_path):
+def test_sigterm_unwinds_marks_the_run_killed_and_keeps_finished_work(tmp_path, slow_dataset):
     cache = tmp_path / "cache"
+    with_dataset(tmp_path, slow_dataset)
     proc = cli(slow_args(tmp_path), tmp_path)
     try:
         assert wait_until(lambda: running_with_tmp(tmp_path), 300, proc), proc.communicate()[1][-2000:]

@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from pairedgta.app import run
-from pairedgta.testing.cli import compose_cfg, fast_overrides
+from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
 from pairedgta.tracking import artifact_location, bundle, dataset_label, run_name
 
 SEP = " \u00b7 "
@@ -25,7 +25,7 @@ SEP = " \u00b7 "
 
 def _tracked(tmp: Path, db: Path, extra: list[str] = ()) -> list[str]:
     over = [o for o in fast_overrides(tmp) if not o.startswith(("tracking.", "plot.formats"))]
-    return over + [f"tracking.uri=sqlite:///{db}", "tracking.enabled=true", "name=trk", "plot.formats=[png]",
+    return over + [f"tracking.uri={mlflow_store(db)}", "tracking.enabled=true", "name=trk", "plot.formats=[png]",
                    "models=[tiny_segformer,tiny_deeplabv3plus]", "plot.figures=[xi_models,xi_table,qualitative,ranking]",
                    "plot.qualitative_groups=1", *extra]
 

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from pairedgta.cityscapes import IGNORE_INDEX
+from pairedgta.testing.cli import run_app_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
@@ -180,7 +181,8 @@ def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     assert (out / "model.safetensors").stat().st_size > 0 and (out / "README.md").is_file()
     render_s = card["render_seconds"]
     assert render_s > 0
-    second = subprocess.run([*args, "train.steps=5"], capture_output=True, text=True, timeout=600)
+    # the rerun in this process (it is the checkpoint on disk that resumes it), saving a start-up
+    second = run_app_in_process(tdm.main, [*args[1:], "train.steps=5"], tmp_path)
     assert second.returncode == 0, second.stderr[-2000:]
     assert "at step 3" in second.stderr + second.stdout
     card = json.loads((out / "model_card.json").read_text())
@@ -247,7 +249,7 @@ def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_pat
             "data.train_towns=1", "data.train_scenes_per_town=1", "data.val_towns=1", "data.val_scenes_per_town=1",
             "augment.crop=[32,64]", "arch.planes=4", "arch.spp_planes=4", "arch.head_planes=8",
             "train.batch_size=2", "train.warmup=1", "train.eval_every=2", "train.checkpoint_every=1", "train.steps=2"]
-    run = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    run = run_app_in_process(tdm.main, args[1:], tmp_path)  # the CLI in this process: the first test ran it fresh
     assert run.returncode == 0, run.stderr[-2000:]
     card = json.loads((out / "model_card.json").read_text())
     assert card["family"] == "ddrnet" and card["model"] == "demo_ddrnet" and "zoo=demo_ddrnet" in card["command"]

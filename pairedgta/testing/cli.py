@@ -19,13 +19,42 @@ def compose_cfg(overrides: list[str]):
         return compose(config_name="config", overrides=overrides)
 
 
-def base_overrides(tmp: Path) -> list[str]:
-    return [f"cache_dir={tmp / 'cache'}", f"tracking.uri=sqlite:///{tmp / 'mlflow.db'}"]
+_TEMPLATE: dict[str, Path] = {}
+
+
+def mlflow_store(db: Path) -> str:
+    """`sqlite:///<db>`, a store with MLflow's empty schema already in it (when `db` does not exist yet
+    and its folder does: a missing or broken folder is left for the product to meet).
+
+    Creating a store runs MLflow's ~50 schema migrations, 2.5 s on the 2-core machine: a test process
+    pays that once, for a template it copies, instead of once per test. Tests of store creation itself
+    pass their own URI."""
+    import atexit
+    import shutil
+    import tempfile
+
+    if db.parent.is_dir() and not db.exists():
+        if "db" not in _TEMPLATE:
+            from mlflow.tracking import MlflowClient
+
+            folder = Path(tempfile.mkdtemp(prefix="pgta-mlflow-template-"))
+            atexit.register(shutil.rmtree, folder, True)
+            template = folder / "mlflow.db"
+            MlflowClient(tracking_uri=f"sqlite:///{template}").search_experiments()
+            _TEMPLATE["db"] = template
+        shutil.copyfile(_TEMPLATE["db"], db)
+    return f"sqlite:///{db}"
+
+
+def base_overrides(tmp: Path, store: bool = True) -> list[str]:
+    """The cache and the MLflow store under `tmp`; the store seeded (see `mlflow_store`) unless `store=False`."""
+    uri = mlflow_store(tmp / "mlflow.db") if store else f"sqlite:///{tmp / 'mlflow.db'}"
+    return [f"cache_dir={tmp / 'cache'}", f"tracking.uri={uri}"]
 
 
 def fast_overrides(tmp: Path) -> list[str]:
     """A tiny, quick pipeline: synthetic backend, tiny models, 3 scenes of 64x32, 3 conditions."""
-    return base_overrides(tmp) + [
+    return base_overrides(tmp, store=False) + [
         "renderer=synthetic",
         "region=synthetic_street",
         "model=tiny_segformer",
@@ -39,6 +68,7 @@ def fast_overrides(tmp: Path) -> list[str]:
         "plot.formats=[png]",
         "plot.dpi=60",
         "tracking.enabled=false",
+        "threads=1",  # pytest-xdist runs a worker per core: two workers of two inference threads would contend
     ]
 
 
@@ -60,8 +90,15 @@ def run_cli(args: list[str], cwd: Path, env_extra: dict | None = None, timeout: 
 
 
 def _run_in_process(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    """Hydra's app entry in this process, with argv, cwd, stdout/stderr, logging and Hydra's global
-    state set up as a fresh `python -m pairedgta` would have them, and put back afterwards."""
+    from pairedgta.__main__ import cli
+
+    return run_app_in_process(cli, ["pairedgta", *argv], cwd)
+
+
+def run_app_in_process(cli, argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """A `@hydra.main` entry (`cli`) in this process, with argv (`argv[0]` the program), cwd,
+    stdout/stderr, logging and Hydra's global state set up as a fresh interpreter would have them, and
+    put back afterwards (torch's thread count too, which a training script sets)."""
     import contextlib
     import io
     import logging
@@ -70,17 +107,17 @@ def _run_in_process(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
 
-    from pairedgta.__main__ import cli
-
     out, err = io.StringIO(), io.StringIO()
     root = logging.getLogger()
     saved_handlers, saved_level = list(root.handlers), root.level
     saved_argv, saved_cwd = list(sys.argv), os.getcwd()
+    torch = sys.modules.get("torch")
+    saved_threads = torch.get_num_threads() if torch is not None else None
     code = 0
     GlobalHydra.instance().clear()
     try:
         os.chdir(cwd)
-        sys.argv = ["pairedgta", *argv]
+        sys.argv = list(argv)
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
@@ -103,4 +140,6 @@ def _run_in_process(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
         root.setLevel(saved_level)
         GlobalHydra.instance().clear()
         HydraConfig.instance().cfg = None  # a later compose() in this process is not "inside a Hydra job"
-    return subprocess.CompletedProcess(["pairedgta", *argv], code, out.getvalue(), err.getvalue())
+        if saved_threads is not None:
+            torch.set_num_threads(saved_threads)
+    return subprocess.CompletedProcess(list(argv), code, out.getvalue(), err.getvalue())
