@@ -303,6 +303,10 @@ class Tracker:
 
     @guarded("opening the experiment")
     def _open(self) -> None:
+        # a local record: no usage telemetry sent out, and no Databricks-notebook probe (it imports
+        # IPython, 0.25 s, on every run start); a user's own setting of either wins
+        os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+        os.environ.setdefault("MLFLOW_ENABLE_SGC_RUN_RESUMPTION_FOR_DATABRICKS_JOBS", "false")
         _shorten_sqlite_waits()
         with _store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Patch
 import pandas as pd
+from PIL import Image
 
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
@@ -70,6 +71,14 @@ def disagreement_overlay(image: np.ndarray, pred: np.ndarray, pseudo: np.ndarray
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
+def fit(image: np.ndarray, w: int, h: int, exact: bool) -> np.ndarray:
+    """`image` at w x h: area-averaged for photographs, nearest for colour-coded maps."""
+    if image.shape[:2] == (h, w):
+        return image
+    resample = Image.Resampling.NEAREST if exact else Image.Resampling.BOX
+    return np.asarray(Image.fromarray(np.ascontiguousarray(image)).resize((w, h), resample))
+
+
 def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement: pd.DataFrame,
                      model_cfg: dict[str, Any], conditions: list[str], n: int, clean: str, out: Path, stem: str,
                      formats: list[str], dpi: int, title: str = "", device: str = "cpu") -> tuple[list[Path], pd.DataFrame]:
@@ -90,37 +99,50 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
         pseudo = pseudo_labels.load(group.group_id).astype(np.int64)
         labels, conf = segmenter.predict(np.stack([images[clean], images[p["condition"]]]))
         labels, conf = labels.numpy(), conf.numpy()
+        adv_pred, adv_conf = labels[1], conf[1]
         valid = pseudo != IGNORE_INDEX
-        recomputed = float(((labels[1] == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
+        recomputed = float(((adv_pred == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
         if not math.isclose(recomputed, p["agreement"], abs_tol=1e-6):
             log.warning("qualitative %s/%s: recomputed agreement %.4f differs from evaluate's %.4f",
                         p["condition"], group.group_id, recomputed, p["agreement"])
         rows.append({**p, "model": segmenter.name, "agreement_recomputed": recomputed})
-        panels.append((p, images[clean], labels[0], images[p["condition"]], labels[1], conf[1], pseudo))
+        panels.append((p, images[clean], labels[0], images[p["condition"]], adv_pred, adv_conf, pseudo))
     if not panels:
         return [], pd.DataFrame(rows)
-    h, w = panels[0][1].shape[:2]
-    cell_w = TEXT_WIDTH / len(COLUMNS)
+    h0, w0 = panels[0][1].shape[:2]
+    # each column at the pixel width it gets on the page (at `dpi`): matplotlib would otherwise resample
+    # every full-size strip on every draw, most of this figure's time; label colours stay exact (nearest)
+    w = max(8, min(w0, int(TEXT_WIDTH * dpi / len(COLUMNS))))
+    h = max(4, round(h0 * w / w0))
+    gap = max(2, w // 64)  # white between the columns, in pixels
+    strip_w = len(COLUMNS) * w + (len(COLUMNS) - 1) * gap
+    viridis = plt.get_cmap("viridis")
     with paper_style():
-        fig, axes = plt.subplots(len(panels), len(COLUMNS), squeeze=False, layout="constrained",
-                                 figsize=(TEXT_WIDTH, len(panels) * (cell_w * h / w + 0.22) + 0.45))
-        confidence = None
+        # one image per row, its columns side by side: 6x fewer axes to lay out and draw than a grid of
+        # panels, which made this figure most of the plot stage's time
+        fig, axes = plt.subplots(len(panels), 1, squeeze=False, layout="constrained",
+                                 figsize=(TEXT_WIDTH, len(panels) * (TEXT_WIDTH * h / strip_w + 0.12) + 0.75))
         for i, (p, clean_img, clean_pred, adv_img, adv_pred, adv_conf, pseudo) in enumerate(panels):
-            shown = [clean_img, colorize(clean_pred), adv_img, colorize(adv_pred), adv_conf,
+            shown = [clean_img, colorize(clean_pred), adv_img, colorize(adv_pred),
+                     (viridis(np.clip(adv_conf, 0, 1))[..., :3] * 255).astype(np.uint8),
                      disagreement_overlay(adv_img, adv_pred, pseudo)]
-            for j, (ax, im) in enumerate(zip(axes[i], shown)):
-                if j == 4:
-                    confidence = ax.imshow(im, cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
-                else:
-                    ax.imshow(im, interpolation="nearest")
-                ax.set_xticks([])
-                ax.set_yticks([])
-                if i == 0:
-                    ax.set_title(COLUMNS[j], fontsize=6)
-            axes[i, 0].set_ylabel(f"{p['kind']}: {condition_display(p['condition'])}\n{p['pair_id']}\n"
-                                  f"agreement {p['agreement']:.2f}", fontsize=5)
+            strip = np.full((h, strip_w, 3), 255, dtype=np.uint8)
+            for j, im in enumerate(shown):
+                strip[:, j * (w + gap): j * (w + gap) + w] = fit(im, w, h, exact=j in (1, 3, 5))
+            ax = axes[i, 0]
+            ax.imshow(strip, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            for spine in ax.spines.values():
+                spine.set_visible(False)
+            if i == 0:
+                for j, name in enumerate(COLUMNS):
+                    ax.text(j * (w + gap) + w / 2, -0.04 * h, name, ha="center", va="bottom", fontsize=6)
+            ax.set_ylabel(f"{p['kind']}: {condition_display(p['condition'])}\n{p['pair_id']}\n"
+                          f"agreement {p['agreement']:.2f}", fontsize=5)
         # the confidence column's scale, and what each colour of the disagreement column means
-        bar = fig.colorbar(confidence, ax=list(axes[:, 4]), location="bottom", shrink=0.9, aspect=12, pad=0.02)
+        scale = plt.cm.ScalarMappable(norm=plt.Normalize(0, 1), cmap=viridis)
+        bar = fig.colorbar(scale, ax=list(axes[:, 0]), location="bottom", shrink=0.3, aspect=25, pad=0.01)
         bar.set_label("max softmax probability", fontsize=5)
         bar.ax.tick_params(labelsize=5, length=2)
         handles = [Patch(facecolor=colour / 255.0, edgecolor="none", label=text) for text, colour in LEGEND]
