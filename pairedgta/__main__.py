@@ -111,8 +111,14 @@ def _open_mapping_overrides(argv: list[str]) -> list[str]:
 
 
 def cli() -> None:
+    from pairedgta import tracking_worker
+
     sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
-    main()
+    tracking_worker.prestart(sys.argv[1:])
+    try:
+        main()
+    finally:
+        tracking_worker.discard()
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ with its metrics, xi table, dataset, config and its own figures. Each model is l
 from __future__ import annotations
 
 import logging
+from contextlib import closing
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -15,6 +16,7 @@ from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
 from pairedgta.tracking import Tracker, bundle, dataset_label, run_name, xi_table
+from pairedgta.tracking_worker import open_tracker
 
 log = logging.getLogger("pairedgta")
 
@@ -29,16 +31,15 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
     pseudolabel.check_tau(container)
     cache = StageCache(container["cache_dir"], str((container.get("cache") or {}).get("verify", "stat")))
-    tracker = Tracker.from_config(container)  # MLflow is a record: a failing store costs one warning, not the run
-    experiment = tracker.experiment
+    tracker = open_tracker(container)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
-    with loaded_once():
-        return _run(container, plan, models, cache, tracker, experiment, model_names)
+    with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything
+        summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names)
+    return {**summary, "mlflow": tracker.ui_link()}
 
 
 def _log_invocation(tracker: Tracker, container: dict[str, Any]) -> None:
-    config = {k: v for k, v in container.items() if k != "hydra"}
-    tracker.params(config)
+    tracker.params(config := {k: v for k, v in container.items() if k != "hydra"})
     tracker.config(config)
     tracker.hydra_config()
 
@@ -57,7 +58,6 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
             return cityscapes_val.run(ctx, models.evaluated, tracker)
 
     passes, configs = [], planning.pass_configs(container)  # the run opens before generation: a stop there is recorded
-    summary["mlflow"] = tracker.ui_link()
     with tracker.run(run_name(experiment, model_names, [str(c.get("dataset", {}).get("name")) for _, c in configs])):
         _log_invocation(tracker, container)
         for label, pcfg in configs:

@@ -4,7 +4,8 @@ Runs are named `<experiment> · <model(s)> · <dataset>@<hash>`. A stage's files
 stage hash: a cache-hit rerun whose files an earlier run already holds tags itself with that run (and
 links it in its description) instead of uploading them again. With a sqlite store the artifacts live
 next to the database (`<db dir>/mlartifacts`), not in the working directory's ./mlruns. Nothing here
-imports mlflow when tracking is disabled.
+imports mlflow when tracking is disabled. By default the calls are made in a child process that imports
+MLflow while the run works (pairedgta.tracking_worker); this module is what that child runs.
 
 Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
 a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
@@ -94,24 +95,17 @@ def process_alive(pid: int, started: str) -> bool:
 
 
 def model_run_color(model: str) -> str:
-    """The colour every figure gives `model` (`figures.common.model_color`: tab10 then Dark2, by the model's
-    place in a fixed order), as the hex the MLflow UI reads from a run's RUN_COLOR_TAG. Without it the UI
-    hashes each run id into 29 colours, so 4 model runs share one about one time in five. Matplotlib's
-    colormaps are seaborn's "tab10" and "Dark2": seaborn stays unimported."""
-    import zlib
+    """The colour every figure gives `model` (`figures.common.model_color`), as the hex the MLflow UI reads
+    from a run's RUN_COLOR_TAG. Without it the UI hashes each run id into 29 colours, so 4 model runs
+    share one about one time in five."""
+    from pairedgta.figures.model_colors import model_color_hex
 
-    from matplotlib import colormaps
-    from matplotlib.colors import to_hex
-
-    from pairedgta.figures.common import _MODEL_ORDER
-
-    palette = [*colormaps["tab10"].colors, *colormaps["Dark2"].colors]
-    idx = _MODEL_ORDER.index(model) if model in _MODEL_ORDER else zlib.crc32(model.encode())
-    return to_hex(palette[idx % len(palette)])
+    return model_color_hex(model)
 
 
-def owner_tags() -> dict[str, str]:
-    pid = os.getpid()
+def owner_tags(pid: int | None = None) -> dict[str, str]:
+    """The process a run belongs to: this one, or (`pid`) the run's process when a tracking child logs for it."""
+    pid = os.getpid() if pid is None else pid
     return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
@@ -162,6 +156,13 @@ def check_uri(uri: str) -> None:
     if scheme not in URI_SCHEMES:
         raise ConfigError(f"tracking.uri={uri}: unknown scheme '{scheme}'; use sqlite:///PATH (the default "
                           "sqlite:///outputs/mlflow.db), a folder, http(s)://SERVER, or tracking.enabled=false")
+
+
+def settings(cfg: dict[str, Any]) -> tuple[str, str, bool]:
+    """`tracking.{uri,experiment_name,enabled}` of a run's config (the experiment defaults to `name`)."""
+    tracking = cfg.get("tracking") or {}
+    experiment = str(tracking.get("experiment_name") or cfg.get("name", "default"))
+    return tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True))
 
 
 RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second
@@ -256,8 +257,16 @@ def _shorten_sqlite_waits() -> None:
 
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True,
-                 results: str | os.PathLike | None = None) -> None:
-        """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning."""
+                 results: str | os.PathLike | None = None, owner: int | None = None) -> None:
+        """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning;
+        `owner`: the pid of the run's process, when that is not this one (pairedgta.tracking_worker)."""
+        self.owner = owner
+        self._context: dict[str, str] | None = None
+        self._notes: dict[str, list[str]] = {}  # run id -> lines for its description, set when it ends
+        self._written: dict[str, str] = {}  # run id -> its description as this tracker last set it
+        # the open runs' ids, innermost last: the client API, not MLflow's fluent run stack, whose
+        # start_run/end_run read the whole run back (~50 ms a call with 500 metrics)
+        self._stack: list[str] = []
         self.enabled = enabled
         self.uri = uri
         self.experiment = experiment
@@ -270,11 +279,13 @@ class Tracker:
 
     @classmethod
     def from_config(cls, cfg: dict[str, Any]) -> "Tracker":
-        """The run's tracker: `tracking.{uri,experiment_name,enabled}` (the experiment defaults to `name`)."""
-        tracking = cfg.get("tracking") or {}
-        experiment = str(tracking.get("experiment_name") or cfg.get("name", "default"))
-        return cls(tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True)),
-                   results=cfg.get("cache_dir"))
+        """The run's tracker in this process: `tracking.{uri,experiment_name,enabled}` (the experiment
+        defaults to `name`). The app asks pairedgta.tracking_worker.open_tracker, which may log from a child."""
+        uri, experiment, enabled = settings(cfg)
+        return cls(uri, experiment, enabled, results=cfg.get("cache_dir"))
+
+    def close(self) -> None:
+        """Nothing to wait for: in-process calls are done when they return (a BackgroundTracker waits here)."""
 
     def give_up(self, what: str, exc: BaseException) -> None:
         reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
@@ -283,11 +294,10 @@ class Tracker:
                     "fix the store (permissions, free space, a lock another program holds, a corrupt database), or "
                     "set tracking.uri= to another store or tracking.enabled=false", self.uri, what,
                     type(exc).__name__, reason, self.results)
-        for _ in range(16):  # nested and parent: none is left RUNNING, nor on this process's run stack
-            if getattr(self, "mlflow", None) is None or self.mlflow.active_run() is None:
-                break
+        while self._stack:  # nested and parent: none is left RUNNING
+            rid = self._stack.pop()
             with contextlib.suppress(Exception):
-                self.mlflow.end_run("FAILED")  # leaves the stack even when the store refuses the status
+                self.client.set_terminated(rid, "FAILED")
         self.enabled = False
 
     def ui_link(self) -> str | None:
@@ -329,21 +339,55 @@ class Tracker:
                 # 3.17 follows its sidebar switch (GenAI / Model training) instead: README says to pick the latter
                 mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
             self.mlflow = mlflow
+            self.client = mlflow.MlflowClient()
             self.end_orphans()
+
+    def _context_tags(self) -> dict[str, str]:
+        """What MLflow's start_run records about where a run comes from (user, source, git commit), read
+        once: start_run asks every context provider per run, and its notebook probe imports IPython."""
+        if self._context is None:
+            self._context = {}
+            try:
+                from mlflow.tracking.context.default_context import DefaultRunContext
+                from mlflow.tracking.context.git_context import GitRunContext
+
+                self._context = {**DefaultRunContext().tags(), **GitRunContext().tags()}
+            except Exception as exc:  # pragma: no cover - private MLflow API moved: runs lose these tags only
+                log.debug("MLflow context tags unavailable: %s", exc)
+        return self._context
 
     @guarded("starting a run")
     def _start(self, name: str | None, nested: bool, run_id: str | None) -> Any:
-        return self.mlflow.start_run(run_id=run_id, run_name=None if run_id else name, nested=nested,
-                                     tags=None if run_id else {**owner_tags(), **(self.nested_tags if nested else {})})
+        if run_id is None:  # created here, then made active: MLflow's start_run would resolve its context again
+            tags = {**self._context_tags(), **owner_tags(self.owner), **(self.nested_tags if nested else {})}
+            if nested and self._stack:
+                tags["mlflow.parentRunId"] = self._stack[-1]
+            elif self._stack:
+                raise RuntimeError(f"run {self._stack[-1]} is still open; a new top-level run would hide it")
+            run = self.client.create_run(self.experiment_id, run_name=name, tags=tags)
+            self._stack.append(run.info.run_id)
+            return run
+        self._stack.append(run_id)  # reopened: it keeps its status until this ends it again
+        return run_id
 
     @guarded("ending a run")
     def _end(self, status: str) -> None:
-        self.mlflow.end_run(status)
+        self.client.set_terminated(self._stack[-1], status)
+        self._stack.pop()
+
+    def begin(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Any:
+        """Start (or reopen) a run; None when tracking is off. `finish` ends it: `run()` pairs them."""
+        return self._start(name, nested, run_id) if self.enabled else None
+
+    def finish(self, status: str) -> None:
+        self._flush_notes()
+        # end this run explicitly: mlflow's own context manager would end whatever run is active
+        self._end(status)
 
     @contextlib.contextmanager
     def run(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Iterator[Any]:
         """A new run, or (`run_id`) one this invocation opened before, e.g. to add a model's figures."""
-        run = self._start(name, nested, run_id) if self.enabled else None
+        run = self.begin(name, nested, run_id)
         if run is None:
             yield None
             return
@@ -355,14 +399,13 @@ class Tracker:
             status = "KILLED"
             raise
         finally:
-            # end this run explicitly: mlflow's own context manager would end whatever run is active
-            self._end(status)
+            self.finish(status)
 
     @guarded("naming the run")
     def rename(self, name: str) -> None:
         """The parent run is opened before generation (so a run that stops there is recorded); it gets
         its dataset's name once that is known."""
-        self.mlflow.set_tag("mlflow.runName", name)
+        self.client.set_tag(self._active(), "mlflow.runName", name)
 
     def end_orphans(self) -> list[str]:
         """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
@@ -391,10 +434,12 @@ class Tracker:
     def params(self, params: dict[str, Any]) -> None:
         if not self.enabled:
             return
+        from mlflow.entities import Param
+
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
         items = sorted(flat.items())
         for i in range(0, len(items), 100):
-            self.mlflow.log_params(dict(items[i : i + 100]))
+            self.client.log_batch(self._active(), params=[Param(k, v) for k, v in items[i : i + 100]], synchronous=True)
 
     @guarded("logging metrics")
     def metrics(self, metrics: dict[str, float]) -> None:
@@ -402,7 +447,10 @@ class Tracker:
             return
         clean = {_clean_metric_name(k): float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
         if clean:
-            self.mlflow.log_metrics(clean)
+            from mlflow.entities import Metric
+
+            now = int(time.time() * 1000)
+            self.client.log_batch(self._active(), metrics=[Metric(k, v, now, 0) for k, v in clean.items()], synchronous=True)
 
     @guarded("uploading artifacts")
     def artifacts(self, paths: list[Path], artifact_path: str | None = None) -> None:
@@ -410,7 +458,7 @@ class Tracker:
             return
         for p in paths:
             if p.is_file():
-                self.mlflow.log_artifact(str(p), artifact_path=artifact_path)
+                self.client.log_artifact(self._active(), str(p), artifact_path=artifact_path)
 
     @guarded("setting tags")
     def tags(self, tags: dict[str, str]) -> None:
@@ -419,14 +467,23 @@ class Tracker:
         if self.enabled:
             if "model" in tags and RUN_COLOR_TAG not in tags:
                 tags = {**tags, RUN_COLOR_TAG: model_run_color(str(tags["model"]))}
-            self.mlflow.set_tags(tags)
+            self._set_tags(tags)
 
     # -- richer records: stage files once per hash, tables, datasets, configs ------------------------------
     def run_id(self) -> str | None:
         if not self.enabled:
             return None
-        active = self.mlflow.active_run()
-        return active.info.run_id if active else None
+        return self._stack[-1] if self._stack else None
+
+    def _active(self) -> str:
+        if not self._stack:
+            raise RuntimeError("no MLflow run is open")
+        return self._stack[-1]
+
+    def _set_tags(self, tags: dict[str, Any]) -> None:
+        from mlflow.entities import RunTag
+
+        self.client.log_batch(self._active(), tags=[RunTag(k, str(v)) for k, v in tags.items()], synchronous=True)
 
     def _uploaded_by(self, bundle: str) -> Any:
         """The earliest run (any experiment of this store) that uploaded `bundle`, or None."""
@@ -448,23 +505,34 @@ class Tracker:
             link = f"#/experiments/{eid}/runs/{rid}"
             if self.uri.startswith(("http://", "https://")):
                 link = self.uri.rstrip("/") + "/" + link
-            self.mlflow.set_tags({f"{TAG}reused.{bundle}": rid, f"{TAG}reused_run": rid, f"{TAG}reused_link": link,
-                                  f"{TAG}cache_hit": "true"})
+            self._set_tags({f"{TAG}reused.{bundle}": rid, f"{TAG}reused_run": rid, f"{TAG}reused_link": link,
+                            f"{TAG}cache_hit": "true"})
             self._note(f"Cache hit: `{bundle}` was uploaded by [{earlier.info.run_name or rid}]({link}).")
             log.info("tracking: %s reused from run %s (not uploaded again)", bundle, rid)
             return rid
         self.artifacts(paths, artifact_path)
         for artifact_file, frame in (tables or {}).items():
-            self.mlflow.log_table(frame, artifact_file=artifact_file)
-        self.mlflow.set_tags({f"{TAG}uploaded.{bundle}": "true"})
+            self.mlflow.log_table(frame, artifact_file=artifact_file, run_id=self._active())
+        self._set_tags({f"{TAG}uploaded.{bundle}": "true"})
         return self.run_id()
 
     def _note(self, line: str) -> None:
-        """Append a line to the run's description (markdown, shown on the run page)."""
-        run = self.mlflow.get_run(self.run_id())
-        old = run.data.tags.get("mlflow.note.content", "")
-        if line not in old:
-            self.mlflow.set_tag("mlflow.note.content", (old + "\n\n" if old else "") + line)
+        """A line for the active run's description (markdown, shown on the run page), written when it ends."""
+        lines = self._notes.setdefault(str(self.run_id()), [])
+        if line not in lines:
+            lines.append(line)
+
+    @guarded("describing the run")
+    def _flush_notes(self) -> None:
+        rid = self.run_id() if self.enabled else None
+        lines = self._notes.pop(str(rid), None)
+        if not lines:
+            return
+        old = self._written.get(str(rid), "")  # every run this tracker writes to, it opened
+        new = [line for line in lines if line not in old]
+        if new:
+            self._written[str(rid)] = "\n\n".join(([old] if old else []) + new)
+            self.client.set_tag(str(rid), "mlflow.note.content", self._written[str(rid)])
 
     @guarded("recording the dataset")
     def dataset(self, name: str, source: Path | str, digest: str, tags: dict[str, str] | None = None) -> None:
@@ -475,32 +543,55 @@ class Tracker:
         from mlflow.data.sources import LocalArtifactDatasetSource
 
         data = MetaDataset(LocalArtifactDatasetSource(str(source)), name=name, digest=digest)
-        self.mlflow.log_input(data, context="evaluation", tags={k: str(v) for k, v in (tags or {}).items()})
+        from mlflow.entities import DatasetInput, InputTag
+        from mlflow.utils.mlflow_tags import MLFLOW_DATASET_CONTEXT
+
+        input_tags = [InputTag(MLFLOW_DATASET_CONTEXT, "evaluation"), *(InputTag(k, str(v)) for k, v in (tags or {}).items())]
+        self.client.log_inputs(self._active(), [DatasetInput(data._to_mlflow_entity(), input_tags)])
 
     @guarded("uploading the config")
     def config(self, config: dict[str, Any], artifact_file: str = "config.yaml") -> None:
+        """The resolved config as YAML, written by libyaml where PyYAML has it (MLflow's log_dict uses the
+        pure-Python dumper: 0.1 s a config, five of them a run)."""
         if self.enabled:
-            self.mlflow.log_dict(config, artifact_file)
+            import yaml
 
-    @guarded("uploading the Hydra files")
+            dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+            text = yaml.dump(config, Dumper=dumper, indent=2, default_flow_style=False)
+            self.client.log_text(self._active(), text, artifact_file)
+
     def hydra_config(self) -> None:
         """The Hydra files of this job (`.hydra/config.yaml`, `hydra.yaml`, `overrides.yaml`) under `hydra/`,
         and the command-line overrides as a tag; nothing outside a Hydra app."""
-        if not self.enabled:
-            return
-        from hydra.core.hydra_config import HydraConfig
-        from omegaconf import OmegaConf
+        if self.enabled:
+            self.log_hydra(hydra_record())
 
-        if not HydraConfig.initialized():
+    @guarded("uploading the Hydra files")
+    def log_hydra(self, record: tuple[list[Path], dict[str, str], dict[str, str]] | None) -> None:
+        """`record`: what `hydra_record()` read in the run's process (a tracking child has no Hydra job)."""
+        if not self.enabled or record is None:
             return
-        hc = HydraConfig.get()
-        if OmegaConf.is_missing(hc.runtime, "output_dir"):
-            return  # Hydra's compose API (no job, no output folder)
-        if hc.output_subdir is not None:
-            self.artifacts(sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")), "hydra")
-        tags = {f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)}
-        if str(getattr(hc, "mode", "")).endswith("MULTIRUN"):  # the jobs of one -m sweep share this tag
-            # the model runs too: a search by the tag finds them, and one chart of theirs compares the models
-            self.nested_tags = {SWEEP_TAG: Path(str(hc.sweep.dir)).name, f"{TAG}sweep_job": str(hc.job.num)}
-            tags.update(self.nested_tags)
+        files, tags, self.nested_tags = record
+        self.artifacts(files, "hydra")
         self.tags(tags)
+
+
+def hydra_record() -> tuple[list[Path], dict[str, str], dict[str, str]] | None:
+    """This Hydra job's files, its override tags, and the tags every nested run of a sweep's job carries;
+    None outside a Hydra job (or under Hydra's compose API: no job, no output folder)."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    if OmegaConf.is_missing(hc.runtime, "output_dir"):
+        return None
+    files = sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")) if hc.output_subdir is not None else []
+    tags = {f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)}
+    nested: dict[str, str] = {}
+    if str(getattr(hc, "mode", "")).endswith("MULTIRUN"):  # the jobs of one -m sweep share this tag
+        # the model runs too: a search by the tag finds them, and one chart of theirs compares the models
+        nested = {SWEEP_TAG: Path(str(hc.sweep.dir)).name, f"{TAG}sweep_job": str(hc.job.num)}
+        tags.update(nested)
+    return files, tags, nested

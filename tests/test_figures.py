@@ -156,3 +156,18 @@ def test_figures_that_key_the_plot_by_their_own_files_say_so_at_registration():
     for name in FIGURES.names():
         module = inspect.getmodule(FIGURES.resolve(name))
         assert hasattr(module, "cache_key") == bool(FIGURES.meta(name).get("keyed")), name
+
+
+def test_model_colours_are_matplotlibs_palettes_and_the_mlflow_runs_use_them():
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    from pairedgta.figures.common import model_color
+    from pairedgta.figures.model_colors import MODEL_ORDER, MODEL_PALETTE
+    from pairedgta.tracking import model_run_color
+
+    assert list(MODEL_PALETTE) == [to_hex(c) for c in [*colormaps["tab10"].colors, *colormaps["Dark2"].colors]]
+    for name in [*MODEL_ORDER, "my_own_model"]:
+        assert model_run_color(name) == to_hex(model_color(name))
+    zoo = ["demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"]
+    assert len({model_run_color(m) for m in zoo}) == len(zoo)

@@ -233,11 +233,15 @@ def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, ca
     monkeypatch.setattr(tracking, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
     calls = []
 
-    def locked(*args, **kwargs):
+    log_batch = mlflow.MlflowClient.log_batch
+
+    def locked(self, run_id, metrics=(), *args, **kwargs):
+        if not metrics:  # params and tags go through
+            return log_batch(self, run_id, metrics, *args, **kwargs)
         calls.append(1)
         raise sqlite3.OperationalError("database is locked")
 
-    monkeypatch.setattr(mlflow, "log_metrics", locked)
+    monkeypatch.setattr(mlflow.MlflowClient, "log_batch", locked)
     db = tmp_path / "mlflow.db"
     summary = run(compose_cfg(_tracked(tmp_path, db, ["models=[tiny_segformer]", "plot.figures=[xi_models]"])))
     assert Path(summary["plot"], "xi_models.csv").is_file()
@@ -355,3 +359,87 @@ def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypa
     assert len(said) == 1 and f"sqlite:///{db}" in said[0] and "tracking.enabled=false" in said[0], said
     assert f"its results are in {tmp_path / 'cache'}" in said[0]
     assert "results: " in proc.stdout and "error:" not in proc.stderr
+
+
+# --------------------------------------------------------------------------- the tracking child (pairedgta.tracking_worker)
+
+
+def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path):
+    """BackgroundTracker: a real child process; nested runs, a reopened run, the owner is the run's process."""
+    import mlflow
+
+    from pairedgta.tracking import RUN_COLOR_TAG, model_run_color
+    from pairedgta.tracking_worker import BackgroundTracker
+
+    db = tmp_path / "mlflow.db"
+    t = BackgroundTracker(mlflow_store(db), "bg", results=tmp_path)
+    with t.run("parent"):
+        t.params({"a": {"b": 1}})
+        with t.run("child", nested=True):
+            t.metrics({"xi_mean/Day-RAIN": 0.5})
+            t.tags({"model": "demo_ddrnet"})
+            child = t.run_id()
+        with t.run(run_id=child, nested=True):  # reopened later, as the app does for a model's own figures
+            t.config({"k": 1}, "extra.yaml")
+    t.close()
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
+    exp = client.get_experiment_by_name("bg")
+    parents, nested = _runs(client, exp.experiment_id)
+    assert [r.info.run_name for r in parents] == ["parent"] and [r.info.run_name for r in nested] == ["child"]
+    assert {r.info.status for r in parents + nested} == {"FINISHED"}
+    assert nested[0].data.tags["mlflow.parentRunId"] == parents[0].info.run_id
+    assert parents[0].data.params == {"a.b": "1"} and nested[0].data.metrics == {"xi_mean/Day-RAIN": 0.5}
+    assert nested[0].data.tags[RUN_COLOR_TAG] == model_run_color("demo_ddrnet")
+    assert {r.data.tags["pairedgta.pid"] for r in parents + nested} == {str(os.getpid())}
+    assert "extra.yaml" in _artifacts(client, nested[0].info.run_id)
+    assert f"#/experiments/{exp.experiment_id}?workflowType=machine_learning" in t.ui_link()
+
+
+def test_a_failing_store_is_one_warning_in_the_runs_own_log(tmp_path, caplog):
+    from pairedgta.tracking_worker import BackgroundTracker
+
+    (tmp_path / "file").write_text("a file where the store's folder should be")
+    t = BackgroundTracker(f"sqlite:///{tmp_path / 'file' / 'mlflow.db'}", "bg", results=tmp_path / "cache")
+    with t.run("parent"):
+        t.metrics({"x": 1.0})
+    t.close()
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name == "pairedgta.tracking"]
+    assert len(warned) == 1 and "failed while opening the experiment" in warned[0], warned
+    assert f"its results are in {tmp_path / 'cache'}" in warned[0]
+    assert not t.enabled and t.ui_link() is None
+
+
+def test_the_child_ends_the_runs_killed_when_the_run_dies_and_the_next_run_ends_orphans(tmp_path):
+    """End-of-file before `close` (kill -9 of the run): the child ends what is open KILLED. A run whose
+    process and child both died stays RUNNING until the next tracker of the store ends it."""
+    import io
+    import pickle
+
+    import mlflow
+
+    from pairedgta.tracking import Tracker
+    from pairedgta.tracking_worker import serve
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    messages = [("open", (uri, "bg"), {"owner": os.getpid()}), ("begin", ("run1", "parent", False, None), {}),
+                ("begin", ("run2", "model", True, None), {}), ("metrics", ({"x": 1.0},), {})]
+    serve(io.BytesIO(b"".join(pickle.dumps(m) for m in messages)), io.BytesIO())
+    client = mlflow.tracking.MlflowClient(tracking_uri=uri)
+    exp = client.get_experiment_by_name("bg")
+    assert sorted(r.info.status for r in client.search_runs([exp.experiment_id])) == ["KILLED", "KILLED"]
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = Tracker(uri, "bg", owner=int(gone.stdout))
+    dead.begin("left running")  # its process died without unwinding: nobody ends it
+    assert "RUNNING" in [r.info.status for r in client.search_runs([exp.experiment_id])]
+    Tracker(uri, "bg")
+    assert sorted(r.info.status for r in client.search_runs([exp.experiment_id])) == ["KILLED"] * 3
+
+
+def test_the_child_is_started_before_hydra_only_where_a_run_will_log():
+    from pairedgta.tracking_worker import wants_prestart
+
+    assert wants_prestart(["+experiment=paper_table"], mlflow_imported=False)
+    assert not wants_prestart([], mlflow_imported=True)  # logs in-process: nothing to overlap
+    for argv in (["tracking.enabled=false"], ["++tracking.background=False"], ["--help"], ["--cfg", "job"]):
+        assert not wants_prestart(argv, mlflow_imported=False), argv

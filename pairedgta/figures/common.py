@@ -43,16 +43,8 @@ def class_legend_handles(label_maps) -> list:
             for k in sorted(present)]
 CLASS_SHORT = {"traffic light": "T. light", "traffic sign": "T. sign", "motorcycle": "motor."}
 
-MODEL_DISPLAY = {
-    "segformer_b0": "SegFormer-B0", "segformer_b2": "SegFormer-B2", "segformer_b5": "SegFormer-B5",
-    "mask2former_swin_s": "Mask2Former Swin-S", "mask2former_swin_l": "Mask2Former Swin-L",
-    "deeplabv3plus_r101": "DeepLabV3+ R101", "pidnet_m": "PIDNet-M", "ddrnet_23": "DDRNet-23",
-    # the offline zoo (pairedgta/models/weights)
-    "demo_segformer": "demo SegFormer", "demo_segformer_noaug": "demo SegFormer no-aug",
-    "demo_ddrnet": "demo DDRNet", "demo_pidnet": "demo PIDNet",
-}
-# a fixed colour per model, so a model has the same colour in every figure of every run
-_MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
+# model names and colours live where the MLflow record can read them without matplotlib
+from pairedgta.figures.model_colors import MODEL_DISPLAY, MODEL_ORDER, model_color_hex  # noqa: E402,F401
 
 
 def concat_tables(results: Iterable[Any], table: str) -> pd.DataFrame:
@@ -67,13 +59,9 @@ def model_display(name: str) -> str:
 
 
 def model_color(name: str) -> tuple[float, float, float]:
-    import zlib
+    from matplotlib.colors import to_rgb
 
-    import seaborn as sns  # ~0.5 s (scipy.stats): only when a figure is drawn, not when a config is checked
-
-    palette = sns.color_palette("tab10", 10) + sns.color_palette("Dark2", 8)
-    idx = _MODEL_ORDER.index(name) if name in _MODEL_ORDER else zlib.crc32(name.encode())
-    return tuple(palette[idx % len(palette)])  # type: ignore[return-value]
+    return to_rgb(model_color_hex(name))
 
 
 def class_short(name: str) -> str:

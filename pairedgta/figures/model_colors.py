@@ -1,0 +1,28 @@
+"""Model names and colours, without matplotlib: the MLflow record colours a model's run as the figures
+draw it, and must not pay ~1 s of plotting imports for it."""
+from __future__ import annotations
+
+import zlib
+
+MODEL_DISPLAY = {
+    "segformer_b0": "SegFormer-B0", "segformer_b2": "SegFormer-B2", "segformer_b5": "SegFormer-B5",
+    "mask2former_swin_s": "Mask2Former Swin-S", "mask2former_swin_l": "Mask2Former Swin-L",
+    "deeplabv3plus_r101": "DeepLabV3+ R101", "pidnet_m": "PIDNet-M", "ddrnet_23": "DDRNet-23",
+    # the offline zoo (pairedgta/models/weights)
+    "demo_segformer": "demo SegFormer", "demo_segformer_noaug": "demo SegFormer no-aug",
+    "demo_ddrnet": "demo DDRNet", "demo_pidnet": "demo PIDNet",
+}
+# a fixed colour per model, so a model has the same colour in every figure of every run
+MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
+# matplotlib's (and seaborn's) "tab10" then "Dark2" qualitative palettes, as hex; tests/test_figures.py
+# checks them against matplotlib's
+MODEL_PALETTE = (
+    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf",
+    "#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666",
+)
+
+
+def model_color_hex(name: str) -> str:
+    """A model's colour: its place in MODEL_ORDER, or (a model of the user's) a hash of its name."""
+    idx = MODEL_ORDER.index(name) if name in MODEL_ORDER else zlib.crc32(name.encode())
+    return MODEL_PALETTE[idx % len(MODEL_PALETTE)]
