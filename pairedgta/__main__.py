@@ -6,10 +6,15 @@ import os
 import signal
 import sys
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+if __name__ == "__main__":  # `python -m pairedgta`: the tracking child's MLflow imports start before Hydra's
+    from pairedgta import tracking_worker as _tracking_worker
 
-from pairedgta.errors import PairedGTAError, Terminated, disk_full
+    _tracking_worker.prestart(sys.argv[1:])
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from pairedgta.errors import PairedGTAError, Terminated, disk_full  # noqa: E402
 
 log = logging.getLogger("pairedgta")
 

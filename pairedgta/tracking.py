@@ -487,8 +487,9 @@ class Tracker:
 
     def _uploaded_by(self, bundle: str) -> Any:
         """The earliest run (any experiment of this store) that uploaded `bundle`, or None."""
-        runs = self.mlflow.search_runs(search_all_experiments=True, filter_string=f"tags.`{TAG}uploaded.{bundle}` = 'true'",
-                                       order_by=["attributes.start_time ASC"], max_results=1, output_format="list")
+        experiments = [e.experiment_id for e in self.client.search_experiments()]  # active only: never link a deleted run
+        runs = self.client.search_runs(experiments, filter_string=f"tags.`{TAG}uploaded.{bundle}` = 'true'",
+                                       order_by=["attributes.start_time ASC"], max_results=1)
         return runs[0] if runs else None
 
     @guarded("recording stage files")
