@@ -24,7 +24,9 @@ def test_smoke_experiment_end_to_end(tmp_path):
     cache = tmp_path / "cache"
     db = tmp_path / "mlflow.db"
     proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri={mlflow_store(db)}",
-                    "generate.num_scenes=3", "metric.bootstrap.resamples=50"], tmp_path, subprocess_=True)  # true end to end
+                    "generate.num_scenes=3", "metric.bootstrap.resamples=50",
+                    "plot.qualitative_conditions=[Night-EXTRASUNNY]"],  # every figure; one condition's grid (6 s less)
+                   tmp_path, subprocess_=True)  # true end to end
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "results: " in proc.stdout
     evals = {json.loads((p / "manifest.json").read_text())["config"]["model"]["name"]: p

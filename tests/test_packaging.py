@@ -75,18 +75,17 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     work = tmp_path / "elsewhere"
     work.mkdir()
 
-    probe = ("import pairedgta, sys; from pairedgta.models import available_models, build_segmenter; "
-             "from pathlib import Path; "
+    # (building a model is left to the run below, which builds the smoke experiment's two)
+    probe = ("import pairedgta, sys; from pairedgta.models import available_models; from pathlib import Path; "
              "print(pairedgta.__file__); print(any(p and Path(p).resolve() == Path(sys.argv[1]).resolve() for p in sys.path)); "
-             "print(','.join(available_models())); print(build_segmenter('tiny_segformer').name)")
+             "print(','.join(available_models()))")
     proc = subprocess.run([str(py), "-c", probe, str(CHECKOUT)], cwd=work, capture_output=True, text=True, env=env,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    where, checkout_on_path, models, built = proc.stdout.strip().splitlines()[-4:]
+    where, checkout_on_path, models = proc.stdout.strip().splitlines()[-3:]
     assert Path(where).resolve().is_relative_to(env_dir.resolve()), where  # the wheel's copy, not the checkout
     assert checkout_on_path == "False"  # (a venv made inside the checkout, e.g. .venv/, is fine)
     assert "tiny_segformer" in models.split(",") and "demo_segformer" in models.split(",")
-    assert built == "tiny_segformer"
 
     run_dir = tmp_path / "run"
     cache = tmp_path / "cache"
