@@ -437,9 +437,8 @@ class Tracker:
         from mlflow.entities import Param
 
         flat = {k: str(v)[:6000] for k, v in flatten(params).items()}
-        items = sorted(flat.items())
-        for i in range(0, len(items), 100):
-            self.client.log_batch(self._active(), params=[Param(k, v) for k, v in items[i : i + 100]], synchronous=True)
+        # one call: MLflow's client splits a batch into its limits (100 params, 1000 metrics a request)
+        self.client.log_batch(self._active(), params=[Param(k, v) for k, v in sorted(flat.items())], synchronous=True)
 
     @guarded("logging metrics")
     def metrics(self, metrics: dict[str, float]) -> None:
