@@ -334,12 +334,12 @@ class Tracker:
                         raise
             found = mlflow.set_experiment(experiment)
             self.experiment_id = found.experiment_id
+            self.mlflow = mlflow
+            self.client = mlflow.MlflowClient()
             if EXPERIMENT_KIND[0] not in (found.tags or {}):
                 # earlier MLflow 3 UIs open an experiment without this tag on the GenAI overview, not its runs;
                 # 3.17 follows its sidebar switch (GenAI / Model training) instead: README says to pick the latter
-                mlflow.MlflowClient().set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
-            self.mlflow = mlflow
-            self.client = mlflow.MlflowClient()
+                self.client.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
             self.end_orphans()
 
     def _context_tags(self) -> dict[str, str]:
@@ -409,7 +409,7 @@ class Tracker:
 
     def end_orphans(self) -> list[str]:
         """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
-        client = self.mlflow.tracking.MlflowClient(tracking_uri=self.uri)
+        client = self.client
         host = socket.gethostname()
         ended = []
         try:

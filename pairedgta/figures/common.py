@@ -16,6 +16,8 @@ import pandas as pd
 
 from pairedgta.cityscapes import CLASS_NAMES, PALETTE
 from pairedgta import conditions
+# model names and colours live where the MLflow record reads them without matplotlib
+from pairedgta.figures.model_colors import MODEL_DISPLAY, model_color_hex
 
 condition_display = conditions.condition_display  # the one naming of conditions, re-exported
 
@@ -42,9 +44,6 @@ def class_legend_handles(label_maps) -> list:
     return [Patch(facecolor=CLASS_COLORS[CLASS_NAMES[k]], edgecolor="0.5", linewidth=0.3, label=CLASS_NAMES[k])
             for k in sorted(present)]
 CLASS_SHORT = {"traffic light": "T. light", "traffic sign": "T. sign", "motorcycle": "motor."}
-
-# model names and colours live where the MLflow record can read them without matplotlib
-from pairedgta.figures.model_colors import MODEL_DISPLAY, MODEL_ORDER, model_color_hex  # noqa: E402,F401
 
 
 def concat_tables(results: Iterable[Any], table: str) -> pd.DataFrame:
