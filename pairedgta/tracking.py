@@ -162,7 +162,15 @@ def settings(cfg: dict[str, Any]) -> tuple[str, str, bool]:
     """`tracking.{uri,experiment_name,enabled}` of a run's config (the experiment defaults to `name`)."""
     tracking = cfg.get("tracking") or {}
     experiment = str(tracking.get("experiment_name") or cfg.get("name", "default"))
-    return tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, bool(tracking.get("enabled", True))
+    return tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, flag(tracking, "enabled")
+
+
+def flag(tracking: dict[str, Any], key: str) -> bool:
+    """`tracking.<key>` (default true) as a boolean; `maybe` or `1` is a one-line error, not a truthy string."""
+    value = tracking.get(key, True)
+    if not isinstance(value, bool):
+        raise ConfigError(f"tracking.{key}={value!r} must be true or false")
+    return value
 
 
 RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second

@@ -28,7 +28,7 @@ import threading
 from typing import Any, Iterator
 
 from pairedgta.errors import Terminated
-from pairedgta.tracking import Tracker, check_uri, hydra_record, settings
+from pairedgta.tracking import Tracker, check_uri, flag, hydra_record, settings
 
 log = logging.getLogger("pairedgta.tracking")
 CLOSE_TIMEOUT_S = 300.0  # the child's calls are each bounded (retries within RETRY_BUDGET_S); this is a backstop
@@ -130,7 +130,8 @@ def open_tracker(cfg: dict[str, Any]) -> "BackgroundTracker | Tracker":
     """The run's tracker: a BackgroundTracker with `tracking.background` (the default) unless this process
     has imported MLflow already (nothing to overlap), else a Tracker in this process."""
     uri, experiment, enabled = settings(cfg)
-    if enabled and (cfg.get("tracking") or {}).get("background", True) and "mlflow" not in sys.modules:
+    background = flag(cfg.get("tracking") or {}, "background")  # checked whether tracking is on or not
+    if enabled and background and "mlflow" not in sys.modules:
         check_uri(uri)
         return BackgroundTracker(uri, experiment, results=cfg.get("cache_dir"))
     discard()

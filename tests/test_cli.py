@@ -205,6 +205,8 @@ BAD_CONFIG = {
     "bad_visibility": (["conditions.weathers.FOGGY.visibility_m=-3"], "'Day-FOGGY'.visibility_m=-3"),
     "unknown_tracking_scheme": (["tracking.enabled=true", "tracking.uri=nosuchscheme://x"],
                                 "tracking.uri=nosuchscheme://x: unknown scheme 'nosuchscheme'"),
+    "tracking_enabled_not_a_boolean": (["tracking.enabled=maybe"], "tracking.enabled='maybe' must be true or false"),
+    "tracking_background_not_a_boolean": (["tracking.background=1"], "tracking.background=1 must be true or false"),
 }
 
 
