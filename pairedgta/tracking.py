@@ -165,9 +165,9 @@ def settings(cfg: dict[str, Any]) -> tuple[str, str, bool]:
     return tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, flag(tracking, "enabled")
 
 
-def flag(tracking: dict[str, Any], key: str) -> bool:
-    """`tracking.<key>` (default true) as a boolean; `maybe` or `1` is a one-line error, not a truthy string."""
-    value = tracking.get(key, True)
+def flag(tracking: dict[str, Any], key: str, default: bool = True) -> bool:
+    """`tracking.<key>` as a boolean; `maybe` or `1` is a one-line error, not a truthy string."""
+    value = tracking.get(key, default)
     if not isinstance(value, bool):
         raise ConfigError(f"tracking.{key}={value!r} must be true or false")
     return value

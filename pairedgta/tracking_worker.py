@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from typing import Any, Iterator
 
 from pairedgta.errors import Terminated
@@ -105,6 +106,7 @@ class BackgroundTracker:
             return
         self._send("close")
         self._queue.put(None)
+        waited = time.perf_counter()
         summary: dict[str, Any] = {}
         try:
             assert self._proc.stdout is not None
@@ -121,6 +123,9 @@ class BackgroundTracker:
             self._summary = summary
         for name, level, message in summary.get("log", []):
             logging.getLogger(name).log(level, "%s", message)
+        if "import_s" in summary:  # what a slow rerun waited for (hydra.verbose=pairedgta.tracking shows it)
+            log.debug("tracking child: MLflow import %.2f s, store calls %.2f s, waited for %.2f s after the run's "
+                      "work", summary["import_s"], summary["store_s"], time.perf_counter() - waited)
         self.enabled = bool(summary.get("enabled"))
         self.failed = summary.get("failed")
         self.experiment_id = summary.get("experiment_id")
@@ -131,6 +136,7 @@ def open_tracker(cfg: dict[str, Any]) -> "BackgroundTracker | Tracker":
     has imported MLflow already (nothing to overlap), else a Tracker in this process."""
     uri, experiment, enabled = settings(cfg)
     background = flag(cfg.get("tracking") or {}, "background")  # checked whether tracking is on or not
+    flag(cfg.get("tracking") or {}, "class_metrics", default=False)  # read by the app, checked here up front
     if enabled and background and "mlflow" not in sys.modules:
         check_uri(uri)
         return BackgroundTracker(uri, experiment, results=cfg.get("cache_dir"))
@@ -192,9 +198,11 @@ class _Collect(logging.Handler):
         self.lines.append((record.name, record.levelno, record.getMessage()))
 
 
-def serve(inp: Any, out: Any) -> None:
+def serve(inp: Any, out: Any, import_s: float = 0.0) -> None:
     """Replay the run's calls on a real Tracker until `close` (reply with the summary) or end-of-file (the
-    run's process died: end its open runs KILLED)."""
+    run's process died: end its open runs KILLED). `import_s`: how long MLflow's import took, for the
+    summary, which also says how long the store calls took."""
+    store_s = 0.0
     collect = _Collect()
     logging.getLogger("pairedgta").addHandler(collect)
     logging.getLogger("pairedgta").setLevel(logging.INFO)
@@ -204,6 +212,7 @@ def serve(inp: Any, out: Any) -> None:
     while True:
         try:
             method, args, kwargs = pickle.load(inp)
+            started = time.perf_counter()
         except (EOFError, pickle.UnpicklingError, OSError):
             for _ in range(depth):
                 if tracker is not None:
@@ -225,7 +234,8 @@ def serve(inp: Any, out: Any) -> None:
                 tracker.finish(*args)
             elif method == "close":
                 summary = {"enabled": tracker.enabled, "failed": tracker.failed, "log": collect.lines,
-                           "experiment_id": getattr(tracker, "experiment_id", None), "ui_link": tracker.ui_link()}
+                           "experiment_id": getattr(tracker, "experiment_id", None), "ui_link": tracker.ui_link(),
+                           "import_s": import_s, "store_s": store_s}
                 pickle.dump(summary, out)
                 out.flush()
                 return
@@ -234,16 +244,18 @@ def serve(inp: Any, out: Any) -> None:
         except Exception as exc:  # a bug here must not cost the run: stop logging, say so once
             if tracker is not None and tracker.enabled:
                 tracker.give_up(f"replaying {method}", exc)
+        store_s += time.perf_counter() - started
 
 
 def main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run decides: it sends KILLED, or dies (end-of-file)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    started = time.perf_counter()
     with contextlib.suppress(Exception):  # at once, while the run composes its config; Tracker reports failures
         import mlflow  # noqa: F401
         import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
-    serve(sys.stdin.buffer, sys.stdout.buffer)
+    serve(sys.stdin.buffer, sys.stdout.buffer, import_s=time.perf_counter() - started)
     sys.stdout.flush()
     os._exit(0)  # all is written and committed: skip the second it takes to tear MLflow's modules down
 

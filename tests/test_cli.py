@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,9 @@ def test_smoke_experiment_end_to_end(tmp_path):
     assert night.in_mean.tolist() == supported.tolist()
     mean = night[supported].xi.mean()
     assert logged["xi_mean/Night-EXTRASUNNY"] == pytest.approx(mean)
+    # the headline condition's rho per class; per-condition, per-class metrics only with tracking.class_metrics
+    assert logged.get("rho_valid/top_m/car", math.nan) == pytest.approx(r, nan_ok=True)  # NaN is not logged
+    assert not [k for k in logged if k.startswith(("xi/", "xi_gt/")) or k.count("/") == 3]
     arts = {a.path for a in client.list_artifacts(nested["tiny_mask2former"].info.run_id, "evaluate")}
     assert "evaluate/xi.csv" in arts
 
@@ -207,6 +211,8 @@ BAD_CONFIG = {
                                 "tracking.uri=nosuchscheme://x: unknown scheme 'nosuchscheme'"),
     "tracking_enabled_not_a_boolean": (["tracking.enabled=maybe"], "tracking.enabled='maybe' must be true or false"),
     "tracking_background_not_a_boolean": (["tracking.background=1"], "tracking.background=1 must be true or false"),
+    "tracking_class_metrics_not_a_boolean": (["tracking.class_metrics=all"],
+                                             "tracking.class_metrics='all' must be true or false"),
 }
 
 

@@ -7,6 +7,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -85,6 +86,11 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
         config = yaml.safe_load(Path(mlflow.artifacts.download_artifacts(f"{r.info.artifact_uri}/config.yaml",
                                                                           dst_path=str(tmp_path / "dl" / model))).read_text())
         assert config["model"]["name"] == model and config["metric"]["bootstrap"]["resamples"] == 50
+        # the means and the headline rho per class; per-class xi only with tracking.class_metrics (below)
+        prefixes = {k.split("/")[0] + "/*" * k.count("/") for k in r.data.metrics}
+        assert {"xi_mean/*", "xi_gt_mean/*", "gt_miou/*", "agreement/*"} == prefixes - {"rho_valid/*/*"}, prefixes
+        assert r.data.metrics["xi_mean/Day-RAIN"] == pytest.approx(
+            xi[(xi.condition == "Day-RAIN") & (xi.class_name == "mean") & (xi.reference_model != "ground_truth")].xi.item())
     # the parent carries each model's numbers with the model in the key: one chart compares them
     assert {f"compare/xi_mean/Day-RAIN/{m}" for m in by_model} <= set(parent.data.metrics)
     assert parent.data.metrics["compare/xi_mean/Day-RAIN/tiny_deeplabv3plus"] == pytest.approx(
@@ -113,9 +119,18 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
     new_files = sorted(p.relative_to(db.parent) for p in (db.parent / "mlartifacts").rglob("*") if p.is_file())
     assert len(new_files) == len(first_files) + 3  # three config.yaml, nothing else
 
-    # recomputed figures (force) are new files: uploaded again
-    run(compose_cfg(_tracked(tmp_path, db, ["force=[plot]"])))
+    # recomputed figures (force) are new files: uploaded again; per-class metrics asked for are logged
+    run(compose_cfg(_tracked(tmp_path, db, ["force=[plot]", "tracking.class_metrics=true"])))
     parents, nested3 = _runs(client, exp.experiment_id)
+    for r in nested3[4:]:
+        model = r.data.tags["model"]
+        assert {k: v for k, v in r.data.metrics.items() if k in by_model[model].data.metrics} == by_model[model].data.metrics
+        xi = pd.read_csv(Path(first["evaluate"][model]) / "xi.csv")
+        per_class = xi[(xi.class_name != "mean") & (xi.reference_model != "ground_truth") & xi.xi.notna()]
+        assert len(per_class) > 10
+        for row in per_class.itertuples():
+            assert r.data.metrics[f"xi/{row.condition}/{row.class_name}"] == pytest.approx(row.xi)
+        assert any(k.startswith("xi_gt/") for k in r.data.metrics)
     assert "figures/ranking.png" in _artifacts(client, parents[2].info.run_id)
     assert "pairedgta.reused.plot." + Path(first["plot"]).name not in parents[2].data.tags
     assert all(any(a.startswith("figures/") for a in _artifacts(client, r.info.run_id)) for r in nested3[4:])
@@ -364,8 +379,9 @@ def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypa
 # --------------------------------------------------------------------------- the tracking child (pairedgta.tracking_worker)
 
 
-def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path):
-    """BackgroundTracker: a real child process; nested runs, a reopened run, the owner is the run's process."""
+def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path, caplog):
+    """BackgroundTracker: a real child process; nested runs, a reopened run, the owner is the run's process;
+    at DEBUG the run says what it waited for (the child's MLflow import and store calls)."""
     import mlflow
 
     from pairedgta.tracking import RUN_COLOR_TAG, model_run_color
@@ -381,7 +397,13 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path)
             child = t.run_id()
         with t.run(run_id=child, nested=True):  # reopened later, as the app does for a model's own figures
             t.config({"k": 1}, "extra.yaml")
-    t.close()
+    with caplog.at_level(logging.DEBUG, logger="pairedgta.tracking"):
+        t.close()
+    timings = [r.getMessage() for r in caplog.records if r.getMessage().startswith("tracking child:")]
+    found = re.fullmatch(r"tracking child: MLflow import ([\d.]+) s, store calls ([\d.]+) s, waited for ([\d.]+) s "
+                         r"after the run's work", timings[0]) if len(timings) == 1 else None
+    assert found, timings
+    assert float(found[1]) > 0.1 and float(found[2]) > 0  # MLflow was imported there; 9 calls reached the store
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
     exp = client.get_experiment_by_name("bg")
     parents, nested = _runs(client, exp.experiment_id)

@@ -120,20 +120,24 @@ class EvaluateResult(StageResult):
     def artifacts(self) -> list[Path]:
         return [self.path / f for f in self.FILES if (self.path / f).is_file()]
 
-    def metrics(self) -> dict[str, float]:
-        """The MLflow view: xi/<cond>/<class>, xi_mean/<cond>, rho_valid/<cond>/<sel>/<class>, gt_miou/<cond>."""
+    def metrics(self, per_class: bool = False) -> dict[str, float]:
+        """The MLflow view: xi_mean/<cond>, xi_gt_mean/<cond>, gt_miou/<cond>, agreement/<cond> and the
+        headline condition's rho_valid/<sel>/<class>; with `per_class` (tracking.class_metrics) also
+        xi/<cond>/<class>, xi_gt/<cond>/<class> and rho_valid/<cond>/<sel>/<class>, ten times as many
+        metrics (the xi table and xi.csv/rho_valid.csv hold them either way)."""
         metrics: dict[str, float] = {}
         for row in self.xi().itertuples():
             prefix = "xi" if row.reference_model != GT else "xi_gt"
             if row.class_name == "mean":
                 metrics[f"{prefix}_mean/{row.condition}"] = row.xi
-            else:
+            elif per_class:
                 metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
         rho = self.rho()
         conds = list(dict.fromkeys(rho["condition"])) if not rho.empty else []
         main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
         for row in rho.itertuples():
-            metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
+            if per_class:
+                metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
             if row.condition == main:
                 metrics[f"rho_valid/{row.selection}/{row.class_name}"] = row.rho
         summary = self.summary()
