@@ -26,6 +26,7 @@ import math
 import os
 import re
 import socket
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
@@ -265,11 +266,14 @@ def _shorten_sqlite_waits() -> None:
 
 class Tracker:
     def __init__(self, uri: str, experiment: str, enabled: bool = True,
-                 results: str | os.PathLike | None = None, owner: int | None = None) -> None:
+                 results: str | os.PathLike | None = None, owner: int | None = None, source: str | None = None) -> None:
         """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning;
-        `owner`: the pid of the run's process, when that is not this one (pairedgta.tracking_worker)."""
+        `owner`, `source`: the pid and entry point (its sys.argv[0]) of the run's process, when that is not
+        this one (pairedgta.tracking_worker): runs name the run's script and its git commit, not the child's."""
         self.owner = owner
+        self.source = source
         self._context: dict[str, str] | None = None
+        self._experiments: list[str] | None = None  # this store's active experiments, for cache-hit lookups
         self._notes: dict[str, list[str]] = {}  # run id -> lines for its description, set when it ends
         self._written: dict[str, str] = {}  # run id -> its description as this tracker last set it
         # the open runs' ids, innermost last: the client API, not MLflow's fluent run stack, whose
@@ -355,13 +359,18 @@ class Tracker:
         once: start_run asks every context provider per run, and its notebook probe imports IPython."""
         if self._context is None:
             self._context = {}
+            argv = list(sys.argv)
             try:
                 from mlflow.tracking.context.default_context import DefaultRunContext
                 from mlflow.tracking.context.git_context import GitRunContext
 
+                if self.source is not None:  # both read the entry point from sys.argv[0] ('' : none)
+                    sys.argv[:] = [self.source] if self.source else []
                 self._context = {**DefaultRunContext().tags(), **GitRunContext().tags()}
             except Exception as exc:  # pragma: no cover - private MLflow API moved: runs lose these tags only
                 log.debug("MLflow context tags unavailable: %s", exc)
+            finally:
+                sys.argv[:] = argv
         return self._context
 
     @guarded("starting a run")
@@ -494,8 +503,9 @@ class Tracker:
 
     def _uploaded_by(self, bundle: str) -> Any:
         """The earliest run (any experiment of this store) that uploaded `bundle`, or None."""
-        experiments = [e.experiment_id for e in self.client.search_experiments()]  # active only: never link a deleted run
-        runs = self.client.search_runs(experiments, filter_string=f"tags.`{TAG}uploaded.{bundle}` = 'true'",
+        if self._experiments is None:  # once a run: a bundle in an experiment made since is uploaded again, no harm
+            self._experiments = [e.experiment_id for e in self.client.search_experiments()]  # active: no deleted run
+        runs = self.client.search_runs(self._experiments, filter_string=f"tags.`{TAG}uploaded.{bundle}` = 'true'",
                                        order_by=["attributes.start_time ASC"], max_results=1)
         return runs[0] if runs else None
 

@@ -47,7 +47,8 @@ class BackgroundTracker:
         self._queue: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._writer = threading.Thread(target=self._write, name="pairedgta-tracking", daemon=True)
         self._writer.start()  # the run never blocks on a full pipe while the child is still importing
-        self._send("open", uri, experiment, results=None if results is None else str(results), owner=os.getpid())
+        self._send("open", uri, experiment, results=None if results is None else str(results), owner=os.getpid(),
+                   source=sys.argv[0] if sys.argv else "")
 
     def _write(self) -> None:
         assert self._proc.stdin is not None

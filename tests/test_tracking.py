@@ -413,6 +413,8 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path,
     assert parents[0].data.params == {"a.b": "1"} and nested[0].data.metrics == {"xi_mean/Day-RAIN": 0.5}
     assert nested[0].data.tags[RUN_COLOR_TAG] == model_run_color("demo_ddrnet")
     assert {r.data.tags["pairedgta.pid"] for r in parents + nested} == {str(os.getpid())}
+    # where the run came from is the run's entry point, not the tracking child's module
+    assert {r.data.tags["mlflow.source.name"] for r in parents + nested} == {sys.argv[0]}
     assert "extra.yaml" in _artifacts(client, nested[0].info.run_id)
     assert f"#/experiments/{exp.experiment_id}?workflowType=machine_learning" in t.ui_link()
 
