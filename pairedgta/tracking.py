@@ -274,6 +274,7 @@ class Tracker:
         self.source = source
         self._context: dict[str, str] | None = None
         self._experiments: list[str] | None = None  # this store's active experiments, for cache-hit lookups
+        self._ended: dict[str, str] = {}  # run id -> the status this tracker ended it with
         self._notes: dict[str, list[str]] = {}  # run id -> lines for its description, set when it ends
         self._written: dict[str, str] = {}  # run id -> its description as this tracker last set it
         # the open runs' ids, innermost last: the client API, not MLflow's fluent run stack, whose
@@ -389,7 +390,10 @@ class Tracker:
 
     @guarded("ending a run")
     def _end(self, status: str) -> None:
-        self.client.set_terminated(self._stack[-1], status)
+        rid = self._stack[-1]
+        if self._ended.get(rid) != status:  # a run reopened for its figures and ended alike keeps its record
+            self.client.set_terminated(rid, status)
+            self._ended[rid] = status
         self._stack.pop()
 
     def begin(self, name: str | None = None, nested: bool = False, run_id: str | None = None) -> Any:
