@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 import pairedgta.figures.qualitative as qualitative
-from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.cityscapes import CLASS_NAMES, colorize
 import pairedgta.figures.xi as xi_figure
 import pairedgta.models as models
 from pairedgta.app import run
@@ -89,22 +89,35 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     built: list[str] = []
     build = models.build_segmenter
 
+    segmenters = {}
+
     def counting(model, device=None, **kw):
         built.append(dict(model)["name"] if not isinstance(model, str) else model)
-        return build(model, device=device, **kw)
+        segmenters[built[-1]] = build(model, device=device, **kw)
+        return segmenters[built[-1]]
 
     monkeypatch.setattr(models, "build_segmenter", counting)
     grids = {}
     save = qualitative.save
+    shown: dict[tuple[str, str], np.ndarray] = {}  # (group, condition) -> the image the grid loaded
+    load = qualitative.load_group_images
+
+    def loaded(group, conditions):
+        images = load(group, conditions)
+        shown.update({(group.group_id, c): im for c, im in images.items()})
+        return images
+
+    monkeypatch.setattr(qualitative, "load_group_images", loaded)
 
     def keep(fig, out, stem, formats, dpi):
         grids[stem] = {"legends": [(lg.get_title().get_text(), [t.get_text() for t in lg.get_texts()]) for lg in fig.legends],
-                       "labels": [a.get_xlabel() or a.get_ylabel() for a in fig.get_axes()]}
+                       "labels": [a.get_xlabel() or a.get_ylabel() for a in fig.get_axes()],
+                       "strips": [a.get_images()[0].get_array() for a in fig.get_axes() if a.get_images()], "dpi": dpi}
         return save(fig, out, stem, formats, dpi)
 
     monkeypatch.setattr(qualitative, "save", keep)
     over = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_pidnet]", "plot.figures=[xi_table,qualitative]",
-                                       "plot.qualitative_groups=1"]
+                                       "plot.qualitative_groups=2"]  # worst and best: two groups, each in two rows
     summary = run(compose_cfg(over))
     # pseudo-labels, evaluation and the qualitative figure share one model each
     assert sorted(built) == ["tiny_pidnet", "tiny_segformer"]
@@ -115,6 +128,21 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
         # the prediction columns' key: the classes shown, in Cityscapes order
         assert title == "predicted classes" and classes and classes == [c for c in CLASS_NAMES if c in classes]
         assert "max softmax probability" in g["labels"]  # the confidence column's colour bar
+    # each row's clean-prediction column is the model's prediction of that row's clean image (a group
+    # shown for several conditions is predicted once, and shown alike in each of its rows)
+    rows = pd.read_csv(Path(summary["plot"]) / "qualitative.csv", dtype={"pair_id": str})
+    for name in ("tiny_segformer", "tiny_pidnet"):
+        strips, dpi = grids[f"qualitative_{name}"]["strips"], grids[f"qualitative_{name}"]["dpi"]
+        mine = rows[rows["model"] == name].reset_index(drop=True)
+        assert len(mine) == len(strips) and mine["pair_id"].nunique() > 1 and mine["pair_id"].duplicated().any(), mine
+        for row, strip in zip(mine.itertuples(), strips):
+            clean = shown[(row.pair_id, "Day-EXTRASUNNY")]
+            h0, w0 = clean.shape[:2]
+            w = max(8, min(w0, int(qualitative.TEXT_WIDTH * dpi / len(qualitative.COLUMNS))))
+            gap = max(2, w // 64)
+            labels, _ = segmenters[name].predict(clean[None])
+            expected = qualitative.fit(colorize(labels[0].numpy()), w, strip.shape[0], exact=True)
+            np.testing.assert_array_equal(np.asarray(strip)[:, w + gap: 2 * w + gap], expected)
     err = capsys.readouterr().err
     assert re.search(r"plot: 100%\|[^\n\r]*\| 2/2", err), err[-1500:]
     owners = pd.read_json(Path(summary["plot"]) / "owners.json", orient="index")
