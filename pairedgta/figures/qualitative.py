@@ -105,7 +105,9 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
         labels, conf = segmenter.predict(np.stack(batch))
         labels, conf = labels.numpy(), conf.numpy()
         adv_pred, adv_conf = labels[0], conf[0]
-        clean_pred = clean_preds.setdefault(group.group_id, labels[-1])
+        if len(batch) == 2:
+            clean_preds[group.group_id] = labels[1]
+        clean_pred = clean_preds[group.group_id]
         valid = pseudo != IGNORE_INDEX
         recomputed = float(((adv_pred == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
         if not math.isclose(recomputed, p["agreement"], abs_tol=AGREEMENT_TOL):
