@@ -113,7 +113,6 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
     if not plan.run_eval:
         return runs
     collect = plan.plotting and bool((ctx.cfg.get("plot") or {}).get("collect_cached"))
-    per_class = flag(ctx.cfg.get("tracking") or {}, "class_metrics", default=False)  # MLflow metrics per class too
     for model_cfg in models.evaluated:
         name = f"{p.label}/{model_cfg['name']}" if multi else model_cfg["name"]
         try:
@@ -133,7 +132,7 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})
             tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label,
                           "model": model_cfg["name"]})
-            tracker.metrics(result.metrics(per_class=per_class))
+            tracker.metrics(result.metrics(per_class=flag(ctx.cfg.get("tracking") or {}, "class_metrics", default=False)))
             _log_dataset(tracker, p)
             tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             tracker.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
