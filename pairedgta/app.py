@@ -15,7 +15,7 @@ from pairedgta.config_checks import check_run_config
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
-from pairedgta.tracking import Tracker, bundle, dataset_label, flag, run_name, xi_table
+from pairedgta.tracking import Tracker, bundle, class_metrics, dataset_label, run_name, xi_table
 from pairedgta.tracking_worker import open_tracker
 
 log = logging.getLogger("pairedgta")
@@ -132,7 +132,7 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})
             tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label,
                           "model": model_cfg["name"]})
-            tracker.metrics(result.metrics(per_class=flag(ctx.cfg.get("tracking") or {}, "class_metrics", default=False)))
+            tracker.metrics(result.metrics(per_class=class_metrics(ctx.cfg)))
             _log_dataset(tracker, p)
             tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             tracker.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",

@@ -174,6 +174,11 @@ def flag(tracking: dict[str, Any], key: str, default: bool = True) -> bool:
     return value
 
 
+def class_metrics(cfg: dict[str, Any]) -> bool:
+    """`tracking.class_metrics` (default false): per-class xi and rho_valid as MLflow metrics too."""
+    return flag(cfg.get("tracking") or {}, "class_metrics", default=False)
+
+
 RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second
 RETRY_BUDGET_S = 3.0  # no new try once a call has spent this long: the run does not wait on its record
 SQLITE_WAIT_S = 1.0  # how long the probe waits for a lock on a sqlite store

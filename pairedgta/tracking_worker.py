@@ -29,7 +29,7 @@ import time
 from typing import Any, Iterator
 
 from pairedgta.errors import Terminated
-from pairedgta.tracking import Tracker, check_uri, flag, hydra_record, settings
+from pairedgta.tracking import Tracker, check_uri, class_metrics, flag, hydra_record, settings
 
 log = logging.getLogger("pairedgta.tracking")
 CLOSE_TIMEOUT_S = 300.0  # the child's calls are each bounded (retries within RETRY_BUDGET_S); this is a backstop
@@ -137,7 +137,7 @@ def open_tracker(cfg: dict[str, Any]) -> "BackgroundTracker | Tracker":
     has imported MLflow already (nothing to overlap), else a Tracker in this process."""
     uri, experiment, enabled = settings(cfg)
     background = flag(cfg.get("tracking") or {}, "background")  # checked whether tracking is on or not
-    flag(cfg.get("tracking") or {}, "class_metrics", default=False)  # read by the app, checked here up front
+    class_metrics(cfg)  # read by the app, checked here up front
     if enabled and background and "mlflow" not in sys.modules:
         check_uri(uri)
         return BackgroundTracker(uri, experiment, results=cfg.get("cache_dir"))
