@@ -14,6 +14,8 @@ if __name__ == "__main__":  # `python -m pairedgta`: the tracking child's MLflow
 import hydra  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+from hydra.errors import CompactHydraException  # noqa: E402
+
 from pairedgta.errors import PairedGTAError, Terminated, disk_full  # noqa: E402
 
 log = logging.getLogger("pairedgta")
@@ -21,6 +23,11 @@ log = logging.getLogger("pairedgta")
 # run folders carry the pid: two runs started in the same second never share one
 if not OmegaConf.has_resolver("pid"):
     OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
+
+
+class JobError(CompactHydraException):
+    """A sweep job's one-line error, carried back by the launcher: Hydra prints a compact error as its
+    message alone, so the sweep's output shows the job's error where a traceback would be."""
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -50,6 +57,9 @@ def main(cfg: DictConfig) -> None:
 
     from hydra.core.hydra_config import HydraConfig
 
+    from pairedgta import launchers
+
+    launchers.quiet_job_log()
     try:
         from pairedgta.config_checks import check_added_keys
 
@@ -59,6 +69,8 @@ def main(cfg: DictConfig) -> None:
         # one line, no traceback: the message names the file/key and the fix
         print(f"error: {exc}", file=sys.stderr)
         log.error("%s", exc)
+        if _in_sweep():  # the launcher carries it back to the sweep, which prints it as one line
+            raise JobError(_job_line(exc)) from None
         sys.exit(2)
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"error: interrupted ({str(exc) or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
@@ -100,6 +112,21 @@ def _to_log_files(lines: list[str]) -> None:
             h.handle(record)
 
 
+def _in_sweep() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def _job_line(exc: BaseException) -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    overrides = " ".join(hc.overrides.task)
+    return f"error: job #{hc.job.num} ({overrides}): {exc} (log: {hc.runtime.output_dir}/{hc.job.name}.log)"
+
+
 def _main_thread() -> bool:
     import threading
 
@@ -119,6 +146,10 @@ def cli() -> None:
     from pairedgta import tracking_worker
 
     sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
+    if {"-m", "--multirun"} & set(sys.argv[1:]):
+        from pairedgta import launchers
+
+        launchers.install()  # SLURM job states from squeue where accounting is off
     tracking_worker.prestart(sys.argv[1:])
     try:
         main()

@@ -335,6 +335,8 @@ class Tracker:
         # IPython, 0.25 s, on every run start); a user's own setting of either wins
         os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
         os.environ.setdefault("MLFLOW_ENABLE_SGC_RUN_RESUMPTION_FOR_DATABRICKS_JOBS", "false")
+        # against a server MLflow prints "View run ... at: <url>" for every run it ends; the run prints one link
+        os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         _shorten_sqlite_waits()
         with _store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)

@@ -248,15 +248,28 @@ def serve(inp: Any, out: Any, import_s: float = 0.0) -> None:
         store_s += time.perf_counter() - started
 
 
+def private_stdout() -> Any:
+    """The summary's channel: the pipe the run reads, moved off file descriptor 1, which then points at
+    stderr. Whatever a library prints (MLflow's "View run ... at" lines against a server, a C extension's
+    printf) lands on stderr and can never corrupt the pickled summary."""
+    sys.stdout.flush()
+    channel = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    return channel
+
+
 def main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run decides: it sends KILLED, or dies (end-of-file)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
+    channel = private_stdout()
     started = time.perf_counter()
     with contextlib.suppress(Exception):  # at once, while the run composes its config; Tracker reports failures
         import mlflow  # noqa: F401
         import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
-    serve(sys.stdin.buffer, sys.stdout.buffer, import_s=time.perf_counter() - started)
+    serve(sys.stdin.buffer, channel, import_s=time.perf_counter() - started)
+    channel.flush()
     sys.stdout.flush()
     os._exit(0)  # all is written and committed: skip the second it takes to tear MLflow's modules down
 

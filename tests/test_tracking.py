@@ -467,3 +467,22 @@ def test_the_child_is_started_before_hydra_only_where_a_run_will_log():
     assert not wants_prestart([], mlflow_imported=True)  # logs in-process: nothing to overlap
     for argv in (["tracking.enabled=false"], ["++tracking.background=False"], ["--help"], ["--cfg", "job"]):
         assert not wants_prestart(argv, mlflow_imported=False), argv
+
+
+def test_nothing_a_library_prints_reaches_the_summary_channel(tmp_path):
+    """The child's summary travels on a pipe of its own: prints from Python and from C (MLflow's "View run"
+    lines against a server, a library's printf) land on stderr, never inside the pickled summary."""
+    code = ("import os, pickle, sys\n"
+            "from pairedgta.tracking_worker import private_stdout\n"
+            "channel = private_stdout()\n"
+            "print('a library talks')\n"
+            "sys.stdout.flush()\n"
+            "os.system('echo a C library talks')\n"
+            "pickle.dump({'ok': 1}, channel)\n"
+            "channel.flush()\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    import pickle
+
+    assert pickle.loads(proc.stdout) == {"ok": 1}
+    assert b"a library talks" in proc.stderr and b"a C library talks" in proc.stderr

@@ -1,0 +1,63 @@
+"""The MLflow record against a real tracking server (`mlflow server` on loopback, PostgreSQL behind it
+where Debian's postgresql is installed, SQLite otherwise): the default background tracking child logs a
+run's whole record, and a sweep of four jobs running at once loses none of their runs."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from pairedgta.testing.cli import run_cli
+from pairedgta.testing.mlflow_server import mlflow_server, postgres_bin
+
+pytestmark = pytest.mark.cluster
+
+SMALL = ["+experiment=smoke", "generate.num_scenes=2", "renderer.width=64", "renderer.height=32",
+         "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "metric.bootstrap.resamples=20",
+         "plot.figures=[xi_models]", "plot.formats=[png]", "plot.dpi=50", "threads=1"]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    if postgres_bin() is None and os.environ.get("CI"):
+        pytest.fail("CI must test the server on PostgreSQL: .ci/run installs postgresql and psycopg2-binary")
+    with mlflow_server(tmp_path_factory.mktemp("mlflow-server")) as srv:
+        yield srv
+
+
+def _records(uri: str, experiment: str):
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(experiment)
+    assert exp is not None, f"no experiment {experiment!r} in the server"
+    return client.search_runs([exp.experiment_id], max_results=1000)
+
+
+def test_the_background_child_records_a_run_on_a_server(server, tmp_path):
+    proc = run_cli(SMALL + [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={server.uri}", "name=one_run"],
+                   tmp_path, subprocess_=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = proc.stdout + proc.stderr
+    assert "stopped before it had logged" not in out and "View run" not in out, out[-2000:]
+    runs = _records(server.uri, "one_run")
+    parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    assert len(parents) == 1 and len(runs) == 3  # the run and one nested run per model
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert all(r.data.metrics for r in runs if r.data.tags.get("mlflow.parentRunId")), "model runs carry metrics"
+    assert f"mlflow: {server.uri}/#/experiments/{parents[0].info.experiment_id}" in proc.stdout
+
+
+def test_four_jobs_at_once_lose_no_run(server, tmp_path):
+    proc = run_cli(SMALL + [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={server.uri}", "name=sweep4",
+                            "hydra/launcher=local", "hydra.launcher.n_jobs=4", "seed=0,1,2,3"],
+                   tmp_path, multirun=True, subprocess_=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = _records(server.uri, "sweep4")
+    parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    assert len(parents) == 4 and len(runs) == 4 * 3, [(r.info.run_name, r.info.status) for r in runs]
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert len({r.data.tags.get("pairedgta.sweep") for r in parents}) == 1  # one sweep, told apart by its tag
+    starts = sorted((r.info.start_time, r.info.end_time) for r in parents)
+    assert any(later[0] < earlier[1] for earlier, later in zip(starts, starts[1:])), "the jobs ran at once"
