@@ -95,7 +95,7 @@ class Server:
         env = {**os.environ, "MLFLOW_DISABLE_TELEMETRY": "true", "DO_NOT_TRACK": "true"}
         self.log = open(work / "mlflow_ui.log", "w")
         # README's command; its own process group, so that stopping it stops its workers and nothing else
-        self.proc = subprocess.Popen(["mlflow", "ui", "--backend-store-uri", f"sqlite:///{db}", "--host", "127.0.0.1",
+        self.proc = subprocess.Popen([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", f"sqlite:///{db}", "--host", "127.0.0.1",
                                       "--port", str(self.port)], cwd=work, env=env, stdout=self.log,
                                      stderr=subprocess.STDOUT, start_new_session=True)
 

@@ -98,6 +98,10 @@ def main(cfg: DictConfig) -> None:
     lines = [f"results: {where}"] + [f"  evaluate [{name}]: {path}" for name, path in summary.get("evaluate", {}).items()]
     if summary.get("mlflow"):
         lines.append(f"  mlflow: {summary['mlflow']}")
+    from pairedgta.report import xi_lines
+
+    lines += [f"  {line}" for line in xi_lines(summary.get("evaluate", {}),
+                                               OmegaConf.select(cfg, "conditions.reference", default=None))]
     print("\n".join(lines))
     _to_log_files(lines)
 

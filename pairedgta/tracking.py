@@ -348,7 +348,8 @@ class Tracker:
             # parallel jobs would race on creating the sqlite schema and the experiment
             if mlflow.get_experiment_by_name(experiment) is None:
                 try:
-                    mlflow.create_experiment(experiment, artifact_location=artifact_location(uri, experiment))
+                    mlflow.create_experiment(experiment, artifact_location=artifact_location(uri, experiment),
+                                             tags=dict([EXPERIMENT_KIND]))
                 except mlflow.exceptions.MlflowException:  # another job (another host) created it first
                     if mlflow.get_experiment_by_name(experiment) is None:
                         raise
@@ -359,7 +360,11 @@ class Tracker:
             if EXPERIMENT_KIND[0] not in (found.tags or {}):
                 # earlier MLflow 3 UIs open an experiment without this tag on the GenAI overview, not its runs;
                 # 3.17 follows its sidebar switch (GenAI / Model training) instead: README says to pick the latter
-                self.client.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
+                try:
+                    self.client.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
+                except mlflow.exceptions.MlflowException:  # a concurrent job set it first (a server's unique key)
+                    if EXPERIMENT_KIND[0] not in (self.client.get_experiment(self.experiment_id).tags or {}):
+                        raise
             self.end_orphans()
 
     def _context_tags(self) -> dict[str, str]:

@@ -35,9 +35,24 @@ def _records(uri: str, experiment: str):
     return client.search_runs([exp.experiment_id], max_results=1000)
 
 
-def test_the_background_child_records_a_run_on_a_server(server, tmp_path):
-    proc = run_cli(SMALL + [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={server.uri}", "name=one_run"],
-                   tmp_path, subprocess_=True)
+def test_four_jobs_at_once_lose_no_run_and_the_background_child_records_a_run(server, tmp_path):
+    cache = f"cache_dir={tmp_path / 'cache'}"
+    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=sweep4", "stages=[generate,pseudolabel,evaluate]",
+                            "hydra/launcher=local", "hydra.launcher.n_jobs=4", "seed=0,1,2,3"],
+                   tmp_path, multirun=True, subprocess_=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for log in sorted((tmp_path / "multirun").glob("*/pairedgta.log")):  # e.g. a race on the experiment's tags
+        assert "MLflow store" not in log.read_text(), log.read_text()[-3000:]
+    runs = _records(server.uri, "sweep4")
+    parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
+    assert len(parents) == 4 and len(runs) == 4 * 3, [(r.info.run_name, r.info.status) for r in runs]
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    assert len({r.data.tags.get("pairedgta.sweep") for r in parents}) == 1  # one sweep, told apart by its tag
+    spans = sorted((r.info.start_time, r.info.end_time) for r in parents)
+    assert any(later[0] < earlier[1] for earlier, later in zip(spans, spans[1:])), "the jobs ran at once"
+
+    # one run of the whole pipeline (its data stages cached by the sweep) through the default background child
+    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0"], tmp_path, subprocess_=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout + proc.stderr
     assert "stopped before it had logged" not in out and "View run" not in out, out[-2000:]
@@ -47,17 +62,3 @@ def test_the_background_child_records_a_run_on_a_server(server, tmp_path):
     assert {r.info.status for r in runs} == {"FINISHED"}
     assert all(r.data.metrics for r in runs if r.data.tags.get("mlflow.parentRunId")), "model runs carry metrics"
     assert f"mlflow: {server.uri}/#/experiments/{parents[0].info.experiment_id}" in proc.stdout
-
-
-def test_four_jobs_at_once_lose_no_run(server, tmp_path):
-    proc = run_cli(SMALL + [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={server.uri}", "name=sweep4",
-                            "hydra/launcher=local", "hydra.launcher.n_jobs=4", "seed=0,1,2,3"],
-                   tmp_path, multirun=True, subprocess_=True)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    runs = _records(server.uri, "sweep4")
-    parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
-    assert len(parents) == 4 and len(runs) == 4 * 3, [(r.info.run_name, r.info.status) for r in runs]
-    assert {r.info.status for r in runs} == {"FINISHED"}
-    assert len({r.data.tags.get("pairedgta.sweep") for r in parents}) == 1  # one sweep, told apart by its tag
-    starts = sorted((r.info.start_time, r.info.end_time) for r in parents)
-    assert any(later[0] < earlier[1] for earlier, later in zip(starts, starts[1:])), "the jobs ran at once"

@@ -18,8 +18,8 @@ from pairedgta.testing.slurm import Cluster, Unavailable
 
 pytestmark = pytest.mark.cluster
 
-DATA = ["generate.num_scenes=6", "renderer.width=64", "renderer.height=32", "renderer.threads=1",
-        "conditions.only=[Day-EXTRASUNNY,Sunset-FOGGY,Night-RAIN]", "model=tiny_segformer",
+DATA = ["generate.num_scenes=4", "renderer.width=64", "renderer.height=32", "renderer.threads=1",
+        "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "model=tiny_segformer",
         "reference_model=tiny_segformer", "metric.bootstrap.resamples=20", "plot.figures=[xi_models]",
         "plot.formats=[png]", "plot.dpi=50", "threads=1", "tracking.enabled=false"]
 SLURM = ["hydra/launcher=slurm", "hydra.launcher.partition=debug", "hydra.launcher.gpus_per_node=0",
@@ -86,7 +86,7 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     assert code != 0 and "CANCELLED" in out, out[-3000:]  # the sweep says the job was cancelled, and does not hang
     assert "Bypassing sacct" not in out and out.count("SLURM accounting is off") == 1, out[-3000:]
     kept = {int(p.name) for p in scenes.glob("[0-9]*") if (p / "timings.json").is_file()}
-    assert {1, 3, 5} <= kept and not {0, 2, 4} <= kept, kept  # shard 1 finished, shard 0 kept what it rendered
+    assert {1, 3} <= kept and not {0, 2} <= kept, kept  # shard 1 finished, shard 0 kept what it rendered
 
     # ... resubmitted, it renders only what is missing
     code, out = _finish(_sweep(S + ["stages=[generate]", "generate.num_shards=2", "generate.shard=0"], cluster, slurm,
@@ -94,7 +94,7 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     assert code == 0, out[-3000:]
     log = (cluster / "gen-again" / "0" / "pairedgta.log").read_text()
     resumed = len({k for k in kept if k % 2 == 0})
-    assert f"resuming, {resumed} of 3 scenes already rendered" in log, log[-2000:]
+    assert f"resuming, {resumed} of 2 scenes already rendered" in log, log[-2000:]
     assert log.rstrip().splitlines()[-1].split(" - ", 1)[1].startswith("results: "), "the job's log ends with its results"
 
     # 2. pseudo-labels in one job, then 2 SLURM jobs evaluate half of the groups each
@@ -115,7 +115,7 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     a, b = _entry(local / "cache", "generate"), _entry(cache, "generate")
     assert a.name == b.name
     images = _files(a, "*.png")
-    assert len(images) >= 6 * 3 * 2 and images == _files(b, "*.png")  # images, transmittance, labels, instances
+    assert len(images) >= 4 * 2 * 2 and images == _files(b, "*.png")  # images, transmittance, labels, instances
     a, b = _entry(local / "cache", "evaluate"), _entry(cache, "evaluate")
     assert a.name == b.name
     for name in ("summary.json", "xi.csv", "pixel_agreement.csv", "gt_iou.csv"):

@@ -486,3 +486,32 @@ def test_nothing_a_library_prints_reaches_the_summary_channel(tmp_path):
 
     assert pickle.loads(proc.stdout) == {"ok": 1}
     assert b"a library talks" in proc.stderr and b"a C library talks" in proc.stderr
+
+
+def test_a_job_that_loses_the_race_to_tag_the_experiment_keeps_its_record(tmp_path, monkeypatch):
+    """Jobs opening an experiment at once each see it untagged; on a server the slower one's tag write is
+    a unique-key error (seen with 4 jobs on PostgreSQL), which must not switch its record off."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    from pairedgta.tracking import EXPERIMENT_KIND, Tracker
+
+    uri = mlflow_store(tmp_path / "mlflow.db")
+    MlflowClient(uri).create_experiment("old", artifact_location=str(tmp_path / "art"))  # an untagged experiment
+    original = MlflowClient.set_experiment_tag
+
+    def raced(self, experiment_id, key, value):
+        original(self, experiment_id, key, value)  # the other job's write lands first ...
+        raise MlflowException("duplicate key value violates unique constraint \"experiment_tag_pk\"")  # ... ours fails
+
+    monkeypatch.setattr(MlflowClient, "set_experiment_tag", raced)
+    # no retry: under load the first try of a job's open can spend the whole retry budget (RETRY_BUDGET_S)
+    monkeypatch.setattr("pairedgta.tracking.RETRY_DELAYS_S", ())
+    tracker = Tracker(uri, "old")
+    assert tracker.enabled and tracker.failed is None
+    assert mlflow.MlflowClient(uri).get_experiment_by_name("old").tags[EXPERIMENT_KIND[0]] == EXPERIMENT_KIND[1]
+    with tracker.run("r"):
+        tracker.metrics({"m": 1.0})
+    (run,) = mlflow.MlflowClient(uri).search_runs([tracker.experiment_id])
+    assert run.info.status == "FINISHED" and run.data.metrics == {"m": 1.0}

@@ -1,0 +1,29 @@
+"""The table a run ends with: mean xi per model x adverse condition, the best of each column marked."""
+from __future__ import annotations
+
+import json
+import math
+
+from pairedgta.report import xi_lines
+
+
+def _evaluation(folder, xi, teacher="ref"):
+    folder.mkdir()
+    (folder / "summary.json").write_text(json.dumps({"reference_model": teacher, "xi_mean": xi}))
+    return str(folder)
+
+
+def test_rows_per_model_columns_per_adverse_condition_and_the_best_marked(tmp_path):
+    evals = {"a": _evaluation(tmp_path / "a", {"Day-EXTRASUNNY": 1.0, "Day-RAIN": 0.61, "Night-RAIN": 0.2}),
+             "bb": _evaluation(tmp_path / "b", {"Day-EXTRASUNNY": 0.9, "Day-RAIN": 0.5, "Night-RAIN": math.nan})}
+    lines = xi_lines(evals, reference="Day-EXTRASUNNY")
+    assert lines[0].split() == ["mean", "xi", "Day-RAIN", "Night-RAIN"]  # the clean reference is no column
+    assert lines[1].split() == ["a", "0.610*", "0.200*"]
+    assert lines[2].split() == ["bb", "0.500", "-"]  # NaN (no supported class) is a dash, never a best
+    assert lines[3] == "(against ref's pseudo-labels on Day-EXTRASUNNY; * best per condition)"
+
+
+def test_one_model_has_no_marks_and_no_summary_no_table(tmp_path):
+    lines = xi_lines({"a": _evaluation(tmp_path / "a", {"Day-RAIN": 0.5})})
+    assert "*" not in "".join(lines[:2]) and lines[-1] == "(against ref's pseudo-labels)"
+    assert xi_lines({"a": str(tmp_path / "missing")}) == []
