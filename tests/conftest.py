@@ -22,11 +22,13 @@ def tmp(tmp_path: Path) -> Path:
 
 # The slowest modules first (seconds of one worker, measured with --durations=0): with --dist loadscope
 # a module runs on one worker, so starting the long ones early lets the two workers finish together
-# instead of one waiting for the last long module the other picked up late. The cluster tests go first, one on
-# each worker: they wait on SLURM and a server most of their time, which the other worker's tests fill.
-SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_cli.py", "test_experiments.py", "test_tracking.py", "test_train_demo.py",
-              "test_demo_model.py", "test_packaging.py", "test_cityscapes_val.py", "test_pipeline.py",
-              "test_ladders.py", "test_paper_table.py", "test_sharding.py", "test_render_blender.py")
+# instead of one waiting for the last long module the other picked up late. The two cluster modules start
+# first, one on each worker: they mostly wait on their jobs and servers, whose CPU time the other
+# modules would otherwise compete with at the end.
+SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_cli.py", "test_demo_model.py",
+              "test_tracking.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
+              "test_experiments.py", "test_pipeline.py", "test_cityscapes_val.py", "test_ladders.py",
+              "test_paper_table.py", "test_render_blender.py")
 
 
 def pytest_collection_modifyitems(items):

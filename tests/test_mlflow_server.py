@@ -15,7 +15,7 @@ pytestmark = pytest.mark.cluster
 
 SMALL = ["+experiment=smoke", "generate.num_scenes=2", "renderer.width=64", "renderer.height=32",
          "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "metric.bootstrap.resamples=20",
-         "plot.figures=[xi_models]", "plot.formats=[png]", "plot.dpi=50", "threads=1"]
+         "plot.figures=[xi_models]", "plot.formats=[png]", "plot.dpi=50", "threads=1", "models=[tiny_segformer]"]
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def _records(uri: str, experiment: str):
 
 def test_four_jobs_at_once_lose_no_run_and_the_background_child_records_a_run(server, tmp_path):
     cache = f"cache_dir={tmp_path / 'cache'}"
-    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=sweep4", "stages=[generate,pseudolabel,evaluate]",
+    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=sweep4", "stages=[generate]",
                             "hydra/launcher=local", "hydra.launcher.n_jobs=4", "seed=0,1,2,3"],
                    tmp_path, multirun=True, subprocess_=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -45,20 +45,22 @@ def test_four_jobs_at_once_lose_no_run_and_the_background_child_records_a_run(se
         assert "MLflow store" not in log.read_text(), log.read_text()[-3000:]
     runs = _records(server.uri, "sweep4")
     parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
-    assert len(parents) == 4 and len(runs) == 4 * 3, [(r.info.run_name, r.info.status) for r in runs]
+    # generate-only jobs (no torch to import: the suite's time) each record their run; a run with models
+    # nests a run per model, which the run below checks
+    assert len(parents) == 4 and len(runs) == 4, [(r.info.run_name, r.info.status) for r in runs]
     assert {r.info.status for r in runs} == {"FINISHED"}
     assert len({r.data.tags.get("pairedgta.sweep") for r in parents}) == 1  # one sweep, told apart by its tag
     spans = sorted((r.info.start_time, r.info.end_time) for r in parents)
     assert any(later[0] < earlier[1] for earlier, later in zip(spans, spans[1:])), "the jobs ran at once"
 
-    # one run of the whole pipeline (its data stages cached by the sweep) through the default background child
+    # one run of the whole pipeline (its dataset cached by the sweep) through the default background child
     proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0"], tmp_path, subprocess_=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout + proc.stderr
     assert "stopped before it had logged" not in out and "View run" not in out, out[-2000:]
     runs = _records(server.uri, "one_run")
     parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
-    assert len(parents) == 1 and len(runs) == 3  # the run and one nested run per model
+    assert len(parents) == 1 and len(runs) == 2  # the run and its model's nested run
     assert {r.info.status for r in runs} == {"FINISHED"}
     assert all(r.data.metrics for r in runs if r.data.tags.get("mlflow.parentRunId")), "model runs carry metrics"
     assert f"mlflow: {server.uri}/#/experiments/{parents[0].info.experiment_id}" in proc.stdout
