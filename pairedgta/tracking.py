@@ -28,6 +28,7 @@ import re
 import socket
 import sys
 import time
+import urllib.parse
 from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
 
@@ -337,6 +338,8 @@ class Tracker:
         os.environ.setdefault("MLFLOW_ENABLE_SGC_RUN_RESUMPTION_FOR_DATABRICKS_JOBS", "false")
         # against a server MLflow prints "View run ... at: <url>" for every run it ends; the run prints one link
         os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
+        if urllib.parse.urlparse(self.uri).scheme in ("", "file"):  # a folder store, chosen by the user:
+            os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow 3.17 refuses it unless told
         _shorten_sqlite_waits()
         with _store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)

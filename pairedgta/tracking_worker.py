@@ -10,8 +10,9 @@ console and the job's log file. The child has its own session: Ctrl-C reaches th
 runs KILLED through the child; if the run's process dies (kill -9), the child reads end-of-file and
 ends what is still open as KILLED. Runs carry the run's pid as owner, not the child's.
 
-Messages are `(method, args, kwargs)`; the only reply is the child's summary on `close`. The pipe is
-private to the two processes (the child is this package's own module, started with this interpreter),
+Messages are `(method, args, kwargs)`; the only reply is the child's summary on `close`, on the child's
+original stdout, which it moves off file descriptor 1 first (`private_stdout`): whatever a library in
+the child prints goes to stderr, never into the summary. The pipes are private to the two processes (the child is this package's own module, started with this interpreter),
 so pickle carries DataFrames and paths as they are.
 """
 from __future__ import annotations

@@ -379,16 +379,19 @@ def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypa
 # --------------------------------------------------------------------------- the tracking child (pairedgta.tracking_worker)
 
 
-def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path, caplog):
+@pytest.mark.parametrize("store", ["sqlite", "file"])
+def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path, caplog, store, monkeypatch):
     """BackgroundTracker: a real child process; nested runs, a reopened run, the owner is the run's process;
-    at DEBUG the run says what it waited for (the child's MLflow import and store calls)."""
+    at DEBUG the run says what it waited for (the child's MLflow import and store calls). For an sqlite
+    file and a `file:` folder store alike (an HTTP server: tests/test_mlflow_server.py)."""
     import mlflow
 
     from pairedgta.tracking import RUN_COLOR_TAG, model_run_color
     from pairedgta.tracking_worker import BackgroundTracker
 
-    db = tmp_path / "mlflow.db"
-    t = BackgroundTracker(mlflow_store(db), "bg", results=tmp_path)
+    uri = mlflow_store(tmp_path / "mlflow.db") if store == "sqlite" else (tmp_path / "mlruns").as_uri()
+    monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE", raising=False)  # the child's Tracker allows a store the user chose
+    t = BackgroundTracker(uri, "bg", results=tmp_path)
     with t.run("parent"):
         t.params({"a": {"b": 1}})
         with t.run("child", nested=True):
@@ -404,7 +407,8 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path,
                          r"after the run's work", timings[0]) if len(timings) == 1 else None
     assert found, timings
     assert float(found[1]) > 0.1 and float(found[2]) > 0  # MLflow was imported there; 9 calls reached the store
-    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{db}")
+    monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")  # for this test's own client
+    client = mlflow.tracking.MlflowClient(tracking_uri=uri)
     exp = client.get_experiment_by_name("bg")
     parents, nested = _runs(client, exp.experiment_id)
     assert [r.info.run_name for r in parents] == ["parent"] and [r.info.run_name for r in nested] == ["child"]
