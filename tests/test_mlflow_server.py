@@ -4,7 +4,6 @@ run's whole record, and a sweep of four jobs running at once loses none of their
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import pytest
 

@@ -6,7 +6,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -179,12 +179,3 @@ def save_png_atomic(array: np.ndarray, path: Path) -> None:
         raise
 
 
-def select_conditions(available: Iterable[str], wanted: Sequence[str] | None, known: Sequence[str]) -> list[str]:
-    from pairedgta.errors import ConfigError
-
-    if wanted is None:
-        return [c for c in known if c in set(available)]
-    unknown = [c for c in wanted if c not in known]
-    if unknown:
-        raise ConfigError(f"unknown condition(s) {unknown}; known conditions: {', '.join(known)}")
-    return list(wanted)

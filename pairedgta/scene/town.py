@@ -62,9 +62,6 @@ class TownLayout:
     half_extent: float  # town square half size incl. outer sidewalks
     road_half_length: float  # roads run from -L to L
 
-    def primitive_count(self) -> int:
-        return int(sum(len(a) for a in self.groups.values()))
-
 
 class _Builder:
     def __init__(self) -> None:

@@ -148,13 +148,6 @@ class EvaluateResult(StageResult):
         return metrics
 
 
-def concat(results: list[EvaluateResult], table: str) -> pd.DataFrame:
-    """One table (xi, rho, frame_counts, agreement, gt_iou) over several models' evaluations."""
-    frames = [getattr(r, table)() for r in results]
-    frames = [f for f in frames if not f.empty]
-    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-
-
 def conditions_for(cfg: dict[str, Any], grid: ConditionGrid) -> list[str]:
     """The conditions an evaluation covers: `evaluate.conditions` (always with the reference), else all."""
     wanted = (cfg.get("evaluate") or {}).get("conditions")

@@ -241,15 +241,13 @@ def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str,
     vcfg = cfg["generate"].get("validation") or {}
     if not vcfg.get("enabled", True):
         return {"ok": True, "reasons": [], "structure": {}}
-    try:
-        from pairedgta.scene.validation import entity_mismatches, validate_group
-    except ImportError:  # pragma: no cover - validation module ships with the package
-        return {"ok": True, "reasons": ["validation unavailable"], "structure": {}}
+    from pairedgta.scene.validation import entity_mismatches, validate_group  # a broken install fails, never passes
+
     perturbed = perturbed or {}
     res = validate_group(
         images, grid.reference, descriptor=descriptor,
         states={c: s for c, s in states.items() if c not in perturbed},
-        threshold=float(vcfg.get("structure_threshold", 0.5)),
+        threshold=float(vcfg["structure_threshold"]),  # one default: pairedgta/conf/config.yaml
     )
     reasons = list(res.reasons)
     # a deliberately perturbed condition is checked against the descriptor it was rendered from
