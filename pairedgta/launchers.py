@@ -7,6 +7,7 @@ sweep waits forever. `install()` (called by the CLI for `-m` runs) gives submiti
 and says so in one line."""
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import subprocess
@@ -27,12 +28,9 @@ def install() -> bool:
     return True
 
 
-_CLASS: list[type] = []
-
-
+@functools.cache
 def _watcher_class() -> type:
-    if _CLASS:
-        return _CLASS[0]
+    """Defined on first use: submitit is optional (the launchers extra)."""
     from submitit.slurm.slurm import SlurmInfoWatcher
 
     class QueueWatcher(SlurmInfoWatcher):
@@ -67,7 +65,7 @@ def _watcher_class() -> type:
                 log.debug("squeue failed: %s", proc.stderr.decode(errors="replace").strip())
                 return
             lines = ["JobID|State|NodeList"] + [line for line in proc.stdout.decode(errors="replace").splitlines()
-                                               if line.strip().split("_")[0].split("|")[0] in wanted]
+                                               if line.split("|")[0].strip().split("_")[0] in wanted]
             info = self.read_info("\n".join(lines))
             for job_id in self._registered - self._finished:  # not known any more: long over
                 info.setdefault(job_id, {"JobID": job_id, "State": NOT_IN_QUEUE, "NodeList": ""})
@@ -82,7 +80,6 @@ def _watcher_class() -> type:
                 if self.is_done(job_id, mode="cache"):
                     self._finished.add(job_id)
 
-    _CLASS.append(QueueWatcher)
     return QueueWatcher
 
 

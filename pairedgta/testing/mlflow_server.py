@@ -8,6 +8,7 @@ file behind it otherwise. Everything lives under one folder and stops with `stop
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import pwd
 import shutil
@@ -31,9 +32,7 @@ def _free_port() -> int:
 
 def postgres_bin() -> Path | None:
     """The newest Debian PostgreSQL server binaries, where installed (and a driver to reach them)."""
-    try:
-        import psycopg2  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("psycopg2") is None:
         return None
     versions = sorted((p for p in PG_BIN.glob("*/bin") if (p / "initdb").is_file()),
                       key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0)

@@ -183,13 +183,11 @@ def _read_pid(path: Path) -> int | None:
 
 
 def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+    from pairedgta.tracking import process_alive
+
+    if not process_alive(pid, ""):
         return False
-    except PermissionError:
-        return True
-    with contextlib.suppress(OSError):  # a zombie of ours is gone for our purposes
+    with contextlib.suppress(OSError, IndexError):  # a zombie of ours is gone for our purposes
         return Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1][:1] != "Z"
     return True
 
