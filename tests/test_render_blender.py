@@ -98,7 +98,7 @@ def test_light_model_is_continuous_and_ordered():
     day, sunset, night = (lighting(GRID[n]) for n in ("Day-EXTRASUNNY", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY"))
     assert day["sun_strength"] > sunset["sun_strength"] > night["sun_strength"] == 0.0
     assert sunset["sun_color"][2] < 0.5 < sunset["sun_color"][0]  # warm low sun
-    assert day["exposure"] < sunset["exposure"] < night["exposure"]
+    assert day["light_level"] > sunset["light_level"] > night["light_level"] > 0  # what the camera meters
     assert night["lamps"] == 1.0 and day["lamps"] == 0.0
     # a small change of any physical field makes a small change of every parameter
     base = Condition(name="x", time="Day", weather="w", sun_elevation_deg=20.0, cloud_cover=0.3, visibility_m=400.0,
@@ -126,7 +126,10 @@ def test_analytic_fog_colour_follows_the_light():
     for name, p in fog.items():
         assert np.all(np.isfinite(p["fog_color"])) and np.all(p["fog_color"] >= 0), name
     lum = {n: float(np.mean(p["fog_color"])) for n, p in fog.items()}
-    assert lum["Day-FOGGY"] > lum["Sunset-FOGGY"] > lum["Night-FOGGY"] > 0  # lamps light the night fog
+    assert lum["Day-FOGGY"] > lum["Sunset-FOGGY"] > lum["Night-FOGGY"] > 0
+    # at night the air is lit where the lamps are (the compositor's halos), not uniformly: the fog colour
+    # is the sky's and the city glow's, darker than a twentieth of the day's
+    assert lum["Night-FOGGY"] < 0.05 * lum["Day-FOGGY"]
     day, sunset = fog["Day-FOGGY"]["fog_color"], fog["Sunset-FOGGY"]["fog_color"]
     assert sunset[0] / sunset[2] > day[0] / day[2]  # warmer at sunset
     assert fog["Day-EXTRASUNNY"]["extinction"] == 0.0 < fog["Day-FOGGY"]["extinction"]
@@ -270,6 +273,26 @@ def test_a_blender_fog_ladder_writes_maps_that_follow_the_images(tmp_path):
     for c, v in (("Day-FOG-300m", 300.0), ("Day-FOG-75m", 75.0)):
         np.testing.assert_allclose(np.log(np.maximum(t[c][ok], 1e-9)), np.log(t["Day-FOG-600m"][ok]) * 600.0 / v,
                                    rtol=0.02, atol=2e-4 * 600.0 / v)
+
+
+def test_the_sky_behind_thin_haze_is_the_haze_as_its_transmittance_map_says():
+    """Light haze (20 km visibility: exp(-0.0002 d)) leaves near objects almost clear, but the sky lies
+    behind an unbounded path: its map says transmittance 0 (distance inf), so the image shows the fog's
+    own colour there, uniform, with none of the sky's gradient or clouds left (the mist pass once saturated
+    at 2 km and kept 68 % of this sky)."""
+    d = _descriptor()
+    haze = dataclasses.replace(GRID["Day-EXTRASUNNY"], name="Day-HAZE", visibility_m=20000.0, cloud_cover=0.6)
+    with BlenderRenderer(width=96, height=48, samples=2, town=TOWN) as r:
+        clear = r.render(d, dataclasses.replace(haze, name="Day-CLOUDY", visibility_m=None))
+        hazy = r.render(d, haze)
+    sky = np.isinf(hazy.distance)
+    inner = sky.copy()  # away from silhouettes, whose pixels mix sky and geometry samples
+    for axis in (0, 1):
+        for shift in (1, -1):
+            inner &= np.roll(sky, shift, axis=axis)
+    assert inner.sum() > 50
+    assert clear.image[inner].astype(float).std(axis=0).max() > 3.0  # the clear sky has a gradient and clouds
+    assert hazy.image[inner].astype(float).std(axis=0).max() <= 1.0  # the hazy one is the fog colour only
 
 
 def test_physical_order_of_conditions(rendered):

@@ -6,3 +6,4 @@ from pathlib import Path
 DATA_DIR = Path(__file__).resolve().parent
 PAPER_GENERATION_TIMES = DATA_DIR / "paper_generation_times.csv"
 PAPER_TABLE1 = DATA_DIR / "paper_table1.csv"
+GTA_PHOTOMETRY = DATA_DIR / "gta_photometry.csv"  # measured from the authors' GTA V frames (gta_photometry.md)

@@ -27,6 +27,7 @@ FIGURES.register("robustness", "pairedgta.figures.robustness:draw", needs="evalu
 # keyed: the module has a `cache_key(passes, opts)` (files of its own enter the plot hash); declared here
 # so that a cached run imports no figure module (seaborn alone costs ~0.5 s)
 FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv", keyed=True)
+FIGURES.register("photometry", "pairedgta.figures.photometry:draw", needs="generate", keyed=True)
 FIGURES.register("authors_table", "pairedgta.figures.paper_table:draw", needs=None, source="plot.table_csv", keyed=True)
 FIGURES.register("authors_ranking", "pairedgta.figures.authors_ranking:draw", needs=None, source="plot.frame_counts_csv",
                  keyed=True)

@@ -17,9 +17,19 @@ from pairedgta.conditions import Condition
 FOG_MODELS = ("analytic", "volume")
 FOG_ALBEDO = 0.92
 # weights of the in-scattered light of the analytic fog, matched to the volume model's far field
-FOG_SKY, FOG_SUN, FOG_LAMPS = 0.7, 0.2, 0.07
-FOG_MIST_DEPTH = 2000.0  # m; the mist pass is distance / this, clamped to 1
+FOG_SKY, FOG_SUN = 0.7, 0.2
+# m; the mist pass is distance / this, 1 for the sky: the camera's clip distance, so that only the sky
+# (behind which nothing lies) reaches 1 and is fully replaced by the fog, as the transmittance map says
+FOG_MIST_DEPTH = 5000.0
+# Artificial light, relative to the sun (strength 4.5): a street-lit road is thousands of times darker than
+# a sunlit one (10-30 lx against 50,000 lx and more), and a camera undoes only part of that
+# (render/camera.py). The light sources themselves (lamp heads, head-lights) stay bright: they are what a
+# night image shows and what fog glows around. Lit windows glow as dimly as interiors do from outside.
+LAMP_POWER = 40.0        # W per street-lamp spot light
+HEADLIGHT_POWER = 30.0   # W per head-light spot light
+WINDOW_EMISSION = 0.08   # emission strength of a lit window
 FOG_GLOW = 20.0  # glare strength per unit extinction (1/m), at most 1
+FOG_GLOW_SPREAD = 25.0  # glare size (0.5 in clear air) per unit extinction, at most 1
 
 
 def _smoothstep(a: float, b: float, x: float) -> float:
@@ -41,10 +51,11 @@ def sun_transmittance(elevation_deg: float) -> np.ndarray:
     return np.exp(-np.array([0.06, 0.11, 0.24]) * airmass)
 
 
-def lighting(cond: Condition, exposure_override: float | None = None, exposure_bias: float = 0.0) -> dict[str, Any]:
+def lighting(cond: Condition) -> dict[str, Any]:
     """All condition-dependent render parameters; continuous in every physical field. The extinction
     is the condition's own (visibility and rain rate, conditions.py), so the image and the
-    transmittance map written beside it attenuate alike."""
+    transmittance map written beside it attenuate alike. `light_level` is what the camera meters
+    (render/camera.py): the light falling on the scene from the sun, the sky and, at night, the lamps."""
     el = float(cond.sun_elevation_deg)
     rain = cond.rain_level
     cloud = max(float(cond.cloud_cover), rain)
@@ -63,25 +74,19 @@ def lighting(cond: Condition, exposure_override: float | None = None, exposure_b
     zenith = zenith + np.array([0.0015, 0.0025, 0.006]) * night
     horizon = horizon + city_glow
     glow = (0.9 * warm + 0.15) * sky * sun_color * (1 - cloud)
-    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.45 * rain) + 0.006) + city_glow
-    moon = 0.012 * night * (1.0 - 0.9 * cloud)
+    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) + city_glow  # rain clouds are dark
+    moon = 0.03 * night * (1.0 - 0.9 * cloud)  # a moonlit clear night is brighter than an overcast one
     lamps = 1.0 - _smoothstep(-3.0, 6.0, el)
     vehicle_lights = max(lamps, _smoothstep(0.2, 0.6, max(rain, fog)))
-    # exposure: partial compensation of the estimated scene illuminance (real cameras keep night dark)
     sky_light = 2.6 * float(np.mean(zenith + horizon) / 2 * (1 - cloud) + np.mean(grey) * cloud)
     extinction = cond.extinction_per_m  # 1/m
-    # radiance that fog and rain haze scatter toward the camera (renderer.fog_model=analytic): albedo
-    # times the light arriving from the sky (cloud-grey as cover grows), the sun (isotropic share) and,
-    # at night, the street lamps and the city glow
+    # radiance that fog and rain haze scatter toward the camera everywhere (renderer.fog_model=analytic):
+    # albedo times the light arriving from the sky (cloud-grey as cover grows) and the sun (isotropic
+    # share). Lamp and head-light light is scattered where it is: the compositor's glare gives each its
+    # halo, so the night's fog stays dark away from the lights instead of glowing uniformly.
     ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud
-    fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi)
-                              + FOG_LAMPS * lamps * np.array([1.0, 0.78, 0.52]))
-    # lamp light scattered by fog and rain lights the air itself: less exposure is needed
-    illum = sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + lamps * (0.2 + 25.0 * extinction)
-    reference = 4.5 * 0.82 + 2.6 * 0.33
-    ev = 0.3 + float(np.clip(0.5 * math.log2(reference / max(illum, 1e-4)), -0.5, 2.0))
-    if exposure_override is not None:
-        ev = float(exposure_override)
+    fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi))
+    light_level = sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
     return {
         "sun_dir": sun_vector(el, cond.sun_azimuth_deg), "sun_strength": sun_strength, "sun_color": sun_color,
         "sun_angle_deg": 0.53 + 25.0 * cloud,
@@ -91,7 +96,7 @@ def lighting(cond: Condition, exposure_override: float | None = None, exposure_b
         "wetness": wet, "puddle_threshold": 1.0 - 0.42 * wet,
         "fog": fog, "rain": rain, "extinction": extinction, "fog_color": fog_color,
         "lamps": lamps, "vehicle_lights": vehicle_lights,
-        "window_lit": lamps, "exposure": ev + exposure_bias,
+        "window_lit": lamps, "light_level": light_level,
     }
 
 
@@ -411,11 +416,21 @@ class Shading:
         neg.inputs[1].default_value = -1.0
         ng.links.new(depth.outputs[0], neg.inputs[0])
         ng.links.new(neg.outputs[0], trans.inputs[0])
+        # the sky (mist 1: nothing within the clip distance) lies behind an unbounded path: transmittance
+        # 0, as the transmittance map (label pass distance inf) says; the fog colour replaces it
+        geometry = ng.nodes.new("ShaderNodeMath")
+        geometry.operation = "LESS_THAN"
+        geometry.inputs[1].default_value = 1.0 - 1e-6
+        ng.links.new(layers.outputs["Mist"], geometry.inputs[0])
+        seen = ng.nodes.new("ShaderNodeMath")
+        seen.operation = "MULTIPLY"
+        ng.links.new(trans.outputs[0], seen.inputs[0])
+        ng.links.new(geometry.outputs[0], seen.inputs[1])
         colour = ng.nodes.new("CompositorNodeRGB")
         self._knobs.setdefault("fog_color", []).append(colour.outputs[0])
         mix = ng.nodes.new("ShaderNodeMix")
         mix.data_type = "RGBA"
-        ng.links.new(trans.outputs[0], mix.inputs["Factor"])
+        ng.links.new(seen.outputs[0], mix.inputs["Factor"])
         ng.links.new(colour.outputs[0], mix.inputs[6])  # A: the fog, where the transmittance is 0
         ng.links.new(layers.outputs["Image"], mix.inputs[7])  # B: the scene, where it is 1
         glare = ng.nodes.new("CompositorNodeGlare")
@@ -423,6 +438,7 @@ class Shading:
         glare.inputs["Quality"].default_value = "Medium"
         glare.inputs["Threshold"].default_value = 1.0
         self._knobs.setdefault("fog_glow", []).append(glare.inputs["Strength"])
+        self._knobs.setdefault("fog_glow_size", []).append(glare.inputs["Size"])
         ng.links.new(mix.outputs[2], glare.inputs["Image"])
         out = ng.nodes.new("NodeGroupOutput")
         ng.links.new(glare.outputs["Image"], out.inputs[0])
@@ -491,14 +507,14 @@ class Shading:
         self.set("puddle_threshold", p["puddle_threshold"])
         lamps, vlights = p["lamps"], p["vehicle_lights"]
         for i, obj in enumerate(self._lamp_pool):
-            obj.data.energy = 350.0 * lamps if i < lamps_used else 0.0
+            obj.data.energy = LAMP_POWER * lamps if i < lamps_used else 0.0
         self.set("lamp_emit", 25.0 * lamps)
         self.set("window_fraction", lit_window_fraction * p["window_lit"])
-        self.set("window_emit", 2.5 * p["window_lit"])
+        self.set("window_emit", WINDOW_EMISSION * p["window_lit"])
         self.set("signal_emit", 3.0 + 5.0 * lamps)
         self.set("sign_emit", 0.0)
         for i, obj in enumerate(self._head_pool):
-            obj.data.energy = 250.0 * vlights if i < heads_used else 0.0
+            obj.data.energy = HEADLIGHT_POWER * vlights if i < heads_used else 0.0
         self.set("headlight_emit", 30.0 * vlights)
         self.set("taillight_emit", 0.3 + 10.0 * vlights)
         density = p["extinction"]
@@ -510,7 +526,8 @@ class Shading:
         self.set("fog_optical_depth", density * FOG_MIST_DEPTH)
         self.set("fog_color", p["fog_color"])
         self.set("fog_glow", min(1.0, FOG_GLOW * density))
-        self._bpy.context.scene.view_settings.exposure = p["exposure"]
+        # halos spread farther in denser air
+        self.set("fog_glow_size", min(1.0, 0.5 + FOG_GLOW_SPREAD * density))
 
     def place_pools(self, lamps: list[tuple], heads: list[tuple]) -> None:
         """Move the light pools: lamps[i] = location, heads[i] = (location, rotation); the rest park

@@ -33,6 +33,7 @@ from pairedgta import interrupt
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render.base import Renderer, RenderResult
 from pairedgta.render.blender.geometry import OBJECT_MATERIAL, TOWN_MATERIAL, mesh_object
+from pairedgta.render.camera import Camera
 from pairedgta.render.blender.labels import MAX_INSTANCES, label_code, render_label_pass
 from pairedgta.render.blender.materials import FOG_MODELS, Shading, lighting
 from pairedgta.render.blender.models import model_parts
@@ -96,10 +97,9 @@ class BlenderRenderer(Renderer):
     def __init__(self, width: int = 512, height: int = 256, samples: int = 2, device: str = "CPU",
                  denoise: bool = True, denoiser_quality: str = "FAST", max_bounces: int = 2,
                  fast_gi: bool = True, town: Mapping[str, Any] | None = None, seed: int = 0,
-                 exposure: Mapping[str, float] | None = None, exposure_bias: float = 0.0,
-                 threads: int = 0, fog_extent: float = 220.0,
+                 camera: Mapping[str, Any] | None = None, threads: int = 0, fog_extent: float = 220.0,
                  fog_height: float = 45.0, volume_step_rate: float = 4.0,
-                 view_transform: str = "AgX", look: str = "None", filter_width: float = 1.5,
+                 filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
                  max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
                  fog_model: str = "analytic") -> None:
@@ -129,15 +129,12 @@ class BlenderRenderer(Renderer):
                 "use region=procedural_town (renderer.town follows the region config)"
             )
         self.seed = int(seed)
-        self.exposure = {str(k): float(v) for k, v in dict(exposure or {}).items()}
-        self.exposure_bias = float(exposure_bias)
+        self.camera = Camera.from_cfg(camera)
         self.threads = int(threads)
         self.fog_model = str(fog_model)
         self.fog_extent = float(fog_extent)
         self.fog_height = float(fog_height)
         self.volume_step_rate = float(volume_step_rate)
-        self.view_transform = str(view_transform)
-        self.look = str(look)
         self.filter_width = float(filter_width)
         self.labels_per_condition = bool(labels_per_condition)
         self.light_tree = bool(light_tree)
@@ -263,10 +260,10 @@ class BlenderRenderer(Renderer):
         r.dither_intensity = 0.0
         r.use_file_extension = True
         try:
-            sc.view_settings.view_transform = self.view_transform
-            sc.view_settings.look = self.look
+            sc.view_settings.view_transform = self.camera.view_transform
+            sc.view_settings.look = self.camera.look
         except TypeError as exc:
-            raise ConfigError(f"renderer.view_transform/look: {exc}; use e.g. view_transform=AgX look=None") from None
+            raise ConfigError(f"camera.view_transform/look: {exc}; use e.g. camera.view_transform=AgX camera.look=None") from None
         self._coll_town = bpy.data.collections.new("town")
         self._coll_scene = bpy.data.collections.new("scene")
         sc.collection.children.link(self._coll_town)
@@ -495,7 +492,8 @@ class BlenderRenderer(Renderer):
 
     # ---- conditions -----------------------------------------------------------------------
     def _apply_condition(self, cond: Condition) -> dict[str, Any]:
-        p = lighting(cond, self.exposure.get(cond.name, self.exposure.get(cond.time)), self.exposure_bias)
+        p = lighting(cond)
+        p["exposure"] = self.camera.exposure(cond, p["light_level"])
         self._shading.apply(p, self._lamps_used, self._heads_used,
                             self._town.lit_window_fraction if self._town else 0.0)
         return p
@@ -514,16 +512,35 @@ class BlenderRenderer(Renderer):
     def _render_labels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return render_label_pass(self._bpy, self._shading, self._render_to, self._tmp or tempfile.gettempdir())
 
-    def _render_beauty(self) -> np.ndarray:
+    def _render_beauty(self, ev: float, noise_seed: int) -> np.ndarray:
+        """Scene-referred render (float EXR), then the camera: noise on the exposed signal, and the
+        exposure and view transform applied by Blender's colour management on saving as 8-bit sRGB
+        (the same OpenColorIO path as a direct 8-bit render: identical within one grey level)."""
         from PIL import Image
 
-        img = self._bpy.context.scene.render.image_settings
-        img.file_format = "PNG"
-        img.color_mode = "RGB"
-        img.color_depth = "8"
-        img.compression = 0
-        path = os.path.join(self._tmp or tempfile.gettempdir(), "beauty.png")
-        self._render_to(path)
+        bpy = self._bpy
+        sc = bpy.context.scene
+        img = sc.render.image_settings
+        img.file_format, img.color_mode, img.color_depth, img.exr_codec = "OPEN_EXR", "RGB", "32", "NONE"
+        tmp = self._tmp or tempfile.gettempdir()
+        linear_path, path = os.path.join(tmp, "beauty.exr"), os.path.join(tmp, "beauty.png")
+        self._render_to(linear_path)
+        frame = bpy.data.images.load(linear_path, check_existing=False)
+        try:
+            if self.camera.noisy:
+                w, h = frame.size
+                px = np.empty(w * h * frame.channels, dtype=np.float32)
+                frame.pixels.foreach_get(px)
+                px = px.reshape(h, w, frame.channels)
+                px[..., :3] = self.camera.add_noise(px[..., :3], ev, noise_seed)
+                frame.pixels.foreach_set(px.ravel())
+            sc.view_settings.exposure = ev
+            img.file_format, img.color_mode, img.color_depth, img.compression = "PNG", "RGB", "8", 0
+            frame.save_render(path, scene=sc)
+        finally:
+            bpy.data.images.remove(frame)
+        if not os.path.exists(path):
+            raise RendererError(f"the camera wrote no image to {path}; check free space in {tmp}")
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB")).copy()
 
@@ -532,7 +549,7 @@ class BlenderRenderer(Renderer):
             self.prepare(descriptor)
         t0 = time.perf_counter()
         p = self._apply_condition(condition)
-        image = self._render_beauty()
+        image = self._render_beauty(p["exposure"], self.camera.seed_for(descriptor.seed, condition.name))
         t1 = time.perf_counter()
         if self.labels_per_condition or self._labels is None:
             labels, instances, distance = self._render_labels()
@@ -545,7 +562,8 @@ class BlenderRenderer(Renderer):
         self.timings["labels"] = t2 - t1
         state = {
             **self._scene_state, "backend": "blender", "condition": condition.name,
-            "exposure_ev": round(float(p["exposure"]), 4), "samples": self.samples,
+            "exposure_ev": round(float(p["exposure"]), 4), "camera": self.camera.name,
+            "light_level": round(float(p["light_level"]), 5), "samples": self.samples,
             "sun_strength": round(float(p["sun_strength"]), 4), "extinction_per_m": round(float(p["extinction"]), 5),
             "fog_model": self.fog_model,
             "seconds": round(t2 - t0, 4),
