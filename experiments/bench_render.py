@@ -8,7 +8,7 @@ condition-wise rendering.
     python experiments/bench_render.py --contact /tmp/blender_contact.png   # 9 conditions + labels of scene 0
     python experiments/bench_render.py --sizes 512x256 --no-population     # without the ambient population
 
-Trailing key=value pairs override pairedgta/conf/renderer/blender.yaml. Wall time is what a user waits; CPU
+Trailing key=value pairs override pairedgta/conf/renderer/blender.yaml (`camera=<preset>` picks the camera). Wall time is what a user waits; CPU
 seconds / cores is printed beside it because a shared machine inflates wall time (the load average
 is printed too, so numbers from a busy machine can be recognised).
 """
@@ -51,10 +51,13 @@ def _value(text: str):
 
 
 def load_cfg(overrides: list[str]) -> tuple[dict, dict]:
-    renderer = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "renderer" / "blender.yaml"))
-    region = OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "region" / "procedural_town.yaml"))
+    from pairedgta.testing.cli import compose_cfg
+
+    camera = [o for o in overrides if o.startswith("camera=")]  # a camera preset, e.g. camera=fixed
+    cfg = OmegaConf.to_container(compose_cfg(["renderer=blender", "region=procedural_town", *camera]), resolve=True)
+    renderer, region = cfg["renderer"], cfg["region"]
     renderer.pop("backend")
-    renderer["town"] = region
+    overrides = [o for o in overrides if o not in camera]
     for item in overrides:
         key, _, text = item.partition("=")
         renderer[key] = _value(text)

@@ -427,7 +427,9 @@ def save_weights(cfg: dict, model: torch.nn.Module, out: Path) -> None:
         return
     from safetensors.torch import save_file
 
-    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    # half precision: the package's weights stay small (the loader computes in float32)
+    state = {k: (v.detach().half() if v.is_floating_point() else v.detach()).contiguous()
+             for k, v in model.state_dict().items()}
     tmp = out / "model.safetensors.tmp"
     save_file(state, str(tmp), metadata={"family": cfg["arch"]["family"], "model": cfg["model_name"]})
     os.replace(tmp, out / "model.safetensors")
@@ -463,6 +465,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
     floor = max(0.0, m - cfg["miou_floor_margin"])
     card = {
         "model": name, "family": family, "parameters": n_params, "arch": cfg["arch"],
+        **({} if family == "segformer" else {"weights_dtype": "float16"}),
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
                  "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]], "train_images": n_train,
                  "val_images": n_val, **{k: v for k, v in d.items() if k not in ("objects", "camera", "workers")}},
@@ -486,6 +489,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
+        *([] if family == "segformer" else ["- weights: float16 (model.safetensors; loaded as float32)"]),
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU thread{'s' if t['threads'] != 1 else ''}", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],

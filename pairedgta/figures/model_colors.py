@@ -11,6 +11,8 @@ MODEL_DISPLAY = {
     # the offline zoo (pairedgta/models/weights)
     "demo_segformer": "demo SegFormer", "demo_segformer_noaug": "demo SegFormer no-aug",
     "demo_ddrnet": "demo DDRNet", "demo_pidnet": "demo PIDNet",
+    "demo_deeplabv3plus": "demo DeepLabV3+", "demo_deeplabv3plus_noaug": "demo DeepLabV3+ no-aug",
+    "demo_ddrnet_short": "demo DDRNet short", "demo_pidnet_partial": "demo PIDNet partial-aug",
 }
 # a fixed colour per model, so a model has the same colour in every figure of every run
 MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]

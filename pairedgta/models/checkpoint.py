@@ -74,7 +74,8 @@ def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str,
         if path.suffix == ".safetensors":  # the zoo's own weights: a flat tensor file, no pickle at all
             from safetensors.torch import load_file
 
-            obj = load_file(str(path), device="cpu")
+            # the zoo stores weights in half precision to stay small; the model computes in float32
+            obj = {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(path), device="cpu").items()}
         else:
             with torch.serialization.safe_globals(_numpy_safe_globals()):
                 obj = torch.load(path, map_location="cpu", weights_only=True)

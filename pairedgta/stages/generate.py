@@ -39,10 +39,11 @@ from pairedgta.cache import SHARED_WORK, stage_hash
 from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
 
 log = logging.getLogger("pairedgta.generate")
-VERSION = "6"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
+VERSION = "7"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
 # 4: signs along every street, board and railing fences, garden walls, guard railings;
 # 5: analytic fog by default, and clear skies lit by the sun (the fog box no longer shadows it);
-# 6: conditions in physical units (visibility, rain rate) and a transmittance map per condition
+# 6: conditions in physical units (visibility, rain rate) and a transmittance map per condition;
+# 7: the camera model (`camera` group), night light at realistic power, haze that replaces the sky
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",

@@ -28,7 +28,7 @@ FOG_MIST_DEPTH = 5000.0
 LAMP_POWER = 40.0        # W per street-lamp spot light
 HEADLIGHT_POWER = 30.0   # W per head-light spot light
 WINDOW_EMISSION = 0.08   # emission strength of a lit window
-FOG_GLOW = 20.0  # glare strength per unit extinction (1/m), at most 1
+FOG_GLOW = 10.0  # glare strength per unit extinction (1/m), at most 1
 FOG_GLOW_SPREAD = 25.0  # glare size (0.5 in clear air) per unit extinction, at most 1
 
 
@@ -74,8 +74,9 @@ def lighting(cond: Condition) -> dict[str, Any]:
     zenith = zenith + np.array([0.0015, 0.0025, 0.006]) * night
     horizon = horizon + city_glow
     glow = (0.9 * warm + 0.15) * sky * sun_color * (1 - cloud)
-    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) + city_glow  # rain clouds are dark
-    moon = 0.03 * night * (1.0 - 0.9 * cloud)  # a moonlit clear night is brighter than an overcast one
+    # rain clouds are dark, and heavy rain's haze hides the city's glow from their base
+    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) + city_glow * (1.0 - 0.8 * rain)
+    moon = 0.05 * night * (1.0 - 0.9 * cloud)  # a moonlit clear night is brighter than an overcast one
     lamps = 1.0 - _smoothstep(-3.0, 6.0, el)
     vehicle_lights = max(lamps, _smoothstep(0.2, 0.6, max(rain, fog)))
     sky_light = 2.6 * float(np.mean(zenith + horizon) / 2 * (1 - cloud) + np.mean(grey) * cloud)
