@@ -62,6 +62,7 @@ def test_the_zoo_stays_small_and_every_member_is_usable():
     assert members == set(ZOO)
     for name in members:
         assert model_config(name)["name"] == name
+    assert set(compose_cfg(["+experiment=zoo"]).models) == members  # `+experiment=zoo` runs all of them
 
 
 @pytest.fixture(scope="module")

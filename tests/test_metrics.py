@@ -116,8 +116,15 @@ def test_rho_valid_ties_nonzero_and_fewer_frames_than_m():
     adverse = np.array([1, 0, 4, 6, 9, 3, 2, 2])
     nz = clean > 0
     assert rho_valid(clean, adverse, selection="nonzero") == pytest.approx(spearmanr(clean[nz], adverse[nz]).statistic)
-    # fewer frames than M: all frames are used
-    assert rho_valid(clean, adverse, m=25) == pytest.approx(spearmanr(clean, adverse).statistic)
+    # fewer frames than M: the frames that show the class, never padded with frames of count 0
+    assert rho_valid(clean, adverse, m=25) == pytest.approx(spearmanr(clean[nz], adverse[nz]).statistic)
+    assert select_frames(clean, m=25).tolist() == [2, 3, 4, 5, 7]
+    # the case: 3 informative frames in fully reversed order among 25 empty ones is -1, not 0.99
+    few = np.zeros(28)
+    few[:3] = [30, 20, 10]
+    rev = np.zeros(28)
+    rev[:3] = [10, 20, 30]
+    assert rho_valid(few, rev, m=25) == pytest.approx(-1.0)
     # the top-M boundary tie breaks by frame order, deterministically
     assert select_frames(np.array([5, 3, 5, 5]), m=2).tolist() == [0, 2]
     # undefined cases are NaN, never a number
@@ -313,3 +320,16 @@ def test_miou_matches_cityscapesscripts_on_the_same_predictions(tmp_path):
     # the ground-truth-present mean would differ: classes 5, 11, 18 are predicted but never true
     present = cm.mat.sum(1) > 0
     assert abs(float(cm.iou()[present].mean()) - want) > 1e-3
+
+
+def test_zero_width_intervals_are_no_interval():
+    from pairedgta.metrics.bootstrap import drop_zero_width
+    from pairedgta.metrics.ranking import rho_rows
+
+    assert all(math.isnan(v) for v in drop_zero_width(1.0, 1.0))
+    assert drop_zero_width(0.2, 0.4) == (0.2, 0.4)
+    lo, hi = drop_zero_width(np.array([0.5, 1.0, np.nan]), np.array([0.7, 1.0, np.nan]))
+    assert lo[0] == 0.5 and np.isnan(lo[1]) and np.isnan(hi[1]) and np.isnan(lo[2])
+    # perfectly monotone frames: every resample gives rho 1, which is no evidence of certainty
+    row, = rho_rows(np.arange(1, 9), np.arange(1, 9) * 2, ["nonzero"], resamples=200)
+    assert row["rho"] == pytest.approx(1.0) and math.isnan(row["ci_low"]) and math.isnan(row["ci_high"])

@@ -61,6 +61,16 @@ def test_checks_name_what_fails():
     assert [c["ok"] for c in bands] == [False, True]
 
 
+def test_a_light_ladder_must_darken_step_by_step():
+    from pairedgta.metrics.photometry import ladder_checks
+
+    row = lambda n, v: {"condition": n, "luma_ratio_median": v}  # noqa: E731
+    good = [row("clean", 1.0), row("a", 0.6), row("b", 0.61), row("c", 0.2)]
+    assert [c["ok"] for c in ladder_checks(good, ["clean", "a", "b", "c"])] == [True, True]
+    rising = [row("clean", 1.0), row("a", 0.3), row("b", 0.4)]
+    assert [c["ok"] for c in ladder_checks(rising, ["clean", "a", "b"])] == [False, False]
+
+
 def test_the_calibration_experiment_meets_the_gta_bands(tmp_path):
     """The main job's 8 scenes at 128x64, one sample: every check of the calibration passes (the bands are
     medians over groups of a ratio of means, which the resolution barely moves: 0.112 / 0.311 / 0.448 /

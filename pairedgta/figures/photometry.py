@@ -20,9 +20,9 @@ from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
 from pairedgta.figures.common import markdown_table, paper_style, save  # noqa: E402
-from pairedgta.metrics.photometry import band_checks, group_rows, physics_checks, summarise  # noqa: E402
+from pairedgta.metrics.photometry import band_checks, group_rows, ladder_checks, physics_checks, summarise  # noqa: E402
 
-DEFAULTS = {"bands": {}, "night_max_luma_ratio": 0.35, "night_sky_max_luma": 0.15}
+DEFAULTS = {"bands": {}, "night_max_luma_ratio": 0.35, "night_sky_max_luma": 0.15, "ladder_max_rise": 0.02}
 
 
 def settings(opts: FigureOptions) -> dict[str, Any]:
@@ -110,6 +110,9 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
         conditions = {c.name: c for c in p.grid.conditions}
         checks = band_checks(summary, s["bands"]) + physics_checks(
             summary, conditions, reference, float(s["night_max_luma_ratio"]), float(s["night_sky_max_luma"]))
+        if p.grid.ladder is not None and p.grid.ladder.parameter == "sun_elevation_deg":  # the light ladder
+            checks += ladder_checks(summary, [reference, *order], float(s["ladder_max_rise"]),
+                                    float(s["night_max_luma_ratio"]))
         stem = opts.stem("photometry", p.label)
         table = pd.DataFrame(summary)
         for col in ("luma_ratio_median", "contrast_ratio_median"):

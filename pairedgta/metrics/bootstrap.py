@@ -75,3 +75,12 @@ def class_mean_ci(numer: np.ndarray, denom: np.ndarray, include: np.ndarray, res
         if np.all(np.isnan(means)):
             return math.nan, math.nan
         return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))
+
+
+def drop_zero_width(lo, hi):
+    """An interval of width 0 from resampling says the data could not vary (one class, one frame, a constant
+    image), not that the value is certain: it is reported as no interval (NaN)."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    degenerate = np.isfinite(lo) & np.isfinite(hi) & (hi - lo <= 1e-12)
+    lo, hi = np.where(degenerate, np.nan, lo), np.where(degenerate, np.nan, hi)
+    return (float(lo), float(hi)) if lo.ndim == 0 else (lo, hi)

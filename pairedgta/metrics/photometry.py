@@ -118,6 +118,21 @@ def physics_checks(summary: list[dict[str, Any]], conditions: Mapping[str, Any],
     return checks
 
 
+def ladder_checks(summary: list[dict[str, Any]], order: list[str], max_rise: float = 0.02,
+                  plateau_max: float = 0.35) -> list[dict[str, Any]]:
+    """A light ladder (`order`: the clean image, then darker steps): mean luma ratio falls step by step, no
+    rise above `max_rise`, down to a last step at most `plateau_max` of the clean image."""
+    by = {r["condition"]: r["luma_ratio_median"] for r in summary}
+    steps = [n for n in order if n in by]
+    if len(steps) < 2:
+        return []
+    rise = max(b - a for a, b in zip([by[n] for n in steps[:-1]], [by[n] for n in steps[1:]]))
+    return [{"check": f"ladder: luma ratio falls step by step (largest rise {max_rise} at most)", "value": round(rise, 4),
+             "ok": bool(rise <= max_rise)},
+            {"check": f"ladder: last step {steps[-1]} <= {plateau_max} of the clean luma", "value": round(by[steps[-1]], 4),
+             "ok": bool(by[steps[-1]] <= plateau_max)}]
+
+
 def band_checks(summary: list[dict[str, Any]], bands: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
     """The calibration bands: `bands[condition][stat] = [lo, hi]` for stat luma_ratio / contrast_ratio
     (medians over groups)."""
@@ -133,4 +148,4 @@ def band_checks(summary: list[dict[str, Any]], bands: Mapping[str, Mapping[str, 
     return checks
 
 
-__all__ = ["REC709", "band_checks", "group_rows", "image_stats", "physics_checks", "summarise"]
+__all__ = ["REC709", "band_checks", "group_rows", "image_stats", "ladder_checks", "physics_checks", "summarise"]

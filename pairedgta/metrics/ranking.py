@@ -11,13 +11,17 @@ SELECTIONS = ("top_m", "nonzero")
 
 
 def select_frames(clean_counts, m: int = 25, selection: str = "top_m") -> np.ndarray:
-    """Indices of D_valid. Ties at the top-M boundary break by frame order, so the set is deterministic."""
+    """Indices of D_valid. top_m: the M frames with the most clean pixels of the class, among the frames that
+    show it at all: where fewer than M do, padding with frames of count 0 would add ties that say nothing
+    about the class (3 informative frames in reversed order once gave 0.99); the row's n_frames says how
+    many there were. Ties at the top-M boundary break by frame order, so the set is deterministic."""
     clean = np.asarray(clean_counts, dtype=float)
     if selection == "top_m":
         if m < 1:
             raise ValueError(f"m must be >= 1, got {m}")
-        order = np.argsort(-clean, kind="stable")
-        return np.sort(order[: min(m, len(clean))])
+        present = np.flatnonzero(clean > 0)
+        order = present[np.argsort(-clean[present], kind="stable")]
+        return np.sort(order[:m])
     if selection == "nonzero":
         return np.flatnonzero(clean > 0)
     raise ValueError(f"unknown selection {selection!r}; use one of {SELECTIONS}")
@@ -45,7 +49,7 @@ def rho_rows(clean_counts, adverse_counts, selections, m: int = 25, resamples: i
              seed: int = 0, headline: str | None = None) -> list[dict]:
     """One row per selection: rho_valid over its frames with a percentile bootstrap interval over those
     frames (`m` is recorded for top_m only). Shared by evaluate and the authors' per-frame counts."""
-    from pairedgta.metrics.bootstrap import spearman_ci
+    from pairedgta.metrics.bootstrap import drop_zero_width, spearman_ci
 
     clean = np.asarray(clean_counts, dtype=float)
     adverse = np.asarray(adverse_counts, dtype=float)
@@ -53,7 +57,7 @@ def rho_rows(clean_counts, adverse_counts, selections, m: int = 25, resamples: i
     for sel in selections:
         idx = select_frames(clean, m, sel)
         x, y = clean[idx], adverse[idx]
-        lo, hi = spearman_ci(x, y, resamples, confidence, seed)
+        lo, hi = drop_zero_width(*spearman_ci(x, y, resamples, confidence, seed))
         rows.append({"selection": sel, "m": m if sel == "top_m" else math.nan, "n_frames": len(idx),
                      "rho": spearman(x, y), "ci_low": lo, "ci_high": hi, "headline": sel == headline})
     return rows

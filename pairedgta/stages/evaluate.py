@@ -25,7 +25,7 @@ from tqdm import tqdm
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES, class_id
 from pairedgta.datasets import PairedDataset, load_group_images, load_label, load_transmittance
 from pairedgta.errors import ConfigError, DataError, PairedGTAError
-from pairedgta.metrics.bootstrap import class_mean_ci
+from pairedgta.metrics.bootstrap import class_mean_ci, drop_zero_width
 from pairedgta.metrics.conventions import convention_from_config, support_mask
 from pairedgta.metrics import (
     reference_consistency_counts,
@@ -60,7 +60,7 @@ from pairedgta.lazy import lazy_module
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "6"  # 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "7"  # 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 # 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
 # 5: xi.csv `images`/`supported` (metric.min_images/min_pixels); no interval for a class seen in one image;
 #    random_one draws a time of day, then a weather of it (the authors' loader)
@@ -596,6 +596,7 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
             # a class seen in one image: every resample that defines it gives the same ratio, so the
             # bootstrap cannot vary and a zero-width interval would claim certainty
             lo, hi = np.where(images < 2, np.nan, lo), np.where(images < 2, np.nan, hi)
+        lo, hi = drop_zero_width(lo, hi)
         supported = support_mask(images, a.metric.reference.numpy(), conv["min_images"], conv["min_pixels"])
         ref_name = reference_model if source == "pseudo_label" else GT
         # which classes the mean covers: the convention's classes, minus the undefined (NaN) and unsupported ones
@@ -607,17 +608,18 @@ def write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_c
                 "reference_pixels": int(a.metric.reference[k]), "retained_pixels": int(a.metric.retained[k]),
                 "images": int(images[k]), "supported": bool(supported[k]),
                 "in_mean": bool(included[k]), "n_pairs": len(a.retained), "convention": name,
-                "min_transmittance": s["min_transmittance"],
+                "min_transmittance": s["min_transmittance"], "classes": 1 if included[k] else 0,
             })
         # the class-wise mean under the convention, with its own bootstrap over images
         mean = class_mean(xi, included)
-        mlo, mhi = class_mean_ci(retained, reference, included, s["resamples"], s["confidence"], s["seed"], conv["absent"])
+        mlo, mhi = drop_zero_width(*class_mean_ci(retained, reference, included, s["resamples"], s["confidence"],
+                                                  s["seed"], conv["absent"]))
         xi_rows.append({
             "model": model, "reference_model": ref_name, "condition": cond, "class_id": -1, "class_name": "mean",
             "xi": mean, "ci_low": mlo, "ci_high": mhi,
             "reference_pixels": int(a.metric.reference.sum()), "retained_pixels": int(a.metric.retained.sum()),
             "images": len(a.retained), "supported": bool(included.any()), "in_mean": False, "n_pairs": len(a.retained), "convention": name,
-            "min_transmittance": s["min_transmittance"],
+            "min_transmittance": s["min_transmittance"], "classes": int(included.sum()),  # how many classes the mean covers
         })
         summary["xi_mean" if source == "pseudo_label" else "xi_mean_gt"][cond] = mean
         if source == "pseudo_label" or not summary["n_pairs"].get(cond):
