@@ -87,6 +87,17 @@ def test_validity_refuses_models_evaluated_on_other_groups():
         validity([_counts("a", [1, .9, .8], [.8, .7, .6]), _counts("b", [1, .9, .8], [.8, .7, .6], n=5)], "clean", include)
 
 
+def test_validity_checks_the_group_ids_not_only_their_number():
+    import dataclasses
+
+    include = np.ones(K, bool)
+    a = dataclasses.replace(_counts("a", [1, .9, .8], [.8, .7, .6]), group_ids=tuple(f"{g:05d}" for g in range(10)))
+    b = dataclasses.replace(_counts("b", [1, .7, .5], [.8, .5, .4]), group_ids=tuple(f"{g:05d}" for g in range(1, 11)))
+    with pytest.raises(ValueError, match="group '00001' where a has '00000'"):
+        validity([a, b], "clean", include, resamples=20)
+    validity([a, dataclasses.replace(b, group_ids=a.group_ids)], "clean", include, resamples=20)  # same groups: fine
+
+
 def test_metric_validity_from_the_pipeline_agrees_with_each_models_own_evaluation(tmp_path):
     """Point estimates of the validity table are the evaluate stage's own numbers, per model and condition."""
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_ddrnet,tiny_pidnet]", "generate.num_scenes=4",

@@ -102,11 +102,16 @@ def _figure(cells: pd.DataFrame, corr: pd.DataFrame, out: Path, opts: FigureOpti
         part = corr[corr["target"] == "rpc"]
         scopes = list(part["scope"])
         y = np.arange(len(scopes))
+        level = float(((opts.cfg.get("metric") or {}).get("bootstrap") or {}).get("confidence", 0.95))
         for offset, stat, color in ((-0.17, "spearman", "tab:blue"), (0.17, "kendall", "tab:orange")):
             vals = part[stat].to_numpy(float)
             lo, hi = part[f"{stat}_ci_low"].to_numpy(float), part[f"{stat}_ci_high"].to_numpy(float)
-            bx.errorbar(vals, y + offset, xerr=[np.where(np.isnan(lo), 0, vals - lo), np.where(np.isnan(hi), 0, hi - vals)],
-                        fmt="o", color=color, ms=3, capsize=1.5, lw=0.8, label=f"{stat.capitalize()} (95 % bootstrap)")
+            has = np.isfinite(lo) & np.isfinite(hi)
+            bx.errorbar(vals[has], (y + offset)[has], xerr=[vals[has] - lo[has], hi[has] - vals[has]], fmt="o",
+                        color=color, ms=3, capsize=1.5, lw=0.8, label=f"{stat.capitalize()} ({level:.0%} bootstrap)")
+            # no interval (the resamples could not vary): a hollow marker, never a dot that looks certain
+            bx.plot(vals[~has], (y + offset)[~has], "o", mfc="none", mec=color, ms=3.5, mew=0.8,
+                    label=f"{stat.capitalize()}, no interval" if (~has).any() else None)
         bx.axvline(0, color="0.6", lw=0.6)
         bx.set_xlim(-1.05, 1.05)
         bx.set_yticks(y)

@@ -37,11 +37,13 @@ class GroupCounts:
     gt_retained: np.ndarray   # G x C x K
     gt_reference: np.ndarray  # G x C x K
     cm: np.ndarray            # G x C x K x K (truth, prediction)
+    group_ids: tuple[str, ...] = ()  # which groups, in order: the pairing across models is checked on them
 
     @classmethod
     def from_arrays(cls, model: str, a: Mapping[str, np.ndarray]) -> "GroupCounts":
+        ids = tuple(str(g) for g in a["group_id"]) if "group_id" in a else ()
         return cls(model, tuple(str(c) for c in a["conditions"]), a["pseudo_label_retained"], a["pseudo_label_reference"],
-                   a["ground_truth_retained"], a["ground_truth_reference"], a["cm"])
+                   a["ground_truth_retained"], a["ground_truth_reference"], a["cm"], ids)
 
 
 def concat_groups(parts: Iterable[GroupCounts]) -> GroupCounts:
@@ -49,9 +51,10 @@ def concat_groups(parts: Iterable[GroupCounts]) -> GroupCounts:
     parts = list(parts)
     if len({p.conditions for p in parts}) != 1:
         raise ValueError("the passes were evaluated on different conditions")
+    ids = tuple(f"{i}:{g}" for i, p in enumerate(parts) for g in p.group_ids) if all(p.group_ids for p in parts) else ()
     return GroupCounts(parts[0].model, parts[0].conditions,
                        *(np.concatenate([getattr(p, f) for p in parts]) for f in
-                         ("pl_retained", "pl_reference", "gt_retained", "gt_reference", "cm")))
+                         ("pl_retained", "pl_reference", "gt_retained", "gt_reference", "cm")), ids)
 
 
 def mean_xi(retained: np.ndarray, reference: np.ndarray, include: np.ndarray, absent: str) -> np.ndarray:
@@ -159,6 +162,11 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     for m in models:
         if m.conditions != conds or m.pl_retained.shape[0] != n:
             raise ValueError(f"model {m.model}: evaluated on other groups or conditions than {models[0].model}")
+        # the same number of groups is not the same groups: a paired bootstrap needs group g to be one scene
+        if m.group_ids and models[0].group_ids and m.group_ids != models[0].group_ids:
+            first = next(i for i, (a, b) in enumerate(zip(m.group_ids, models[0].group_ids)) if a != b)
+            raise ValueError(f"model {m.model}: group {m.group_ids[first]!r} where {models[0].model} has "
+                             f"{models[0].group_ids[first]!r} (position {first}): the models were evaluated on other groups")
     if clean not in conds:
         raise ValueError(f"the clean condition {clean} was not evaluated")
     adverse = [i for i, c in enumerate(conds) if c != clean]

@@ -28,7 +28,7 @@ from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 log = logging.getLogger("pairedgta.plot")
-VERSION = "9"  # 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
+VERSION = "10"  # 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
 # 7: rho intervals in the ranking titles, >= 1200 px wide; unsupported xi cells marked; 8: paper Means of printed cells, half up
 DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
 
