@@ -30,9 +30,6 @@ from pairedgta.stages.common import Context, StageResult, run_cached
 log = logging.getLogger("pairedgta.plot")
 VERSION = "10"  # 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
 # 7: rho intervals in the ranking titles, >= 1200 px wide; unsupported xi cells marked; 8: paper Means of printed cells, half up
-DEFAULT_FIGURES = ("xi_table", "ranking", "qualitative")
-
-
 class Figures(StageResult):
     """The plot stage's entry: figure files and the numbers they show."""
 
@@ -70,7 +67,8 @@ def figures_of(cfg: dict[str, Any]) -> list[str]:
     given = sourced(cfg)
     if given:  # a user-given file replaces the run's data: only the figures drawn from it
         return list(given)
-    figures = list((cfg.get("plot") or {}).get("figures") or DEFAULT_FIGURES)
+    # the default list has one owner, pairedgta/conf/config.yaml; an empty list draws nothing
+    figures = list((cfg.get("plot") or {}).get("figures") or [])
     for f in figures:
         source = FIGURES.meta(f).get("source")  # an unknown name: one line listing the known ones
         if source:
