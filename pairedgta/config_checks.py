@@ -90,6 +90,11 @@ RULES = [
     _rule("plot.ranking.window", int, lambda v: v >= 1, "use an integer >= 1"),
     _rule("plot.robustness.break_below", float, lambda v: 0.0 < v <= 1.0,
           "use a mean-xi level in (0, 1]: the breaking point is the first ladder step below it (default 0.5)"),
+    _rule("generate.validation.structure_threshold", float, lambda v: 0.0 <= v <= 1.0,
+          "use a structure agreement in [0, 1] (default 0.3): above 1 every scene fails validation"),
+    _rule("generate.objects.min", int, lambda v: v >= 0, "use a number of dynamic objects >= 0"),
+    _rule("generate.objects.max", int, lambda v: v >= 0, "use a number of dynamic objects >= 0"),
+    _rule("generate.objects.d_min", float, lambda v: v >= 0, "use a minimum distance between objects in metres >= 0"),
 ]
 
 
@@ -227,6 +232,50 @@ def check_evaluate(cfg: dict[str, Any], where: str) -> None:
                           "condition per group, random_one = one drawn per group, the authors' loader)")
 
 
+def check_stage_keys(cfg: dict[str, Any], names: set[str], where: str) -> None:
+    """Keys the stages read and validate themselves, checked with the same code before any stage writes:
+    shards, decode workers, condition names, the renderer backend, the objects' range and the camera."""
+    from pairedgta.stages.common import shard_keys
+    from pairedgta.stages.evaluate import decode_workers
+
+    def again(exc: ConfigError) -> ConfigError:
+        return ConfigError(f"{where}{exc}")
+
+    gen, ev = cfg.get("generate") or {}, cfg.get("evaluate") or {}
+    try:
+        shard_keys(gen, "generate")
+        shard_keys(ev, "evaluate")
+        decode_workers(ev.get("num_workers"), "cpu")
+    except ConfigError as exc:
+        raise again(exc) from None
+    objects = gen.get("objects") or {}
+    if isinstance(objects.get("min"), int) and isinstance(objects.get("max"), int) and objects["min"] > objects["max"]:
+        raise ConfigError(f"{where}generate.objects.min={objects['min']} is above generate.objects.max={objects['max']}; "
+                          "set min <= max")
+    if names:
+        unknown = [c for c in (ev.get("conditions") or []) if c not in names]
+        if unknown:
+            raise ConfigError(f"{where}evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(sorted(names))}")
+        clean = ((cfg.get("metric") or {}).get("rho") or {}).get("clean_condition")
+        if clean is not None and clean not in names:
+            raise ConfigError(f"{where}metric.rho.clean_condition={clean!r} is not a condition; known: {', '.join(sorted(names))}")
+    renderer = cfg.get("renderer") or {}
+    backend = renderer.get("backend")
+    if backend is not None:
+        from pairedgta.render import RENDERERS
+
+        if backend not in RENDERERS.names():
+            raise ConfigError(f"{where}renderer.backend={backend!r}; use one of {', '.join(RENDERERS.names())} "
+                              "(renderer=blender|synthetic|deepgtav)")
+        if backend == "blender" and isinstance(renderer.get("camera"), dict):
+            from pairedgta.render.camera import Camera
+
+            try:
+                Camera.from_cfg(renderer["camera"])
+            except ConfigError as exc:
+                raise again(exc) from None
+
+
 def check_table_filter(plot: dict[str, Any], where: str) -> None:
     """plot.table_filter picks rows of the authors' CSV (plot.table_csv) by these columns only."""
     filters = plot.get("table_filter")
@@ -278,6 +327,7 @@ def check_run_config(cfg: dict[str, Any]) -> None:
         check_table_filter(pcfg.get("plot") or {}, where)
         check_metric(pcfg, where)
         check_evaluate(pcfg, where)
+        check_stage_keys(pcfg, set(condition_names(pcfg)), where)
     for i, name in enumerate(cfg.get("models") or []):
         _known_model(name, f"models[{i}]")
 

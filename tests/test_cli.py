@@ -213,6 +213,21 @@ BAD_CONFIG = {
     "tracking_background_not_a_boolean": (["tracking.background=1"], "tracking.background=1 must be true or false"),
     "tracking_class_metrics_not_a_boolean": (["tracking.class_metrics=all"],
                                              "tracking.class_metrics='all' must be true or false"),
+    # issue 39's battery: each of these once failed only after generate (and pseudolabel) had written
+    "rho_clean_condition_unknown": (["metric.rho.clean_condition=Noon-SNOW"],
+                                    "metric.rho.clean_condition='Noon-SNOW' is not a condition"),
+    "renderer_backend_unknown": (["renderer.backend=unreal"], "renderer.backend='unreal'; use one of blender"),
+    "evaluate_conditions_unknown": (["evaluate.conditions=[Day-SNOW]"], "evaluate.conditions: unknown condition(s) ['Day-SNOW']"),
+    "num_workers_negative": (["evaluate.num_workers=-1"], "evaluate.num_workers"),
+    "num_workers_words": (["evaluate.num_workers=many"], "evaluate.num_workers"),
+    "shard_outside": (["evaluate.num_shards=2", "evaluate.shard=3"], "evaluate.shard=3 is outside 0..1"),
+    "objects_min_above_max": (["generate.objects.min=5", "generate.objects.max=2"],
+                              "generate.objects.min=5 is above generate.objects.max=2"),
+    "objects_negative_distance": (["generate.objects.d_min=-1"], "generate.objects.d_min=-1 is out of range"),
+    "impossible_structure_threshold": (["generate.validation.structure_threshold=5"],
+                                       "generate.validation.structure_threshold=5 is out of range"),
+    "camera_compensation": (["renderer=blender", "region=procedural_town", "camera.compensation=3"],
+                            "camera.compensation=3.0 is invalid"),
 }
 
 
