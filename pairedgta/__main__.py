@@ -146,10 +146,45 @@ def _open_mapping_overrides(argv: list[str]) -> list[str]:
     return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
 
 
+# keys that moved in a release: the old name says where to
+MOVED_KEYS = {"renderer.exposure_bias": "camera.bias", "renderer.exposure": "camera.overrides",
+              "renderer.view_transform": "camera.view_transform", "renderer.look": "camera.look"}
+
+
+def mistyped_key(argv: list[str]) -> str | None:
+    """A `key=value` whose key no config defines would get Hydra's five-line "not in struct" message and the
+    advice to prepend `+`, which the tool then refuses: one line naming the closest known key instead."""
+    import difflib
+
+    from pairedgta.config_checks import BUILT_NODES, OPEN_KEYS, known_key_paths
+
+    known: set[str] | None = None
+    for arg in argv:
+        if arg.startswith(("-", "+", "~")) or "=" not in arg:
+            continue
+        key = arg.split("=", 1)[0].strip()
+        if "/" in key or key.split(".")[0] in (*OPEN_KEYS, "hydra"):
+            continue
+        moved = next((old for old in MOVED_KEYS if key == old or key.startswith(old + ".")), None)
+        if moved:
+            return f"{moved} is now {MOVED_KEYS[moved]} (the camera group, pairedgta/conf/camera/); set that instead"
+        known = known if known is not None else known_key_paths()
+        if key in known or (key.split(".")[0] in BUILT_NODES and key.count(".") > 1):
+            continue  # a key inside a built node's mapping (e.g. renderer.town.x) is checked by its builder
+        close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.8)
+        if close:
+            return f"{key} is not a key of pairedgta; did you mean {close[0]}?"
+    return None
+
+
 def cli() -> None:
     from pairedgta import tracking_worker
 
     sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
+    wrong = mistyped_key(sys.argv[1:])
+    if wrong:
+        print(f"error: {wrong}", file=sys.stderr)
+        sys.exit(2)
     if {"-m", "--multirun"} & set(sys.argv[1:]):
         from pairedgta import launchers
 

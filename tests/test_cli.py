@@ -290,3 +290,21 @@ def test_cuda_without_a_gpu_is_one_line(monkeypatch):
     with pytest.raises(ConfigError, match="device=cuda:3: this machine has 1 CUDA GPU"):
         check_cuda("cuda:3")
     check_cuda("cpu")
+
+
+def test_a_mistyped_key_is_one_line_naming_the_closest_key(tmp_path):
+    """Hydra alone says "not in struct" in five lines and advises a `+`, which the tool then refuses."""
+    from pairedgta.__main__ import mistyped_key
+
+    for args, expect in ((["generate.num_scene=3"], "generate.num_scene is not a key of pairedgta; did you mean generate.num_scenes?"),
+                         (["renderer.exposure.Night=0.3"], "renderer.exposure is now camera.overrides")):
+        proc = run_cli(args, tmp_path)
+        errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+        assert proc.returncode == 2 and errors == [f"error: {mistyped_key(args)}"] and expect in errors[0], proc.stderr
+    # what README and the experiments type is never flagged
+    for args in (["model=demo_segformer", "models=[demo_segformer,demo_ddrnet]", "cache_dir=/x", "generate.shard=range(50)",
+                  "hydra/launcher=slurm", "hydra.launcher.partition=p", "model_overrides.segformer_b5.path=/w",
+                  "conditions.weathers.FOGGY.visibility_m=100", "renderer.town.blocks=3", "camera=fixed",
+                  "camera.compensation=0.2", "metric.rho.clean_condition=Day-RAIN", "plot.robustness.classes=[car]",
+                  "cost.csv=/t.csv", "photometry.night_max_luma_ratio=0.3", "-m", "+experiment=zoo"],):
+        assert mistyped_key(args) is None
