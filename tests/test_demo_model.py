@@ -23,7 +23,8 @@ from pairedgta.scene.sampling import build_region
 from pairedgta.testing.cli import compose_cfg
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
-ZOO = ("demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet", "demo_deeplabv3plus")
+ZOO = ("demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet", "demo_deeplabv3plus",
+       "demo_deeplabv3plus_noaug")
 CONDITIONS = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")
 TAU = 0.6  # the main job's pseudo-label confidence
 
