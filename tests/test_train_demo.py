@@ -89,12 +89,13 @@ def test_photometric_distortion_stays_in_range_and_changes_colour():
 
 
 def test_contrast_blend_lowers_contrast_and_grayscale_removes_colour():
-    img = torch.rand(3, 16, 16)
+    img = torch.rand(3, 16, 16, generator=torch.Generator().manual_seed(0))
     base = {"brightness_delta": 0, "contrast_range": [0.3, 0.3], "saturation_range": [1.0, 1.0], "hue_delta": 0}
     # MMSegmentation's contrast scales the pixels: the image gets darker, its spread shrinks with its mean
     outs = {mode: [tdm.photometric(img.clone(), np.random.default_rng(s), {**base, "contrast_mode": mode})
                    for s in range(12)] for mode in ("multiply", "blend")}
-    changed = [i for i, o in enumerate(outs["blend"]) if not torch.allclose(o, img)]
+    # the hue step (delta 0) round-trips through HSV and moves pixels by ~1e-7: that is not the contrast step
+    changed = [i for i, o in enumerate(outs["blend"]) if not torch.allclose(o, img, atol=1e-4)]
     assert changed  # the contrast step ran for some seeds (probability 0.5)
     for i in changed:
         m, b_ = outs["multiply"][i], outs["blend"][i]
