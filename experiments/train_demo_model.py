@@ -75,6 +75,67 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
     return np.stack(images), np.stack(labels), seconds
 
 
+DATA_FORMAT = 1
+
+
+def data_fingerprint(cfg: dict) -> str:
+    """What makes two exported data folders the same: the data section (but where it is read from) and the
+    renderer, region, camera and condition that drew the scenes."""
+    keep = {k: cfg.get(k) for k in ("renderer", "region", "camera", "condition")}
+    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to", "workers")}
+    return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:16]
+
+
+def export_data(cfg: dict, out: Path, splits: dict, render_s: float) -> None:
+    """The rendered training set as a portable folder (lossless WebP images, PNG labels, a manifest), so a
+    machine without Blender, a GPU node say, trains on exactly these pixels (`data.from_dir`). Written under a
+    temporary name and renamed when complete."""
+    from PIL import Image
+
+    from pairedgta.jsonio import write_json
+
+    if out.exists():
+        raise SystemExit(f"data.export_to={out} exists; remove it or name another folder")
+    tmp = out.with_name(out.name + ".tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    for split, (images, labels) in splits.items():
+        (tmp / split).mkdir(parents=True)
+        for i, (img, lab) in enumerate(zip(images, labels)):
+            Image.fromarray(img).save(tmp / split / f"{i:05d}.webp", lossless=True, quality=100, method=4)
+            Image.fromarray(lab.astype(np.uint8)).save(tmp / split / f"{i:05d}_labels.png", optimize=True)
+    write_json(tmp / "manifest.json", {"format": DATA_FORMAT, "fingerprint": data_fingerprint(cfg), "render_seconds": render_s,
+                                       "counts": {k: len(v[0]) for k, v in splits.items()}})
+    os.replace(tmp, out)
+    print(f"exported {', '.join(f'{len(v[0])} {k}' for k, v in splits.items())} images -> {out}")
+
+
+def import_data(cfg: dict, folder: Path) -> tuple[dict, float]:
+    """Read a folder written by `data.export_to`; refuse one drawn with other data settings."""
+    from PIL import Image
+
+    manifest = folder / "manifest.json"
+    if not manifest.is_file():
+        raise SystemExit(f"data.from_dir={folder}: no manifest.json; write the folder with data.export_to=<dir> first")
+    m = json.loads(manifest.read_text())
+    if m.get("format") != DATA_FORMAT or m.get("fingerprint") != data_fingerprint(cfg):
+        raise SystemExit(f"data.from_dir={folder} was exported with other data/renderer/camera settings "
+                         f"(fingerprint {m.get('fingerprint')}, these settings {data_fingerprint(cfg)}); export it again")
+    splits = {}
+    for split, n in m["counts"].items():
+        images, labels = [], []
+        for i in range(n):
+            try:
+                images.append(np.asarray(Image.open(folder / split / f"{i:05d}.webp").convert("RGB")))
+                labels.append(np.asarray(Image.open(folder / split / f"{i:05d}_labels.png")))
+            except OSError as e:
+                raise SystemExit(f"data.from_dir={folder}: {split}/{i:05d} is missing or corrupt ({e}); export it again") from e
+        splits[split] = (np.stack(images), np.stack(labels))
+    return splits, float(m["render_seconds"])
+
+
 def photometric(img: torch.Tensor, rng: np.random.Generator, p: dict) -> torch.Tensor:
     """MMSegmentation's PhotoMetricDistortion on a 3 x H x W image in [0, 1]: additive brightness,
     contrast (before or after the colour steps, at random), saturation and hue in HSV; each step with
@@ -171,6 +232,44 @@ def batch(images, labels, rng, a: dict, size: int, rcs: RareClassSampler | None 
     return torch.stack([x for x, _ in pairs]), torch.stack([y for _, y in pairs])
 
 
+class StepBatches(torch.utils.data.Dataset):
+    """Batch number `step` drawn from its own generator (seed, step), so loader workers can build batches in
+    parallel and a resumed run draws the same batches. `train.loader_workers: 0` keeps the single sequential
+    stream of the CPU recipe instead."""
+
+    def __init__(self, images, labels, a: dict, size: int, rcs, seed: int):
+        self.images, self.labels, self.a, self.size, self.rcs, self.seed = images, labels, a, size, rcs, seed
+
+    def __len__(self) -> int:
+        return 1 << 30
+
+    def __getitem__(self, step: int):
+        torch.set_num_threads(1)
+        return batch(self.images, self.labels, np.random.default_rng([self.seed, step]), self.a, self.size, self.rcs)
+
+
+def batches(train_x, train_y, rng, a: dict, t: dict, rcs, seed: int, start: int):
+    """(step, x, y) from step start + 1 to t['steps']."""
+    steps = range(start + 1, t["steps"] + 1)
+    if not t.get("loader_workers"):
+        for step in steps:
+            yield (step, *batch(train_x, train_y, rng, a, t["batch_size"], rcs))
+        return
+    loader = torch.utils.data.DataLoader(StepBatches(train_x, train_y, a, t["batch_size"], rcs, seed), batch_size=None,
+                                         sampler=list(steps), num_workers=t["loader_workers"], prefetch_factor=4,
+                                         pin_memory=torch.cuda.is_available(), persistent_workers=False)
+    for step, (x, y) in zip(steps, loader):
+        yield step, x, y
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("train.device=cuda but torch sees no CUDA device; use train.device=cpu or auto")
+    return torch.device(name)
+
+
 # -- models -------------------------------------------------------------------------------------------
 IN_PROJECT = ("ddrnet", "pidnet", "deeplabv3plus")
 
@@ -212,11 +311,12 @@ def init_weights(cfg: dict, model: torch.nn.Module, source: str) -> torch.nn.Mod
 def validate(model, images, labels) -> ConfusionMatrix:
     model.eval()
     cm = ConfusionMatrix(NUM_CLASSES)
+    dev = next(model.parameters()).device
     for img, lab in zip(images, labels):
-        x = torch.from_numpy(img).permute(2, 0, 1).float().div(255)[None]
-        logits = logits_of(model, (x - MEAN) / STD)
+        x = torch.from_numpy(img).permute(2, 0, 1).float().div(255)[None].to(dev)
+        logits = logits_of(model, (x - MEAN.to(dev)) / STD.to(dev))
         logits = F.interpolate(logits, size=x.shape[-2:], mode="bilinear", align_corners=False)
-        cm.update(lab, logits.argmax(1)[0].numpy())
+        cm.update(lab, logits.argmax(1)[0].cpu().numpy())
     model.train()
     return cm
 
@@ -280,6 +380,9 @@ def check_config(cfg: dict) -> None:
         ("train.checkpoint_every", t.get("checkpoint_every"), _number(t.get("checkpoint_every"), 1, inf, True), "an integer >= 1"),
         ("train.eval_every", t.get("eval_every"), _number(t.get("eval_every"), 1, inf, True), "an integer >= 1"),
         ("train.threads", t.get("threads"), _number(t.get("threads"), 1, inf, True), "an integer >= 1"),
+        ("train.device", t.get("device", "auto"), t.get("device", "auto") in ("auto", "cpu", "cuda"), "auto, cpu or cuda"),
+        ("train.loader_workers", t.get("loader_workers", 0), _number(t.get("loader_workers", 0), 0, 64, True),
+         "an integer >= 0 (0: batches built in the training process, one sequential random stream)"),
         ("loss.ohem_thresh", lo.get("ohem_thresh"), lo.get("ohem_thresh") is None or _number(lo.get("ohem_thresh"), 1e-6, 1.0),
          "null (plain cross-entropy) or a probability in (0, 1]"),
         ("loss.ohem_min_kept", lo.get("ohem_min_kept"), _number(lo.get("ohem_min_kept", 0), 0, inf, True), "an integer >= 0"),
@@ -313,7 +416,11 @@ def check_config(cfg: dict) -> None:
 def state_key(cfg: dict) -> str:
     """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
     keep = {k: cfg[k] for k in ("model_name", "data", "arch", "augment", "loss", "seed", "renderer", "region")}
-    keep["train"] = {k: v for k, v in cfg["train"].items() if k not in ("steps", "threads", "eval_every", "checkpoint_every")}
+    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to")}
+    keep["train"] = {k: v for k, v in cfg["train"].items()
+                     if k not in ("steps", "threads", "eval_every", "checkpoint_every", "device", "loader_workers")}
+    if cfg["train"].get("loader_workers"):  # another batch stream: seeded per step
+        keep["train"]["per_step_batches"] = True
     return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:12]
 
 
@@ -336,11 +443,21 @@ def main(dcfg: DictConfig) -> None:
     torch.set_num_threads(int(cfg["train"]["threads"]))
     grid = build_condition_grid({**cfg["conditions"], "only": [cfg["condition"]]})
     d, t, a = cfg["data"], cfg["train"], cfg["augment"]
-    train_x, train_y, train_render_s = render_towns(cfg, grid, range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"]),
-                                    d["train_scenes_per_town"], d["scene_seed"])
-    val_x, val_y, val_render_s = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
-                                d["val_scenes_per_town"], d["scene_seed"] + 100_000)
-    render_s = train_render_s + val_render_s
+    device = pick_device(t.get("device", "auto"))
+    if device.type == "cuda":
+        t["device_name"] = torch.cuda.get_device_name(device)
+    if d.get("from_dir"):
+        splits, render_s = import_data(cfg, ROOT / d["from_dir"])
+        (train_x, train_y), (val_x, val_y) = splits["train"], splits["val"]
+    else:
+        train_x, train_y, train_render_s = render_towns(cfg, grid, range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"]),
+                                                        d["train_scenes_per_town"], d["scene_seed"])
+        val_x, val_y, val_render_s = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
+                                                  d["val_scenes_per_town"], d["scene_seed"] + 100_000)
+        render_s = train_render_s + val_render_s
+    if d.get("export_to"):
+        export_data(cfg, ROOT / d["export_to"], {"train": (train_x, train_y), "val": (val_x, val_y)}, render_s)
+        return
     log.info("data: %d train / %d held-out-town val images (%.0f s of rendering)", len(train_x), len(val_x), render_s)
 
     torch.manual_seed(cfg["seed"])
@@ -350,6 +467,7 @@ def main(dcfg: DictConfig) -> None:
     n_params = sum(p.numel() for p in model.parameters())
     if n_params > 4_000_000:
         raise SystemExit(f"arch has {n_params} parameters; the demo model must stay <= 4 M")
+    model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=t["lr"], weight_decay=t["weight_decay"])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, t))
     rng = np.random.default_rng(cfg["seed"])
@@ -367,10 +485,10 @@ def main(dcfg: DictConfig) -> None:
         start, history, elapsed = int(state["step"]), json.loads(state["history"]), float(state["elapsed"])
         log.info("resuming from %s at step %d", ckpt, start)
 
-    import mlflow
-
     tracking = cfg.get("tracking") or {}
     if tracking.get("enabled", True):
+        import mlflow
+
         mlflow.set_tracking_uri(tracking.get("uri"))
         mlflow.set_experiment("train_demo")
         mlflow.start_run(run_name=f"{cfg['model_name']}-{state_key(cfg)}")
@@ -380,10 +498,12 @@ def main(dcfg: DictConfig) -> None:
     rcs = RareClassSampler(train_y, r["temperature"], r.get("min_pixels", 16)) if r.get("temperature") else None
     model.train()
     t1 = time.perf_counter() - elapsed
-    bar = tqdm(range(start + 1, t["steps"] + 1), initial=start, total=t["steps"], desc="train", unit="step")
-    for step in bar:
-        x, y = batch(train_x, train_y, rng, a, t["batch_size"], rcs)
-        logits = logits_of(model, (x - MEAN) / STD)
+    mean, std = MEAN.to(device), STD.to(device)
+    bar = tqdm(batches(train_x, train_y, rng, a, t, rcs, cfg["seed"], start), initial=start, total=t["steps"],
+               desc="train", unit="step", mininterval=5.0)
+    for step, x, y in bar:
+        x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
+        logits = logits_of(model, (x - mean) / std)
         logits = F.interpolate(logits, size=y.shape[-2:], mode="bilinear", align_corners=False)
         loss = ohem_cross_entropy(logits, y, cfg["loss"]["ohem_thresh"], cfg["loss"]["ohem_min_kept"])
         opt.zero_grad(set_to_none=True)
@@ -402,6 +522,7 @@ def main(dcfg: DictConfig) -> None:
         if step % t["checkpoint_every"] == 0 or step == t["steps"]:
             save_checkpoint(ckpt, model, opt, sched, step, rng, history, time.perf_counter() - t1)
     train_s = time.perf_counter() - t1
+    model.to("cpu")
     write_model(cfg, model, n_params, validate(model, val_x, val_y), history, render_s, train_s, len(train_x), len(val_x))
     if tracking.get("enabled", True):
         mlflow.log_artifact(str(ROOT / cfg["out_dir"] / "model_card.json"))
@@ -453,6 +574,12 @@ def recipe_text(cfg: dict) -> str:
     return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else "")
 
 
+def trained_on(t: dict) -> str:
+    if t.get("device_name"):
+        return f"{t['device_name']} ({t.get('loader_workers', 0)} batch workers)"
+    return f"{t['threads']} CPU thread{'s' if t['threads'] != 1 else ''}"
+
+
 def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: list, render_s: float, train_s: float,
                 n_train: int, n_val: int) -> None:
     d, t = cfg["data"], cfg["train"]
@@ -490,7 +617,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
         *([] if family == "segformer" else ["- weights: float16 (model.safetensors; loaded as float32)"]),
-        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 3600:.1f} h training on {t['threads']} CPU thread{'s' if t['threads'] != 1 else ''}", "",
+        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.0f} min training on {trained_on(t)}", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],
     ]

@@ -24,7 +24,8 @@ from pairedgta.testing.cli import compose_cfg
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
 ZOO = ("demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet", "demo_deeplabv3plus",
-       "demo_deeplabv3plus_noaug")
+       "demo_deeplabv3plus_noaug", "demo_ddrnet_short", "demo_pidnet_partial", "demo_deeplabv3plus_short",
+       "demo_deeplabv3plus_strong", "demo_segformer_small", "demo_segformer_small_noaug")
 CONDITIONS = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")
 TAU = 0.6  # the main job's pseudo-label confidence
 

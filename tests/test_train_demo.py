@@ -268,3 +268,73 @@ def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_pat
     weights.write_bytes(b"not a safetensors file")
     with pytest.raises(ModelError, match="cannot read checkpoint .*safetensors"):
         build_segmenter("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
+
+
+def _data_cfg(**data):
+    return {"renderer": {"backend": "blender"}, "region": {"name": "t"}, "camera": {"mode": "fixed"},
+            "condition": "Day-EXTRASUNNY", "data": {"train_towns": 2, "workers": 1, **data}}
+
+
+def test_exported_data_reads_back_pixel_exact_and_refuses_other_settings(tmp_path):
+    """data.export_to / data.from_dir: a machine without Blender trains on exactly the rendered pixels."""
+    rng = np.random.default_rng(0)
+    splits = {"train": (rng.integers(0, 256, (3, 16, 32, 3), dtype=np.uint8), rng.integers(0, 19, (3, 16, 32), dtype=np.uint8)),
+              "val": (rng.integers(0, 256, (1, 16, 32, 3), dtype=np.uint8), np.full((1, 16, 32), 255, dtype=np.uint8))}
+    cfg = _data_cfg()
+    tdm.export_data(cfg, tmp_path / "d", splits, 12.5)
+    assert not (tmp_path / "d.tmp").exists()
+    # where it is read from, or how many renderer processes drew it, does not make it other data
+    back, seconds = tdm.import_data(_data_cfg(from_dir="x", workers=4), tmp_path / "d")
+    assert seconds == 12.5
+    for k in splits:
+        assert np.array_equal(back[k][0], splits[k][0]) and np.array_equal(back[k][1], splits[k][1])
+    with pytest.raises(SystemExit, match=r"data.from_dir=.*exported with other data/renderer/camera settings"):
+        tdm.import_data(_data_cfg(train_towns=3), tmp_path / "d")
+    with pytest.raises(SystemExit, match=r"data.export_to=.* exists"):
+        tdm.export_data(cfg, tmp_path / "d", splits, 1.0)
+    (tmp_path / "d" / "train" / "00001.webp").write_bytes(b"not an image")
+    with pytest.raises(SystemExit, match=r"train/00001 is missing or corrupt"):
+        tdm.import_data(cfg, tmp_path / "d")
+    with pytest.raises(SystemExit, match=r"no manifest.json; write the folder with data.export_to"):
+        tdm.import_data(cfg, tmp_path)
+
+
+def test_worker_batches_are_seeded_per_step_so_a_resume_draws_the_same_batches():
+    rng = np.random.default_rng(1)
+    images = rng.integers(0, 256, (4, 32, 64, 3), dtype=np.uint8)
+    labels = rng.integers(0, 19, (4, 32, 64), dtype=np.uint8)
+    a = {"crop": [16, 32], "scale_range": [0.5, 2.0], "cat_max_ratio": 1.0, "flip": 0.5,
+         "photometric": {"brightness_delta": 32, "contrast_range": [0.5, 1.5], "saturation_range": [0.5, 1.5], "hue_delta": 18}}
+    t = {"steps": 4, "batch_size": 2, "loader_workers": 2}
+    full = list(tdm.batches(images, labels, None, a, t, None, seed=0, start=0))
+    assert [s for s, _, _ in full] == [1, 2, 3, 4]
+    resumed = list(tdm.batches(images, labels, None, a, {**t, "loader_workers": 1}, None, seed=0, start=2))
+    for (s1, x1, y1), (s2, x2, y2) in zip(full[2:], resumed):
+        assert s1 == s2 and torch.equal(x1, x2) and torch.equal(y1, y2)
+    assert not torch.equal(full[0][1], full[1][1])
+    other_seed = next(tdm.batches(images, labels, None, a, t, None, seed=1, start=0))
+    assert not torch.equal(other_seed[1], full[0][1])
+    # the in-process stream of the CPU recipe is untouched
+    seq = list(tdm.batches(images, labels, np.random.default_rng(0), a, {**t, "loader_workers": 0}, None, seed=0, start=0))
+    ref = tdm.batch(images, labels, np.random.default_rng(0), a, 2)
+    assert torch.equal(seq[0][1], ref[0])
+
+
+def test_device_and_loader_settings_are_checked():
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module("pairedgta.conf", version_base=None):
+        cfg = OmegaConf.to_container(compose("train_demo"), resolve=True)
+    with pytest.raises(SystemExit, match="train.device='tpu' is invalid; set it to auto, cpu or cuda"):
+        tdm.check_config({**cfg, "train": {**cfg["train"], "device": "tpu"}})
+    with pytest.raises(SystemExit, match="train.loader_workers=-1 is invalid"):
+        tdm.check_config({**cfg, "train": {**cfg["train"], "loader_workers": -1}})
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="train.device=cuda but torch sees no CUDA device"):
+            tdm.pick_device("cuda")
+    assert tdm.pick_device("cpu").type == "cpu"
+    # the device and the loader's worker count are not the recipe; per-step seeding is
+    assert tdm.state_key({**cfg, "train": {**cfg["train"], "device": "cuda"}}) == tdm.state_key(cfg)
+    assert tdm.state_key({**cfg, "train": {**cfg["train"], "loader_workers": 2}}) == \
+        tdm.state_key({**cfg, "train": {**cfg["train"], "loader_workers": 8}}) != tdm.state_key(cfg)
