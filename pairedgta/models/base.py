@@ -6,6 +6,7 @@ applied inside `predict_proba`, so a wrong preprocessing cannot leak in from a c
 from __future__ import annotations
 
 import abc
+import math
 from typing import Sequence
 
 import numpy as np
@@ -121,5 +122,21 @@ class Segmenter(abc.ABC):
         confidence, labels = probs.max(dim=1)
         return labels, confidence
 
+    def predict_with_entropy(self, images: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """-> (labels, confidence, normalised entropy H(p) / log K in [0, 1]), all B x H x W, from one
+        forward pass: the label-free estimators need the whole distribution, not only its maximum."""
+        probs = self.predict_proba(images)
+        confidence, labels = probs.max(dim=1)
+        return labels, confidence, normalised_entropy(probs)
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, device={self.device})"
+
+
+def normalised_entropy(probs: torch.Tensor) -> torch.Tensor:
+    """B x K x H x W scores -> B x H x W entropy of the renormalised distribution over log K (0: certain,
+    1: uniform). Families whose class scores do not sum to one (Mask2Former) are renormalised first."""
+    p = probs.float().clamp_min(0)
+    p = p / p.sum(dim=1, keepdim=True).clamp_min(1e-12)
+    h = -(p * torch.log(p.clamp_min(1e-12))).sum(dim=1)
+    return (h / math.log(p.shape[1])).clamp(0.0, 1.0)

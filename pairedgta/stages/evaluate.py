@@ -60,7 +60,7 @@ from pairedgta.lazy import lazy_module
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "7"  # 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "8"  # 8: label-free estimator sums (est_* in group_counts.npz), estimators.csv, predictions.npz; 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 # 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
 # 5: xi.csv `images`/`supported` (metric.min_images/min_pixels); no interval for a class seen in one image;
 #    random_one draws a time of day, then a weather of it (the authors' loader)
@@ -373,19 +373,22 @@ def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], refere
 
     preds: dict[str, np.ndarray] = {}
     confs: dict[str, np.ndarray] = {}
+    entropies: dict[str, np.ndarray] = {}
     for start in range(0, len(present), batch):
         names = present[start : start + batch]
-        labels, conf = segmenter.predict(np.stack([images[c] for c in names]))
-        labels, conf = labels.numpy(), np.asarray(conf)
+        labels, conf, entropy = segmenter.predict_with_entropy(np.stack([images[c] for c in names]))
+        labels, conf, entropy = labels.numpy(), np.asarray(conf), np.asarray(entropy)
         for i, c in enumerate(names):
-            preds[c], confs[c] = labels[i], conf[i]
+            preds[c], confs[c], entropies[c] = labels[i], conf[i], entropy[i]
 
     def mass(c: str, seen: str) -> np.ndarray:
         """phi counts of c's prediction over the pixels visible in condition `seen`."""
         conf = confs[c] if seen not in visible else np.where(visible[seen], confs[c], -1.0)
         return prediction_mass_from_labels(preds[c], conf, NUM_CLASSES, s["tau_mass"]).numpy()[0]
 
-    out: dict[str, Any] = {"group_id": item["group_id"], "xi": {}, "cm": {}, "agreement": [], "counts": []}
+    out: dict[str, Any] = {"group_id": item["group_id"], "xi": {}, "cm": {}, "agreement": [], "counts": [],
+                           "estimators": {c: estimator_sums(preds[c], confs[c], entropies[c], preds[clean]) for c in present},
+                           "pred": {c: preds[c].astype(np.uint8) for c in present}}
     for c in present:
         pred = preds[c]
         pseudo_c = hide(pseudo_t, c)
@@ -418,6 +421,21 @@ def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], refere
                     "condition": c, "clean_count": int(clean_mass[k]), "adv_count": int(adv_mass[k]),
                 })
     return out
+
+
+CONF_BINS = 1000  # the max-probability histogram ATC's threshold is read from: edges k / 1000
+
+
+def estimator_sums(pred: np.ndarray, conf: np.ndarray, entropy: np.ndarray, clean_pred: np.ndarray) -> dict[str, Any]:
+    """What the label-free estimators of accuracy under shift need of one image, as sums over all its pixels
+    (no labels, no confidence filter): pixel count, summed max probability (AC, DoC), summed normalised
+    entropy, the max-probability histogram (ATC) and the pixels predicted as on the clean image (plain
+    agreement). Sums, so that groups add up and the bootstrap resamples them."""
+    bins = np.minimum((np.asarray(conf, np.float64) * CONF_BINS).astype(np.int64), CONF_BINS - 1)
+    return {"pixels": int(pred.size), "conf_sum": float(np.sum(conf, dtype=np.float64)),
+            "entropy_sum": float(np.sum(entropy, dtype=np.float64)),
+            "conf_hist": np.bincount(bins.ravel(), minlength=CONF_BINS).tolist(),
+            "agree_clean": int((pred == clean_pred).sum())}
 
 
 def count_groups(ctx: Context, dataset: PairedDataset, pseudo_labels: PseudoLabels, model_cfg: dict[str, Any],
@@ -467,6 +485,7 @@ def compute(
     results = [done[g.group_id] for g in dataset.groups if g.group_id in done]
     model = str(model_cfg["name"])
     write_group_counts(out / "group_counts.npz", results, conditions)
+    write_predictions(out / "predictions.npz", results, conditions)
     acc: dict[tuple[str, str], _Accumulator] = {}
     gt_cm: dict[str, ConfusionMatrix] = {}
     agreement_rows: list[dict[str, Any]] = []
@@ -502,8 +521,15 @@ def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: li
     for source in ("pseudo_label", GT):
         arrays[f"{source}_retained"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
         arrays[f"{source}_reference"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
+    arrays.update({"est_pixels": np.zeros((G, C), dtype=np.int64), "est_conf_sum": np.zeros((G, C)),
+                   "est_entropy_sum": np.zeros((G, C)), "est_conf_hist": np.zeros((G, C, CONF_BINS), dtype=np.int64),
+                   "est_agree_clean": np.zeros((G, C), dtype=np.int64)})
     index = {c: i for i, c in enumerate(conditions)}
     for g, r in enumerate(results):
+        for cond, e in (r.get("estimators") or {}).items():
+            if cond in index:
+                for k in ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean"):
+                    arrays[f"est_{k}"][g, index[cond]] = e[k]
         for key, (retained, reference) in r["xi"].items():
             source, cond = key.split("|", 1)
             if cond in index:
@@ -514,6 +540,26 @@ def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: li
             if cond in index:
                 arrays["cm_present"][g, index[cond]] = True
                 arrays["cm"][g, index[cond]] = np.asarray(mat, dtype=np.int64)
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
+    """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
+    absent), so that estimators comparing models pixel by pixel (agreement between models, GDE) need no
+    second inference pass. Label maps compress well: a few kB per image."""
+    arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
+                                     "conditions": np.array(conditions, dtype=str)}
+    for g, r in enumerate(results):
+        maps = r.get("pred") or {}
+        if not maps:
+            continue
+        shape = next(iter(maps.values())).shape
+        stack = np.full((len(conditions), *shape), IGNORE_INDEX, dtype=np.uint8)
+        for i, cond in enumerate(conditions):
+            if cond in maps:
+                stack[i] = maps[cond]
+        arrays[f"g{g:05d}"] = stack
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
 
@@ -551,18 +597,30 @@ def read_parts(parts: Path) -> dict[str, dict[str, Any]]:
     found: dict[str, dict[str, Any]] = {}
     for path in sorted(parts.glob("part-*.json")) if parts.is_dir() else []:
         try:
-            for r in json.loads(path.read_text()):
+            rows = json.loads(path.read_text())
+            with np.load(path.with_suffix(".npz"), allow_pickle=False) as maps:
+                for i, r in enumerate(rows):
+                    r["pred"] = {c: maps[f"{i}|{c}"] for c in r.pop("pred_conditions")}
+            for r in rows:
                 found[r["group_id"]] = r
-        except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        except (OSError, ValueError, json.JSONDecodeError, KeyError, TypeError):
             log.warning("evaluate: ignoring unreadable shard result %s (its groups are computed again)", path)
     return found
 
 
 def write_part(parts: Path, shard: int, num: int, results: list[dict[str, Any]]) -> Path:
+    """The shard's sums as JSON and its label maps beside it (`.npz`); the maps are written first, so a
+    JSON file is only ever seen with its maps complete."""
     parts.mkdir(parents=True, exist_ok=True)
     path = parts / f"part-{shard:05d}-of-{num:05d}.json"
+    maps = {f"{i}|{c}": m for i, r in enumerate(results) for c, m in (r.get("pred") or {}).items()}
+    rows = [{**{k: v for k, v in r.items() if k != "pred"}, "pred_conditions": list(r.get("pred") or {})} for r in results]
+    tmp_maps = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+    with open(tmp_maps, "wb") as f:
+        np.savez_compressed(f, **maps)
+    os.replace(tmp_maps, path.with_suffix(".npz"))
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(results, default=_jsonable, allow_nan=False))
+    tmp.write_text(json.dumps(rows, default=_jsonable, allow_nan=False))
     os.replace(tmp, path)
     return path
 

@@ -1,0 +1,95 @@
+"""The label-free estimators' raw material, written by evaluate from the same forward pass as xi."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pairedgta.models.base import normalised_entropy
+from pairedgta.stages import evaluate as ev
+
+
+def test_normalised_entropy_is_zero_when_certain_one_when_uniform_and_renormalises():
+    k = 19
+    probs = torch.zeros(1, k, 1, 3)
+    probs[0, 4, 0, 0] = 1.0                       # certain
+    probs[0, :, 0, 1] = 1.0 / k                   # uniform
+    probs[0, :2, 0, 2] = torch.tensor([0.3, 0.3])  # scores summing to 0.6 (Mask2Former-like): two classes, 50/50
+    h = normalised_entropy(probs)[0, 0]
+    assert h[0] == pytest.approx(0.0, abs=1e-6) and h[1] == pytest.approx(1.0, abs=1e-5)
+    assert h[2] == pytest.approx(math.log(2) / math.log(k), abs=1e-6)
+
+
+def test_estimator_sums_of_one_image_by_hand():
+    pred = np.array([[1, 2], [3, 4]])
+    clean = np.array([[1, 2], [0, 0]])           # two of four pixels predicted as on the clean image
+    conf = np.array([[0.25, 0.5], [0.9995, 1.0]], dtype=np.float32)
+    entropy = np.array([[0.5, 0.25, 0.0, 0.0]], dtype=np.float32).reshape(2, 2)
+    s = ev.estimator_sums(pred, conf, entropy, clean)
+    assert s["pixels"] == 4 and s["agree_clean"] == 2
+    assert s["conf_sum"] == pytest.approx(2.7495, abs=1e-6) and s["entropy_sum"] == pytest.approx(0.75)
+    hist = np.asarray(s["conf_hist"])
+    assert hist.shape == (ev.CONF_BINS,) and hist.sum() == 4
+    # bin k holds [k/1000, (k+1)/1000); 1.0 falls into the last bin with 0.9995
+    assert hist[250] == 1 and hist[500] == 1 and hist[999] == 2
+
+
+class _Fixed:
+    """A segmenter whose probabilities are given: the first half of each image certain of class 0 at
+    probability 0.875 (the rest spread evenly), the second half class 1 at 0.625 on the dark image (binary-exact
+    probabilities, so the histogram bins are known)."""
+
+    name = "fixed"
+
+    def predict_with_entropy(self, images):
+        b, h, w, _ = images.shape
+        probs = torch.full((b, 19, h, w), 0.125 / 18)
+        probs[:, 0, :, : w // 2] = 0.875
+        for i in range(b):
+            cls, p = (0, 0.875) if images[i].mean() > 100 else (1, 0.625)  # bright = clean image
+            probs[i, :, :, w // 2 :] = (1 - p) / 18
+            probs[i, cls, :, w // 2 :] = p
+        conf, labels = probs.max(1)
+        return labels, conf, normalised_entropy(probs)
+
+
+def test_group_counts_carry_estimator_sums_and_label_maps_from_the_same_pass():
+    clean, adverse = "Day-EXTRASUNNY", "Night-RAIN"
+    images = {clean: np.full((4, 6, 3), 200, np.uint8), adverse: np.full((4, 6, 3), 20, np.uint8)}
+    pseudo = np.zeros((4, 6), np.uint8)
+    item = {"group_id": "g0", "present": [clean, adverse], "images": images, "pseudo": pseudo, "own": {}}
+    s = {"clean": clean, "tau_mass": 0.5, "class_ids": [0, 1]}
+    out = ev.group_counts(item, _Fixed(), s, clean, True, 2, "fixed", "d")
+    e = out["estimators"][adverse]
+    assert e["pixels"] == 24 and e["agree_clean"] == 12  # the right half turns from class 0 to class 1
+    assert e["conf_sum"] == pytest.approx(12 * 0.875 + 12 * 0.625, rel=1e-5)
+    assert np.asarray(e["conf_hist"])[[625, 875]].tolist() == [12, 12]
+    assert out["estimators"][clean]["agree_clean"] == 24
+    assert out["pred"][adverse].dtype == np.uint8 and (out["pred"][adverse][:, 3:] == 1).all()
+
+
+def test_estimator_arrays_predictions_and_shard_parts_round_trip(tmp_path):
+    conds = ["Day-EXTRASUNNY", "Day-RAIN"]
+    hist = [0] * ev.CONF_BINS
+    hist[10] = 6
+    results = [{"group_id": f"s{g}", "xi": {}, "cm": {}, "agreement": [], "counts": [],
+                "estimators": {c: {"pixels": 6, "conf_sum": 1.5 + g, "entropy_sum": 0.5, "conf_hist": hist,
+                                   "agree_clean": 3} for c in conds[: 2 - g]},
+                "pred": {c: np.full((2, 3), g + i, np.uint8) for i, c in enumerate(conds[: 2 - g])}} for g in range(2)]
+    ev.write_group_counts(tmp_path / "gc.npz", results, conds)
+    a = np.load(tmp_path / "gc.npz")
+    assert a["est_pixels"].tolist() == [[6, 6], [6, 0]] and a["est_conf_sum"][1, 0] == 2.5
+    assert a["est_conf_hist"][0, 1, 10] == 6 and a["est_agree_clean"].sum() == 9
+    ev.write_predictions(tmp_path / "p.npz", results, conds)
+    p = np.load(tmp_path / "p.npz")
+    assert p["group_id"].tolist() == ["s0", "s1"] and p["g00000"].shape == (2, 2, 3)
+    assert (p["g00001"][1] == 255).all() and (p["g00001"][0] == 1).all()  # absent condition: 255
+    parts = tmp_path / "parts"
+    ev.write_part(parts, 0, 1, results)
+    back = ev.read_parts(parts)
+    assert set(back) == {"s0", "s1"} and np.array_equal(back["s0"]["pred"]["Day-RAIN"], results[0]["pred"]["Day-RAIN"])
+    assert back["s1"]["estimators"]["Day-EXTRASUNNY"]["conf_sum"] == 2.5
+    (parts / "part-00000-of-00001.npz").unlink()  # maps lost: the part is not trusted, its groups are redone
+    assert ev.read_parts(parts) == {}
