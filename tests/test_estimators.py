@@ -142,6 +142,9 @@ def test_gde_is_the_mean_agreement_with_the_other_models(tmp_path):
     np.testing.assert_allclose(v[:, 0, 1], [0.5, 0.25, 0.25])
     # clean: group 0 as A, group 1 all agree: (4 + 8) / 16 with each other model
     np.testing.assert_allclose(v[:, 0, 0], [0.75, (12 / 16 + 8 / 16) / 2, (12 / 16 + 8 / 16) / 2])
+    # a group with no image predicted has no key: it scores nothing
+    agree2, scored2 = pairwise_agreement([{"g00000": zeros}, {"g00000": half}], 2)
+    assert agree2.shape == (2, 2, 2, 2) and scored2[1].sum() == 0 and agree2[0, 0, 0, 1] == 4
     with pytest.raises(ValueError, match="shapes"):
         pairwise_agreement([{"g00000": zeros}, {"g00000": zeros[:, :1]}], 1)
 

@@ -157,6 +157,11 @@ def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: in
     m_count = len(sources)
     agree = scored = None
     for g in range(n_groups):
+        have = [key(g) in s for s in sources]
+        if not any(have):  # no image of the group was predicted (evaluate writes no key): it scores nothing
+            continue
+        if not all(have):
+            raise ValueError(f"group {key(g)}: predicted by some models only")
         preds = [np.asarray(s[key(g)]) for s in sources]
         shapes = {p.shape for p in preds}
         if len(shapes) != 1 or len(preds[0].shape) != 3:
@@ -166,6 +171,8 @@ def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: in
         if agree is None:
             agree = np.zeros((n_groups, preds[0].shape[0], m_count, m_count), np.int64)
             scored = np.zeros_like(agree)
+        elif preds[0].shape[0] != agree.shape[1]:
+            raise ValueError(f"group {key(g)}: {preds[0].shape[0]} conditions, not {agree.shape[1]}")
         for a in range(m_count):
             agree[g, :, a, a] = scored[g, :, a, a] = np.count_nonzero(valid[a], axis=-1)
             for b in range(a + 1, m_count):
@@ -174,7 +181,7 @@ def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: in
                 agree[g, :, a, b] = agree[g, :, b, a] = same
                 scored[g, :, a, b] = scored[g, :, b, a] = both
     if agree is None:
-        return np.zeros((0, 0, m_count, m_count), np.int64), np.zeros((0, 0, m_count, m_count), np.int64)
+        return np.zeros((n_groups, 0, m_count, m_count), np.int64), np.zeros((n_groups, 0, m_count, m_count), np.int64)
     return agree, scored
 
 
