@@ -85,6 +85,7 @@ RULES = [
     _rule("metric.bootstrap.resamples", int, lambda v: v >= 0, "use an integer >= 0 (0 = no intervals)"),
     _rule("metric.bootstrap.confidence", float, lambda v: 0.0 < v < 1.0, "use a level strictly between 0 and 1, e.g. 0.95"),
     _rule("metric.bootstrap.seed", int, lambda v: True, "use an integer"),
+    _rule("metric.validity.permutations", int, lambda v: v >= 0, "use an integer >= 0 (0 = no permutation p-value)"),
     _rule("plot.dpi", float, lambda v: v > 0, "use dots per inch > 0, e.g. 150"),
     _rule("plot.qualitative_groups", int, lambda v: v >= 0, "use an integer >= 0"),
     _rule("plot.ranking.window", int, lambda v: v >= 1, "use an integer >= 1"),

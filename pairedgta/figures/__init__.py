@@ -20,6 +20,8 @@ FIGURES.register("ranking", "pairedgta.figures.ranking:draw", needs="evaluate")
 FIGURES.register("qualitative", "pairedgta.figures.qualitative:draw", needs="evaluate")
 FIGURES.register("xi_models", "pairedgta.figures.comparison:draw", needs="evaluate")
 FIGURES.register("metric_validity", "pairedgta.figures.validity:draw", needs="evaluate")
+# keyed: metric.validity.permutations and reference_model enter the plot hash
+FIGURES.register("estimators", "pairedgta.figures.estimators:draw", needs="evaluate", keyed=True)
 FIGURES.register("ablation", "pairedgta.figures.ablation:draw", needs="evaluate")
 FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel")
 FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")

@@ -1,0 +1,207 @@
+"""Is xi the best label-free judge of robustness? (experiment metric_validity, figure `estimators`)
+
+Reads each model's per-group sums (`e.group_counts()`, evaluate's `est_*` arrays) and argmax predictions
+(`predictions.npz`, for the agreement between models), and compares label-free estimators of robustness
+(pairedgta.metrics.estimators: xi, AC, DoC, ATC, entropy, GDE, self-agreement, clean mIoU) as judges of
+rPC and adverse GT mIoU across the models other than the reference. Writes estimators.csv (one row per
+estimator, target and scope), estimators.md (the headline tables), estimator_cells.csv (one row per model
+and condition) and a figure: each estimator against rPC, and the within-condition mean Spearman of each
+with its scene and scene+model intervals."""
+from __future__ import annotations
+
+import contextlib
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
+from pairedgta.errors import ConfigError
+from pairedgta.figures import FigureOptions
+from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_table, paper_style, save
+from pairedgta.metrics import mean_mask
+from pairedgta.metrics.conventions import convention_from_config
+from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, TARGETS, USES_CLEAN_LABELS,
+                                          EstimatorCounts, compare, concat_counts, pairwise_agreement, ranked_models)
+from pairedgta.metrics.validity import GroupCounts, concat_groups
+
+NAMES = {"xi": "ξ (label-free)", "ac": "AC", "doc": "DoC", "atc": "ATC", "entropy": "1 − entropy", "gde": "GDE",
+         "self_agreement": "self-agreement", "clean_miou": "clean GT mIoU"}
+TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
+STATS = ("spearman", "kendall", "mae", "p_permutation")
+FIX = "rerun with force=[evaluate]"
+
+
+def settings(opts: FigureOptions) -> dict[str, Any]:
+    metric = opts.cfg.get("metric") or {}
+    boot = metric.get("bootstrap") or {}
+    return {"permutations": int((metric.get("validity") or {}).get("permutations", 10000)),
+            "resamples": int(boot.get("resamples", 1000)), "confidence": float(boot.get("confidence", 0.95)),
+            "seed": int(boot.get("seed", 0)), "reference_model": opts.cfg.get("reference_model")}
+
+
+def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+    """What the figure reads beyond the evaluations (the plot stage's cache key): permutations, reference."""
+    return settings(opts), {}
+
+
+def references(passes: list, opts: FigureOptions) -> set[str]:
+    """The pseudo-label source of every pass (the run's reference_model where a pass has none)."""
+    refs = {p.pseudo.reference_model() for p in passes if getattr(p, "pseudo", None) is not None}
+    return refs or ({str(opts.cfg["reference_model"])} if opts.cfg.get("reference_model") else set())
+
+
+def load(passes: list) -> tuple[list[GroupCounts], list[EstimatorCounts], dict[str, list[Path]]]:
+    """Per model evaluated on every pass (sorted by name): its groups of every pass, and the pass's
+    predictions.npz paths."""
+    per: dict[str, list[tuple[GroupCounts, EstimatorCounts, Path]]] = {}
+    for p in passes:
+        for e in p.evaluations:
+            arrays = e.group_counts()
+            missing = [k for k in COUNT_ARRAYS if k not in arrays]
+            if missing:
+                raise ConfigError(f"plot.figures: estimators needs {', '.join(missing)} in {Path(e.path) / 'group_counts.npz'}"
+                                  f", written by a newer evaluate; {FIX}")
+            if not arrays["cm_present"].any():
+                raise ConfigError(f"plot.figures: estimators needs ground-truth labels under every condition; dataset "
+                                  f"{p.label} has none (use the generated dataset of the embedded renderer)")
+            per.setdefault(e.model, []).append((GroupCounts.from_arrays(e.model, arrays),
+                                                EstimatorCounts.from_arrays(e.model, arrays), Path(e.path)))
+    full = {m: parts for m, parts in sorted(per.items()) if len(parts) == len(passes)}
+    return ([concat_groups(g for g, _, _ in parts) for parts in full.values()],
+            [concat_counts(c for _, c, _ in parts) for parts in full.values()],
+            {m: [path for _, _, path in parts] for m, parts in full.items()})
+
+
+def agreement(models: list[GroupCounts], paths: dict[str, list[Path]], n_passes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairwise agreement of the given models per group, pass after pass (the order of concat_groups)."""
+    agree, scored, start = [], [], 0
+    for k in range(n_passes):
+        with contextlib.ExitStack() as stack:
+            sources = []
+            for m in models:
+                path = paths[m.model][k] / "predictions.npz"
+                if not path.is_file():
+                    raise ConfigError(f"plot.figures: estimators needs {path} (the argmax predictions, for GDE); {FIX}")
+                z = stack.enter_context(np.load(path, allow_pickle=False))
+                ids = [str(g) for g in z["group_id"]]
+                n = len(ids)
+                want = [g.split(":", 1)[1] for g in m.group_ids[start : start + n]] if m.group_ids else ids
+                conds = tuple(str(c) for c in z["conditions"])
+                if ids != want or conds != m.conditions:
+                    raise ConfigError(f"plot.figures: {path} holds other groups or conditions than its group_counts.npz; {FIX}")
+                sources.append(z)
+            a, s = pairwise_agreement(sources, n)
+        agree.append(a)
+        scored.append(s)
+        start += n
+    return np.concatenate(agree), np.concatenate(scored)
+
+
+def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    models, counts, paths = load(passes)
+    refs = references(passes, opts)
+    ranked = ranked_models([m.model for m in models], refs)
+    if len(ranked) < MIN_RANKED:
+        raise ConfigError(f"plot.figures: estimators ranks the models other than the reference "
+                          f"({', '.join(sorted(refs)) or 'none'}) evaluated on every pass and found {len(ranked)} "
+                          f"({', '.join(ranked) or 'none'}); evaluate at least {MIN_RANKED} besides it (models=[...])")
+    metric = opts.cfg.get("metric") or {}
+    conv = convention_from_config(metric)
+    s = settings(opts)
+    clean = (metric.get("rho") or {}).get("clean_condition") or passes[0].grid.reference
+    agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
+    cells, stats = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
+                           refs, conv.absent, s["resamples"], s["confidence"], s["seed"], s["permutations"],
+                           conv.min_images, conv.min_pixels)
+    cells_df, stats_df = pd.DataFrame(cells), pd.DataFrame(stats)
+    cells_df["convention"] = stats_df["convention"] = conv.name
+    cells_df.to_csv(out / "estimator_cells.csv", index=False)
+    stats_df.to_csv(out / "estimators.csv", index=False)
+    (out / "estimators.md").write_text(markdown(stats_df, refs, s["confidence"]))
+    files = [out / "estimators.csv", out / "estimators.md", out / "estimator_cells.csv"]
+    files += _figure(cells_df, stats_df, out, opts, s["confidence"])
+    metrics: dict[str, float] = {}
+    for row in stats_df.to_dict("records"):
+        for stat in STATS:
+            v = row.get(stat)
+            if v is not None and not (isinstance(v, float) and math.isnan(v)):
+                metrics[f"validity/{row['estimator']}/{row['target']}/{stat}/{row['scope']}"] = float(v)
+    return files, metrics
+
+
+def _num(v: float, fmt: str = "{:.2f}") -> str:
+    return "–" if v is None or not math.isfinite(v) else fmt.format(v)
+
+
+def _ci(lo: float, hi: float) -> str:
+    return "–" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{lo:.2f}, {hi:.2f}]"
+
+
+def markdown(stats: pd.DataFrame, refs: set[str], confidence: float) -> str:
+    """One table per target: estimators sorted by their within-condition mean Spearman."""
+    first = stats.iloc[0]
+    text = [f"# Label-free estimators of robustness\n\nRanked: {int(first['n_models'])} models (the reference model "
+            f"{', '.join(sorted(refs)) or '–'} is excluded: its pseudo-labels are what ξ counts), {int(first['n_groups'])} "
+            f"scenes. Intervals: {confidence:.0%} percentile bootstrap over scenes, and over scenes and models. "
+            f"p: permutation test of the model order within each condition. DoC, ATC and clean GT mIoU use the clean "
+            f"condition's ground truth; no estimator uses a label of an adverse condition.\n"]
+    for t in TARGETS:
+        part = stats[stats["target"] == t].set_index(["estimator", "scope"])
+        order = sorted(ESTIMATORS, key=lambda e: -np.nan_to_num(part.loc[(e, "within_mean"), "spearman"], nan=-9))
+        rows = []
+        for e in order:
+            w, pooled, loco = part.loc[(e, "within_mean")], part.loc[(e, "pooled")], part.loc[(e, "loco")]
+            rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else ""), _num(w["spearman"]),
+                         _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
+                         _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
+                         _num(pooled["spearman"]), _num(loco["mae"], "{:.3f}")])
+        base = part.loc[(order[0], "loco"), "mae_baseline"]
+        text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + markdown_table(
+            ["estimator", "within-condition mean Spearman", "scene CI", "scene+model CI", "p",
+             "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
+            f"\n\\* uses clean ground truth. LOCO MAE of the no-information baseline (the training cells' mean "
+            f"{TARGET_TEXT[t]}): {_num(base, '{:.3f}')}.\n")
+    return "".join(text)
+
+
+def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOptions, level: float) -> list[Path]:
+    conds = list(dict.fromkeys(cells["condition"]))
+    colors = plt.get_cmap("tab10")
+    with paper_style():
+        fig, axes = plt.subplots(3, 3, figsize=(TEXT_WIDTH, 6.6))
+        for ax, e in zip(axes.flat, ESTIMATORS):
+            for i, c in enumerate(conds):
+                part = cells[cells["condition"] == c]
+                ax.scatter(part["rpc"], part[e], color=colors(i % 10), s=10, edgecolor="black", linewidth=0.2,
+                           label=condition_display(c))
+            ax.set_title(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""))
+            ax.set_xlabel("rPC")
+        bx = axes.flat[-1]
+        part = stats[(stats["target"] == "rpc") & (stats["scope"] == "within_mean")].sort_values("spearman")
+        y = np.arange(len(part))
+        for offset, kind, color, label in ((0.15, "", "black", "scenes"), (-0.15, "_model", "0.55", "scenes + models")):
+            v = part["spearman"].to_numpy(float)
+            lo, hi = part[f"spearman{kind}_ci_low"].to_numpy(float), part[f"spearman{kind}_ci_high"].to_numpy(float)
+            has = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(v)
+            bx.errorbar(v[has], (y + offset)[has], xerr=[v[has] - lo[has], hi[has] - v[has]], fmt="o", color=color, ms=3,
+                        capsize=1.5, lw=0.8, label=f"{level:.0%} bootstrap over {label}")
+            bx.plot(v[~has], (y + offset)[~has], "o", mfc="none", mec=color, ms=3.5, mew=0.8,
+                    label="no interval" if (~has).any() else None)
+        bx.axvline(0, color="0.6", lw=0.6)
+        bx.set_xlim(-1.05, 1.05)
+        bx.set_yticks(y)
+        bx.set_yticklabels([NAMES[e] for e in part["estimator"]])
+        bx.set_xlabel("mean within-condition Spearman with rPC")
+        bx.set_title(f"{int(part['n_models'].iloc[0])} models, {int(part['n_groups'].iloc[0])} scenes")
+        handles, labels = [], []
+        for ax in (axes.flat[0], bx):  # the conditions' colours, then the two intervals
+            h, lab = ax.get_legend_handles_labels()
+            handles += h
+            labels += lab
+        fig.tight_layout(rect=(0, 0.05, 1, 1))
+        fig.legend(handles, labels, loc="lower center", ncol=min(6, len(labels)), frameon=False, fontsize=5.5)
+        return save(fig, out, opts.stem("estimators", "all"), opts.formats, opts.dpi)

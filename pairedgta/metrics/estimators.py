@@ -1,0 +1,408 @@
+"""Is xi the best label-free judge of robustness? Label-free estimators of accuracy under shift, compared.
+
+Every estimator gives one value per (model, adverse condition) cell; a larger value predicts a more
+robust model. Each is checked, as `pairedgta.metrics.validity` checks xi, against the ground truth of the
+embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mIoU.
+
+- `xi`: label-free mean xi against the reference model's pseudo-labels (`validity.cell_measures`).
+- `ac`: average confidence, the mean max-softmax probability (Hendrycks & Gimpel, ICLR 2017).
+- `doc`: difference of confidences (Guillory et al., ICCV 2021): clean GT mIoU + AC(adverse) - AC(clean).
+- `atc`: average thresholded confidence (Garg et al., ICLR 2022, max-confidence score): the threshold t is
+  the smallest histogram edge at which the clean share of pixels with confidence >= t is at most the clean
+  pixel accuracy; the estimate is the adverse share of pixels with confidence >= t.
+- `entropy`: one minus the mean normalised predictive entropy H(p) / log K.
+- `gde`: agreement with the other models (Jiang et al., ICLR 2022; Baek et al., NeurIPS 2022): the mean over
+  the other ranked models of the share of pixels on which the two predictions agree.
+- `self_agreement`: the share of pixels predicted as on the clean image of the same scene.
+- `clean_miou`: the clean GT mIoU alone (accuracy on the line, Miller et al., ICML 2021).
+
+`doc`, `atc` and `clean_miou` use the clean condition's ground truth (the labelled source data these
+methods assume); no estimator uses a label of an adverse condition.
+
+Statistics lead with the within-condition view: per adverse condition, Spearman and Kendall (tau-b)
+across the ranked models (every model but the reference, which would grade itself), and their mean over
+the conditions (`within_mean`) with a paired bootstrap interval over scenes, an interval that also
+resamples the models, and a permutation p-value against a random model order. Beside it, the correlation
+over every cell pooled (which mostly orders the conditions) and the mean absolute error of a linear map
+from estimator to target fitted on the other conditions (leave one condition out). Pure numpy/scipy: the
+caller reads the files (the per-group sums of evaluate and its argmax predictions)."""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from pairedgta.metrics.bootstrap import resample_weights
+from pairedgta.metrics.validity import GroupCounts, _interval, cell_measures, kendall_rows, spearman_rows
+
+ESTIMATORS = ("xi", "ac", "doc", "atc", "entropy", "gde", "self_agreement", "clean_miou")
+USES_CLEAN_LABELS = frozenset({"doc", "atc", "clean_miou"})  # clean ground truth; none uses adverse labels
+TARGETS = ("rpc", "gt_miou")
+COUNT_ARRAYS = ("est_pixels", "est_conf_sum", "est_entropy_sum", "est_conf_hist", "est_agree_clean")
+ABSENT_CLASS = 255  # predictions.npz: every pixel of a condition's absent image
+MIN_RANKED = 4
+COLUMNS = ("estimator", "target", "scope", "n_models", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
+           "spearman_ci_high", "kendall", "kendall_ci_low", "kendall_ci_high", "spearman_model_ci_low",
+           "spearman_model_ci_high", "kendall_model_ci_low", "kendall_model_ci_high", "p_permutation", "permutations",
+           "mae", "mae_baseline", "uses_clean_labels", "resamples", "confidence")  # of compare's `stats`
+STATS: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = (
+    ("spearman", spearman_rows), ("kendall", kendall_rows))
+
+
+@dataclass(frozen=True)
+class EstimatorCounts:
+    """One model's per-group sums for the label-free estimators (evaluate's `est_*` arrays)."""
+
+    model: str
+    conditions: tuple[str, ...]
+    pixels: np.ndarray       # G x C: pixels scored
+    conf_sum: np.ndarray     # G x C: sum of the max softmax probability
+    entropy_sum: np.ndarray  # G x C: sum of H(p) / log K
+    conf_hist: np.ndarray    # G x C x B: max softmax probability in B equal bins on [0, 1]
+    agree_clean: np.ndarray  # G x C: pixels predicted as on the clean image
+    group_ids: tuple[str, ...] = ()
+
+    @classmethod
+    def from_arrays(cls, model: str, a: Mapping[str, np.ndarray]) -> "EstimatorCounts":
+        missing = [k for k in COUNT_ARRAYS if k not in a]
+        if missing:
+            raise ValueError(f"model {model}: no {', '.join(missing)} in the group counts")
+        ids = tuple(str(g) for g in a["group_id"]) if "group_id" in a else ()
+        return cls(model, tuple(str(c) for c in a["conditions"]), *(np.asarray(a[k]) for k in COUNT_ARRAYS), ids)
+
+
+def concat_counts(parts: Iterable[EstimatorCounts]) -> EstimatorCounts:
+    """Groups of several passes of one model, stacked (as `validity.concat_groups`)."""
+    parts = list(parts)
+    if len({p.conditions for p in parts}) != 1:
+        raise ValueError("the passes were evaluated on different conditions")
+    ids = tuple(f"{i}:{g}" for i, p in enumerate(parts) for g in p.group_ids) if all(p.group_ids for p in parts) else ()
+    return EstimatorCounts(parts[0].model, parts[0].conditions,
+                           *(np.concatenate([getattr(p, f) for p in parts]) for f in
+                             ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean")), ids)
+
+
+def _weigh(w: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """R x G weights applied to G x ... per-group sums -> R x ..."""
+    a = np.asarray(a, float)
+    return (np.asarray(w, float) @ a.reshape(a.shape[0], -1)).reshape((len(w),) + a.shape[1:])
+
+
+def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1), np.nan)
+
+
+def average_confidence(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
+    """AC per (resample, condition): pooled mean max-softmax probability."""
+    return _ratio(_weigh(w, c.conf_sum), _weigh(w, c.pixels))
+
+
+def entropy_score(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
+    """1 - pooled mean normalised entropy per (resample, condition): higher = more confident."""
+    return 1.0 - _ratio(_weigh(w, c.entropy_sum), _weigh(w, c.pixels))
+
+
+def self_agreement(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
+    """Pooled share of pixels predicted as on the clean image, per (resample, condition)."""
+    return _ratio(_weigh(w, c.agree_clean), _weigh(w, c.pixels))
+
+
+def pixel_accuracy(cm: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Pooled pixel accuracy of G x C x K x K confusion matrices, per (resample, condition)."""
+    m = _weigh(w, cm)
+    return _ratio(np.trace(m, axis1=-2, axis2=-1), m.sum((-2, -1)))
+
+
+def atc_threshold(clean_hist: np.ndarray, accuracy: np.ndarray) -> np.ndarray:
+    """Index k (0..B) of the ATC threshold edge k / B per row of ... x B clean histograms: the smallest
+    edge where the share of pixels with confidence >= k / B is at most `accuracy` (...). -1 where the
+    histogram is empty or the accuracy undefined."""
+    h = np.asarray(clean_hist, float)
+    acc = np.asarray(accuracy, float)
+    tail = _tails(h)
+    total = tail[..., 0]
+    share = _ratio(tail, total[..., None])
+    with np.errstate(invalid="ignore"):
+        k = np.argmax(share <= acc[..., None] + 1e-12, axis=-1)  # share[B] = 0: always found when defined
+    return np.where((total > 0) & np.isfinite(acc), k, -1)
+
+
+def _tails(h: np.ndarray) -> np.ndarray:
+    """... x B histogram -> ... x (B + 1): counts at or above each edge k / B (the last is 0)."""
+    return np.concatenate([np.cumsum(h[..., ::-1], axis=-1)[..., ::-1], np.zeros(h.shape[:-1] + (1,), h.dtype)], axis=-1)
+
+
+def atc(hist: np.ndarray, cm: np.ndarray, clean: int, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """-> (ATC per (resample, condition), threshold per resample), from G x C x B confidence histograms
+    and the clean condition's G x C x K x K confusion matrices (its pixel accuracy)."""
+    w = np.asarray(w, float)
+    tails = _tails(np.asarray(hist))                      # G x C x (B + 1), per group: cheap to weigh at one edge
+    bins = tails.shape[-1] - 1
+    k = atc_threshold(_weigh(w, np.asarray(hist)[:, clean]), pixel_accuracy(np.asarray(cm)[:, clean : clean + 1], w)[:, 0])
+    above = np.einsum("rg,gcr->rc", w, tails[:, :, np.maximum(k, 0)].astype(float))  # R x C
+    score = _ratio(above, _weigh(w, tails[..., 0]))
+    return np.where(k[:, None] >= 0, score, np.nan), np.where(k >= 0, k / bins, np.nan)
+
+
+def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: int,
+                       key: Callable[[int], str] = lambda g: f"g{g:05d}") -> tuple[np.ndarray, np.ndarray]:
+    """Pixel agreement between every pair of M models, per group and condition, from their argmax maps
+    (`sources[m][key(g)]`: C x H x W class ids, 255 where the image is absent; read one group at a time,
+    so a lazily loaded npz holds one group per model in memory). -> (agree, scored), both G x C x M x M:
+    pixels where the two predict the same class, and pixels both predicted (the diagonal: each model's)."""
+    m_count = len(sources)
+    agree = scored = None
+    for g in range(n_groups):
+        have = [key(g) in s for s in sources]
+        if not any(have):  # no image of the group was predicted (evaluate writes no key): it scores nothing
+            continue
+        if not all(have):
+            raise ValueError(f"group {key(g)}: predicted by some models only")
+        preds = [np.asarray(s[key(g)]) for s in sources]
+        shapes = {p.shape for p in preds}
+        if len(shapes) != 1 or len(preds[0].shape) != 3:
+            raise ValueError(f"group {key(g)}: the models' predictions have shapes {sorted(shapes)}, not one C x H x W")
+        flat = [p.reshape(p.shape[0], -1) for p in preds]
+        valid = [f != ABSENT_CLASS for f in flat]
+        if agree is None:
+            agree = np.zeros((n_groups, preds[0].shape[0], m_count, m_count), np.int64)
+            scored = np.zeros_like(agree)
+        elif preds[0].shape[0] != agree.shape[1]:
+            raise ValueError(f"group {key(g)}: {preds[0].shape[0]} conditions, not {agree.shape[1]}")
+        for a in range(m_count):
+            agree[g, :, a, a] = scored[g, :, a, a] = np.count_nonzero(valid[a], axis=-1)
+            for b in range(a + 1, m_count):
+                same = np.count_nonzero((flat[a] == flat[b]) & valid[a], axis=-1)
+                both = np.count_nonzero(valid[a] & valid[b], axis=-1)
+                agree[g, :, a, b] = agree[g, :, b, a] = same
+                scored[g, :, a, b] = scored[g, :, b, a] = both
+    if agree is None:
+        return np.zeros((n_groups, 0, m_count, m_count), np.int64), np.zeros((n_groups, 0, m_count, m_count), np.int64)
+    return agree, scored
+
+
+def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """M x R x C: per model the mean over the other models of the pooled pixel agreement share."""
+    share = _ratio(_weigh(w, agree), _weigh(w, scored))   # R x C x M x M
+    m_count = share.shape[-1]
+    share = np.where(np.eye(m_count, dtype=bool), np.nan, share)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # one model: no other to agree with
+        return np.moveaxis(np.nanmean(share, axis=-1), -1, 0)
+
+
+def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray,
+                     scored: np.ndarray, weights: np.ndarray, clean: str, include: np.ndarray, absent: str = "nan",
+                     min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
+    """Every estimator and target, M x R x C, for group weights R x G (a row of ones = the data itself),
+    plus `atc_threshold` (M x R). `agree`/`scored`: `pairwise_agreement` over the same models, in order."""
+    if agree.shape[-1] != len(models) or agree.shape[0] != models[0].cm.shape[0]:
+        raise ValueError(f"pairwise agreement of {agree.shape[-1]} models over {agree.shape[0]} groups for "
+                         f"{len(models)} models over {models[0].cm.shape[0]} groups")
+    conds = models[0].conditions
+    c0 = conds.index(clean)
+    w = np.asarray(weights, float)
+    out: dict[str, list[np.ndarray]] = {}
+    for g, c in zip(models, counts):
+        if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
+            raise ValueError(f"model {g.model}: the estimator sums cover other groups, conditions or models")
+        cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels)
+        ac = average_confidence(c, w)
+        score, threshold = atc(c.conf_hist, g.cm, c0, w)
+        values = {"xi": cm["xi_mean"], "ac": ac, "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score,
+                  "entropy": entropy_score(c, w), "self_agreement": self_agreement(c, w),
+                  "clean_miou": cm["gt_miou_clean"], "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
+                  "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
+        for k, v in values.items():
+            out.setdefault(k, []).append(v)
+    stacked = {k: np.stack(v) for k, v in out.items()}
+    stacked["gde"] = gde(agree, scored, w)
+    return stacked
+
+
+def ranked_models(names: Sequence[str], reference: Iterable[str]) -> list[str]:
+    """The models that are ranked: every one but the reference model(s), whose pseudo-labels xi counts."""
+    ref = set(reference)
+    return [n for n in names if n not in ref]
+
+
+def model_draws(n_models: int, resamples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """-> (R x M model indices drawn with replacement, R bools: at least 3 distinct models drawn)."""
+    idx = np.random.default_rng([int(seed), 1]).integers(0, n_models, size=(resamples, n_models))
+    distinct = (np.diff(np.sort(idx, axis=1), axis=1) != 0).sum(axis=1) + 1 if n_models else np.zeros(resamples, int)
+    return idx, distinct >= 3
+
+
+def within_condition(x: np.ndarray, y: np.ndarray, stat: Callable = spearman_rows,
+                     draws: np.ndarray | None = None) -> np.ndarray:
+    """x, y: M x R x C' (models, resamples, conditions) -> R x C': the rank correlation across models per
+    resample and condition; with `draws` (R x M model indices) across the models each resample drew."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    out = []
+    for i in range(x.shape[-1]):
+        xi, yi = x[..., i].T, y[..., i].T                   # R x M
+        if draws is not None:
+            xi, yi = np.take_along_axis(xi, draws, axis=1), np.take_along_axis(yi, draws, axis=1)
+        out.append(stat(xi, yi))
+    return np.stack(out, axis=-1)
+
+
+def permutation_pvalue(x: np.ndarray, y: np.ndarray, permutations: int, seed: int = 0,
+                       stat: Callable = spearman_rows) -> float:
+    """x, y: C' x M (per condition, across models). One-sided p-value of the mean over conditions of the
+    rank correlation against a random model order: the estimator's values are permuted across models
+    independently within each condition; p = (1 + #{permuted mean >= observed}) / (1 + permutations)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    observed = float(np.mean(stat(x, y)))
+    if not math.isfinite(observed) or permutations <= 0:
+        return math.nan
+    rng = np.random.default_rng([int(seed), 2])
+    n_cond, n_models = x.shape
+    hits, done = 0, 0
+    chunk = max(1, 200_000 // max(1, n_cond * n_models))
+    while done < permutations:
+        n = min(chunk, permutations - done)
+        order = np.argsort(rng.random((n, n_cond, n_models)), axis=-1)
+        xp = np.take_along_axis(np.broadcast_to(x, (n, n_cond, n_models)), order, axis=-1)
+        yp = np.broadcast_to(y, (n, n_cond, n_models))
+        means = stat(xp.reshape(-1, n_models), yp.reshape(-1, n_models)).reshape(n, n_cond).mean(axis=1)
+        hits += int(np.sum(means >= observed - 1e-12))
+        done += n
+    return (1 + hits) / (1 + permutations)
+
+
+def loco_mae(x: np.ndarray, y: np.ndarray) -> dict[str, object]:
+    """Leave one condition out: x, y are M x C' (cells of the ranked models under each adverse condition).
+    For each held-out condition, y = a + b x is fitted by least squares on the other conditions' cells and
+    evaluated on the held-out cells; the baseline predicts the training cells' mean target. -> `mae` and
+    `mae_baseline` (over every held-out cell), `per_condition` and `per_condition_baseline` (C')."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    n_cond = x.shape[1]
+    errors, base_errors, per, per_base = [], [], np.full(n_cond, np.nan), np.full(n_cond, np.nan)
+    for h in range(n_cond):
+        train = np.arange(n_cond) != h
+        xt, yt = x[:, train].ravel(), y[:, train].ravel()
+        ok = np.isfinite(xt) & np.isfinite(yt)
+        xh, yh = x[:, h], y[:, h]
+        okh = np.isfinite(xh) & np.isfinite(yh)
+        if ok.sum() < 2 or not okh.any():
+            continue
+        xt, yt = xt[ok], yt[ok]
+        mean_y = float(yt.mean())
+        if np.ptp(xt) <= 1e-12:   # no slope to fit: the mean
+            a, b = mean_y, 0.0
+        else:
+            b = float(np.sum((xt - xt.mean()) * (yt - mean_y)) / np.sum((xt - xt.mean()) ** 2))
+            a = mean_y - b * float(xt.mean())
+        err = np.abs(a + b * xh[okh] - yh[okh])
+        base = np.abs(mean_y - yh[okh])
+        per[h], per_base[h] = float(err.mean()), float(base.mean())
+        errors.append(err)
+        base_errors.append(base)
+    mae = float(np.concatenate(errors).mean()) if errors else math.nan
+    mae_base = float(np.concatenate(base_errors).mean()) if base_errors else math.nan
+    return {"mae": mae, "mae_baseline": mae_base, "per_condition": per, "per_condition_baseline": per_base}
+
+
+def _mean_over_conditions(r: np.ndarray) -> np.ndarray:
+    """R x C' -> R: the mean, undefined (NaN) where any condition's correlation is."""
+    return np.mean(r, axis=-1)
+
+
+def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray, scored: np.ndarray,
+            clean: str, include: np.ndarray, reference: Iterable[str] = (), absent: str = "nan",
+            resamples: int = 1000, confidence: float = 0.95, seed: int = 0, permutations: int = 10000,
+            min_images: int = 0, min_pixels: int = 0) -> tuple[list[dict], list[dict]]:
+    """-> (cells, stats). `models`/`counts`: every evaluated model (in the same order); the reference
+    model(s) are left out of the ranking; `agree`/`scored` (`pairwise_agreement`) cover the ranked
+    models, in their order. `cells`: one row per (ranked model, adverse condition) with every estimator,
+    the ATC threshold and the targets. `stats`: one row per (estimator, target, scope), scope each adverse
+    condition, `within_mean`, `pooled` or `loco` (see the module's docstring). The interval over scenes
+    and models draws the models anew per resample but keeps each model's estimator values as computed
+    on the whole ranked set (GDE's other models included)."""
+    names = ranked_models([m.model for m in models], reference)
+    if len(names) < MIN_RANKED:
+        raise ValueError(f"{len(names)} ranked models ({', '.join(names) or 'none'}); at least {MIN_RANKED} are needed")
+    keep = [i for i, m in enumerate(models) if m.model in names]
+    models, counts = [models[i] for i in keep], [counts[i] for i in keep]
+    conds = models[0].conditions
+    n = models[0].cm.shape[0]
+    for m in models:
+        if m.conditions != conds or m.cm.shape[0] != n or (m.group_ids and models[0].group_ids
+                                                            and m.group_ids != models[0].group_ids):
+            raise ValueError(f"model {m.model}: evaluated on other groups or conditions than {models[0].model}")
+    if clean not in conds:
+        raise ValueError(f"the clean condition {clean} was not evaluated")
+    adverse = [i for i, c in enumerate(conds) if c != clean]
+    if len(adverse) < 2:
+        raise ValueError("at least 2 adverse conditions are needed (the mean over conditions, leave one out)")
+    args = (clean, include, absent, min_images, min_pixels)
+    point = estimator_values(models, counts, agree, scored, np.ones((1, n)), *args)
+    w = resample_weights(n, resamples, seed).astype(float)
+    boot = estimator_values(models, counts, agree, scored, w, *args) if resamples > 0 else None
+    draws, enough = model_draws(len(models), max(resamples, 0), seed)
+
+    cells = []
+    for j, m in enumerate(models):
+        for i in adverse:
+            row: dict = {"model": m.model, "condition": conds[i], "n_groups": n}
+            row.update({k: float(point[k][j, 0, i]) for k in ESTIMATORS})
+            row["atc_threshold"] = float(point["atc_threshold"][j, 0])
+            row.update({k: float(point[k][j, 0, i]) for k in (*TARGETS, "gt_miou_clean")})
+            cells.append(row)
+
+    def interval(b: np.ndarray | None) -> tuple[float, float]:
+        return _interval(b, confidence)[:2] if b is not None and b.size else (math.nan, math.nan)
+
+    stats = []
+    for e in ESTIMATORS:
+        for t in TARGETS:
+            base = {"estimator": e, "target": t, "n_models": len(models), "n_groups": n,
+                    "uses_clean_labels": e in USES_CLEAN_LABELS, "resamples": len(w), "confidence": confidence}
+            px, py = point[e][:, :, adverse], point[t][:, :, adverse]          # M x 1 x C'
+            bx = by = None
+            if boot is not None:
+                bx, by = boot[e][:, :, adverse], boot[t][:, :, adverse]        # M x R x C'
+            loco = loco_mae(px[:, 0], py[:, 0])
+            rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(models),
+                                   mae=loco["per_condition"][a], mae_baseline=loco["per_condition_baseline"][a])
+                    for a, i in enumerate(adverse)}
+            mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(models) * len(adverse))
+            pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(models) * len(adverse))
+            for name, fn in STATS:
+                p = within_condition(px, py, fn)[0]                                # C'
+                b = within_condition(bx, by, fn) if bx is not None else None        # R x C'
+                for a, i in enumerate(adverse):
+                    lo, hi = interval(None if b is None else b[:, a])
+                    rows[conds[i]].update({name: float(p[a]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
+                lo, hi = interval(None if b is None else _mean_over_conditions(b))
+                mean.update({name: float(np.mean(p)), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
+                bm = None
+                if bx is not None:
+                    bm = _mean_over_conditions(within_condition(bx, by, fn, draws))
+                    bm = np.where(enough, bm, np.nan)
+                lo, hi = interval(bm)
+                mean.update({f"{name}_model_ci_low": lo, f"{name}_model_ci_high": hi})
+                flat_x = px[:, 0].T.reshape(1, -1)
+                flat_y = py[:, 0].T.reshape(1, -1)
+                bp = None
+                if bx is not None:
+                    bp = fn(bx.transpose(1, 2, 0).reshape(len(w), -1), by.transpose(1, 2, 0).reshape(len(w), -1))
+                lo, hi = interval(bp)
+                pooled.update({name: float(fn(flat_x, flat_y)[0]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
+            mean["p_permutation"] = permutation_pvalue(px[:, 0].T, py[:, 0].T, permutations, seed)
+            mean["permutations"] = permutations
+            loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(models) * len(adverse),
+                            mae=loco["mae"], mae_baseline=loco["mae_baseline"])
+            stats += [{k: r.get(k, math.nan) for k in COLUMNS} for r in (*rows.values(), mean, pooled, loco_row)]
+    return cells, stats
+
+
+__all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
+           "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
+           "pairwise_agreement", "gde", "estimator_values", "ranked_models", "model_draws", "within_condition",
+           "permutation_pvalue", "loco_mae", "compare"]
