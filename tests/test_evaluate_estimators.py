@@ -93,3 +93,39 @@ def test_estimator_arrays_predictions_and_shard_parts_round_trip(tmp_path):
     assert back["s1"]["estimators"]["Day-EXTRASUNNY"]["conf_sum"] == 2.5
     (parts / "part-00000-of-00001.npz").unlink()  # maps lost: the part is not trusted, its groups are redone
     assert ev.read_parts(parts) == {}
+
+
+def test_estimators_csv_per_model_by_hand(tmp_path):
+    """Two groups, clean + one adverse condition: AC, plain agreement, entropy, DoC and ATC by hand."""
+    conds = ["Day-EXTRASUNNY", "Night-RAIN"]
+    k = 19
+    def hist(at):  # all of a group's 10 pixels in bin `at`
+        h = [0] * ev.CONF_BINS
+        h[at] = 10
+        return h
+    cm_clean = np.zeros((k, k), int)
+    cm_clean[0, 0], cm_clean[1, 1], cm_clean[1, 0] = 6, 2, 2     # clean pixel accuracy 0.8, IoU 0.75 and 0.5
+    cm_adv = np.zeros((k, k), int)
+    cm_adv[0, 0], cm_adv[1, 0] = 6, 4                            # adverse: IoU 0.6 and 0
+    results = []
+    for g, (clean_bin, adv_bin) in enumerate([(950, 700), (750, 300)]):
+        results.append({"group_id": f"s{g}", "xi": {}, "cm": {conds[0]: cm_clean.tolist(), conds[1]: cm_adv.tolist()},
+                        "estimators": {conds[0]: {"pixels": 10, "conf_sum": 10 * clean_bin / 1000, "entropy_sum": 1.0,
+                                                   "conf_hist": hist(clean_bin), "agree_clean": 10},
+                                       conds[1]: {"pixels": 10, "conf_sum": 10 * adv_bin / 1000, "entropy_sum": 4.0,
+                                                   "conf_hist": hist(adv_bin), "agree_clean": 3 + g}}})
+    ev.write_group_counts(tmp_path / "group_counts.npz", results, conds)
+    conv = {"mean_exclude": [], "absent": "nan", "min_images": 0, "min_pixels": 0}
+    out = ev.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv})
+    adv = out["Night-RAIN"]
+    assert adv["ac"] == pytest.approx(0.5) and adv["self_agreement"] == pytest.approx(7 / 20)
+    assert adv["entropy"] == pytest.approx(1 - 8 / 20)
+    assert adv["clean_miou"] == pytest.approx(0.625) and adv["gt_miou"] == pytest.approx(0.3)
+    assert adv["doc"] == pytest.approx(0.625 + 0.5 - 0.85)
+    # ATC: clean accuracy 0.8; the clean confidences are 0.95 (half) and 0.75 (half), so the share >= t is
+    # <= 0.8 first at t = 0.751 (only the 0.95 half above it); adverse pixels at 0.70 and 0.30: none above
+    assert adv["atc_threshold"] == pytest.approx(0.751) and adv["atc"] == pytest.approx(0.0)
+    import pandas as pd
+
+    table = pd.read_csv(tmp_path / "estimators.csv")
+    assert list(table["condition"]) == conds and table.loc[0, "self_agreement"] == 1.0

@@ -195,6 +195,23 @@ def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
         return np.moveaxis(np.nanmean(share, axis=-1), -1, 0)
 
 
+def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean: str, include: np.ndarray,
+                 absent: str = "nan", min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
+    """One model's estimators but GDE (which needs the others) and targets, R x C, plus `atc_threshold` (R):
+    what evaluate writes per model (`estimators.csv`) and the comparison stacks over models."""
+    if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
+        raise ValueError(f"model {g.model}: the estimator sums cover other groups, conditions or models")
+    w = np.asarray(weights, float)
+    c0 = g.conditions.index(clean)
+    cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels)
+    ac = average_confidence(c, w)
+    score, threshold = atc(c.conf_hist, g.cm, c0, w)
+    return {"xi": cm["xi_mean"], "ac": ac, "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score,
+            "entropy": entropy_score(c, w), "self_agreement": self_agreement(c, w),
+            "clean_miou": cm["gt_miou_clean"], "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
+            "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
+
+
 def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray,
                      scored: np.ndarray, weights: np.ndarray, clean: str, include: np.ndarray, absent: str = "nan",
                      min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
@@ -203,21 +220,10 @@ def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCo
     if agree.shape[-1] != len(models) or agree.shape[0] != models[0].cm.shape[0]:
         raise ValueError(f"pairwise agreement of {agree.shape[-1]} models over {agree.shape[0]} groups for "
                          f"{len(models)} models over {models[0].cm.shape[0]} groups")
-    conds = models[0].conditions
-    c0 = conds.index(clean)
     w = np.asarray(weights, float)
     out: dict[str, list[np.ndarray]] = {}
     for g, c in zip(models, counts):
-        if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
-            raise ValueError(f"model {g.model}: the estimator sums cover other groups, conditions or models")
-        cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels)
-        ac = average_confidence(c, w)
-        score, threshold = atc(c.conf_hist, g.cm, c0, w)
-        values = {"xi": cm["xi_mean"], "ac": ac, "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score,
-                  "entropy": entropy_score(c, w), "self_agreement": self_agreement(c, w),
-                  "clean_miou": cm["gt_miou_clean"], "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
-                  "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
-        for k, v in values.items():
+        for k, v in model_values(g, c, w, clean, include, absent, min_images, min_pixels).items():
             out.setdefault(k, []).append(v)
     stacked = {k: np.stack(v) for k, v in out.items()}
     stacked["gde"] = gde(agree, scored, w)
@@ -404,5 +410,5 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
            "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
-           "pairwise_agreement", "gde", "estimator_values", "ranked_models", "model_draws", "within_condition",
+           "pairwise_agreement", "gde", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
            "permutation_pvalue", "loco_mae", "compare"]

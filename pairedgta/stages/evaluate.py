@@ -74,7 +74,7 @@ class EvaluateResult(StageResult):
     complete: bool = True
 
     FILES = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv", "gt_iou.csv", "summary.json",
-             "group_counts.npz")
+             "group_counts.npz", "estimators.csv")
 
     def model_config(self) -> dict[str, Any]:
         """The model's composed config: as this run built it, or (an evaluation collected from the cache)
@@ -145,6 +145,9 @@ class EvaluateResult(StageResult):
             metrics[f"gt_miou/{cond}"] = v
         for cond, v in summary.get("agreement", {}).items():
             metrics[f"agreement/{cond}"] = v
+        for cond, values in summary.get("estimators", {}).items():
+            metrics.update({f"estimator/{name}/{cond}": v for name, v in values.items()
+                            if isinstance(v, (int, float)) and math.isfinite(v)})
         return metrics
 
 
@@ -486,6 +489,7 @@ def compute(
     model = str(model_cfg["name"])
     write_group_counts(out / "group_counts.npz", results, conditions)
     write_predictions(out / "predictions.npz", results, conditions)
+    estimators = write_estimators(out, model, conditions, s)
     acc: dict[tuple[str, str], _Accumulator] = {}
     gt_cm: dict[str, ConfusionMatrix] = {}
     agreement_rows: list[dict[str, Any]] = []
@@ -502,7 +506,32 @@ def compute(
                                    "agreement_clean": row["agree_clean_pixels"] / n if n else math.nan})
         count_rows += r["counts"]
     return write_outputs(out, dataset, model, reference_model, conditions, s, acc, gt_cm, agreement_rows, count_rows,
-                         coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"]))
+                         {**coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"]),
+                          "estimators": estimators})
+
+
+def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """estimators.csv: per condition the label-free estimators of this model (pairedgta.metrics.estimators;
+    GDE needs the other models and is computed where they meet, the `estimators` figure) beside xi and the
+    ground-truth targets where labels exist. AC, entropy and plain agreement use no label; DoC, ATC and the
+    clean mIoU use the clean condition's ground truth, as their methods use labelled source data."""
+    from pairedgta.metrics.estimators import EstimatorCounts, model_values
+    from pairedgta.metrics.validity import GroupCounts
+
+    clean, conv = s["clean"], s["convention"]
+    with np.load(out / "group_counts.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    if clean not in conditions or not len(arrays["group_id"]):
+        return {}
+    g, c = GroupCounts.from_arrays(model, arrays), EstimatorCounts.from_arrays(model, arrays)
+    include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
+    values = model_values(g, c, np.ones((1, len(g.group_ids))), clean, include, conv["absent"], conv["min_images"],
+                          conv["min_pixels"])
+    rows = {cond: {"model": model, "condition": cond,
+                   **{k: float(v[0, i]) for k, v in values.items() if k != "atc_threshold"},
+                   "atc_threshold": float(values["atc_threshold"][0])} for i, cond in enumerate(conditions)}
+    pd.DataFrame(list(rows.values())).to_csv(out / "estimators.csv", index=False)
+    return {cond: {k: v for k, v in r.items() if k not in ("model", "condition")} for cond, r in rows.items()}
 
 
 def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
