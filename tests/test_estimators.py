@@ -312,3 +312,20 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     p3 = _fake_pass(tmp_path / "eval3", names[1:], "demo_segformer")
     with pytest.raises(ConfigError, match="at least 4"):
         draw([p3], out, FigureOptions(["png"], 40, cfg))
+
+
+def test_the_difference_to_xi_is_paired_on_the_same_resamples():
+    """Each estimator's within-condition mean Spearman minus xi's, with an interval from the same scene
+    resamples; xi minus itself is 0 and gets no interval (a zero-width interval is no certainty)."""
+    names = ["m0", "m1", "m2", "m3", "m4"]
+    groups, counts, agree, scored = _synthetic(names, seed=5)
+    _, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=200, permutations=20)
+    s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
+    xi = s.loc[("xi", "rpc", "within_mean")]
+    assert xi["spearman_minus_xi"] == 0.0 and math.isnan(xi["spearman_minus_xi_ci_low"])
+    for e in ("ac", "self_agreement", "gde"):
+        row = s.loc[(e, "rpc", "within_mean")]
+        assert row["spearman_minus_xi"] == pytest.approx(row["spearman"] - xi["spearman"])
+        if math.isfinite(row["spearman_minus_xi_ci_low"]):
+            assert row["spearman_minus_xi_ci_low"] <= row["spearman_minus_xi_ci_high"]
+    assert math.isnan(s.loc[("ac", "rpc", "pooled"), "spearman_minus_xi"])  # only the headline scope has it

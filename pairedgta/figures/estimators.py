@@ -158,11 +158,13 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float) -> str:
             rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else ""), _num(w["spearman"]),
                          _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
                          _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
+                         ("–" if e == "xi" else f"{w['spearman_minus_xi']:+.2f} "
+                          + _ci(w["spearman_minus_xi_ci_low"], w["spearman_minus_xi_ci_high"])),
                          _num(pooled["spearman"]), _num(loco["mae"], "{:.3f}")])
         base = part.loc[(order[0], "loco"), "mae_baseline"]
         text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + markdown_table(
             ["estimator", "within-condition mean Spearman", "scene CI", "scene+model CI", "p",
-             "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
+             "minus ξ's [paired scene CI]", "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
             f"\n\\* uses clean ground truth. LOCO MAE of the no-information baseline (the training cells' mean "
             f"{TARGET_TEXT[t]}): {_num(base, '{:.3f}')}.\n")
     return "".join(text)

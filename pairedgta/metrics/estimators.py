@@ -47,7 +47,8 @@ MIN_RANKED = 4
 COLUMNS = ("estimator", "target", "scope", "n_models", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
            "spearman_ci_high", "kendall", "kendall_ci_low", "kendall_ci_high", "spearman_model_ci_low",
            "spearman_model_ci_high", "kendall_model_ci_low", "kendall_model_ci_high", "p_permutation", "permutations",
-           "mae", "mae_baseline", "uses_clean_labels", "resamples", "confidence")  # of compare's `stats`
+           "mae", "mae_baseline", "spearman_minus_xi", "spearman_minus_xi_ci_low", "spearman_minus_xi_ci_high",
+           "uses_clean_labels", "resamples", "confidence")  # of compare's `stats`
 STATS: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = (
     ("spearman", spearman_rows), ("kendall", kendall_rows))
 
@@ -365,6 +366,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
         return _interval(b, confidence)[:2] if b is not None and b.size else (math.nan, math.nan)
 
     stats = []
+    within: dict[tuple[str, str], tuple[float, np.ndarray | None]] = {}  # (estimator, target) -> Spearman mean, R resamples
     for e in ESTIMATORS:
         for t in TARGETS:
             base = {"estimator": e, "target": t, "n_models": len(models), "n_groups": n,
@@ -387,6 +389,8 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                     rows[conds[i]].update({name: float(p[a]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
                 lo, hi = interval(None if b is None else _mean_over_conditions(b))
                 mean.update({name: float(np.mean(p)), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
+                if name == "spearman":
+                    within[e, t] = (float(np.mean(p)), None if b is None else _mean_over_conditions(b))
                 bm = None
                 if bx is not None:
                     bm = _mean_over_conditions(within_condition(bx, by, fn, draws))
@@ -405,6 +409,12 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
             loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(models) * len(adverse),
                             mae=loco["mae"], mae_baseline=loco["mae_baseline"])
             stats += [{k: r.get(k, math.nan) for k in COLUMNS} for r in (*rows.values(), mean, pooled, loco_row)]
+    # how far each estimator is from xi, on the same scene resamples (a paired interval of the difference)
+    for row in stats:
+        if row["scope"] == "within_mean" and ("xi", row["target"]) in within:
+            (pe, be), (px, bx) = within[row["estimator"], row["target"]], within["xi", row["target"]]
+            lo, hi = interval(None if be is None or bx is None else be - bx)
+            row.update(spearman_minus_xi=pe - px, spearman_minus_xi_ci_low=lo, spearman_minus_xi_ci_high=hi)
     return cells, stats
 
 
