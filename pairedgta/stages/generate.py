@@ -248,8 +248,8 @@ def validators() -> tuple[Any, Any]:
     try:
         from pairedgta.scene.validation import entity_mismatches, validate_group
     except ImportError as exc:
-        what = (f"the Python package '{exc.name}' is not installed" if exc.name and exc.name.split(".")[0] != "pairedgta"
-                else "pairedgta.scene.validation is missing or broken")
+        package = exc.name and exc.name.split(".")[0] != "pairedgta"
+        what = f"the Python package '{exc.name}' is not installed" if package else "pairedgta.scene.validation is broken"
         raise PairedGTAError(
             f"generate: pair validation cannot run: {what} ({reason(exc)}); reinstall pairedgta (pip install -e . "
             "in the project), or set generate.validation.enabled=false to render without pair validation"
