@@ -130,6 +130,29 @@ def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
         assert not (cache / "evaluate").exists() or not list((cache / "evaluate").glob("[!.]*"))
 
 
+def test_a_blank_dataset_is_one_warning_naming_files_and_a_converted_image_another(tmp_path):
+    """All-black images once gave xi = 1.0 and agreement 1.0 without a word; a 16-bit image was read silently.
+    Now the run (images decoded in DataLoader workers here) says so once per dataset, files named."""
+    root = tmp_path / "PairedGTA"
+    write_release(root, [1, 2])
+    for png in root.rglob("*.png"):
+        Image.fromarray(np.zeros((32, 64, 3), np.uint8)).save(png)
+    wide = root / "Night" / "2_Night_RAIN.png"
+    Image.fromarray(np.zeros((32, 64), np.uint16)).save(wide)  # 16-bit greyscale (and blank too)
+    args = ["+experiment=evaluate_release", f"dataset.root={root}", "model=tiny_segformer", "reference_model=tiny_segformer",
+            f"cache_dir={tmp_path / 'cache'}", "tracking.enabled=false", "stages=[pseudolabel,evaluate]",
+            "evaluate.num_workers=2", "threads=1"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = proc.stdout + proc.stderr
+    blank = [line for line in out.splitlines() if "one flat colour" in line]
+    assert len(blank) == 1, out[-3000:]
+    assert "dataset paired_gta: 18 image(s) are one flat colour (blank): " in blank[0] and "and 15 more" in blank[0]
+    assert f"{root / 'Day' / '1_Day_EXTRASUNNY.png'} (all black)" in blank[0]
+    converted = [line for line in out.splitlines() if "not 8-bit RGB" in line]
+    assert len(converted) == 1 and f"1 image(s) are not 8-bit RGB and were converted on reading: {wide} (I;16" in converted[0]
+
+
 def _read_only_dir(path: Path) -> None:
     """A directory nobody may write into, even root: immutable where chattr works, else mode 555."""
     import os
