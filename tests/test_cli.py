@@ -251,6 +251,22 @@ BAD_CONFIG = {
                                        "generate.validation.structure_threshold=5 is out of range"),
     "camera_compensation": (["renderer=blender", "region=procedural_town", "camera.compensation=3"],
                             "camera.compensation=3.0 is invalid"),
+    # a key added to a group that its option's file does not name once failed (or was ignored) only when
+    # generate built the renderer, region or dataset, after it had written to the cache
+    "unknown_renderer_key": (["+renderer.colour=red"],
+                             "renderer.colour is not a key of renderer=synthetic; its keys are backend, height, max_distance"),
+    "unknown_blender_key": (["renderer=blender", "region=procedural_town", "+renderer.colour=red"],
+                            "renderer.colour is not a key of renderer=blender; its keys are backend, camera, denoise"),
+    "misspelt_renderer_key_forced": (["++renderer.noise_sdt=1"],
+                                     "renderer.noise_sdt is not a key of renderer=synthetic; did you mean renderer.noise_std?"),
+    "key_of_another_renderer": (["+renderer.port=9000"], "renderer.port is not a key of renderer=synthetic"),
+    "misspelt_camera_key": (["camera=dashcam", "+camera.read_nois=0.1"],
+                            "camera.read_nois is not a key of camera=dashcam; did you mean camera.read_noise?"),
+    "misspelt_metric_key": (["+metric.tau_mas=0.5"], "metric.tau_mas is not a key of metric=strict; did you mean metric.tau_mass?"),
+    "unknown_region_key": (["+region.colour=red"], "region.colour is not a key of region=synthetic_street"),
+    "unknown_dataset_key": (["+dataset.spilt=val"], "dataset.spilt is not a key of dataset=generated"),
+    "misspelt_plot_key": (["+plot.dpii=3"], "+plot.dpii: no part of pairedgta reads this key, so it would be ignored; "
+                                            "did you mean plot.dpi?"),
 }
 
 
