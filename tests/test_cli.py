@@ -21,6 +21,7 @@ def stage_dirs(cache: Path) -> set[str]:
     return {str(p.relative_to(cache)) for p in cache.glob("*/[!.]*")} if cache.exists() else set()
 
 
+@pytest.mark.slow
 def test_smoke_experiment_end_to_end(tmp_path):
     cache = tmp_path / "cache"
     db = tmp_path / "mlflow.db"
@@ -91,6 +92,7 @@ def test_smoke_experiment_end_to_end(tmp_path):
     assert "evaluate/xi.csv" in arts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "case",
     ["missing_root", "empty_root", "corrupt_png", "size_mismatch", "unknown_condition", "unknown_model"],
@@ -130,6 +132,7 @@ def test_bad_input_is_a_one_line_error_and_leaves_no_cache(tmp_path, case):
         assert not (cache / "evaluate").exists() or not list((cache / "evaluate").glob("[!.]*"))
 
 
+@pytest.mark.slow
 def test_a_blank_dataset_is_one_warning_naming_files_and_a_converted_image_another(tmp_path):
     """All-black images once gave xi = 1.0 and agreement 1.0 without a word; a 16-bit image was read silently.
     Now the run (images decoded in DataLoader workers here) says so once per dataset, files named."""
@@ -270,6 +273,7 @@ BAD_CONFIG = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(BAD_CONFIG))
 def test_bad_config_value_is_one_line_before_any_stage(tmp_path, case):
     """Each bad value stops the run before generation (nothing is computed first), with one line that
@@ -297,6 +301,7 @@ def test_bad_config_value_is_one_line_before_any_stage(tmp_path, case):
     assert not (cache / "generate").exists() if cache.is_dir() else True  # no stage ran
 
 
+@pytest.mark.slow
 def test_corrupt_hf_weights_from_the_cli_are_one_line(tmp_path):
     from pairedgta.testing.cli import fast_overrides
 
@@ -331,6 +336,7 @@ def test_cuda_without_a_gpu_is_one_line(monkeypatch):
     check_cuda("cpu")
 
 
+@pytest.mark.slow
 def test_a_mistyped_key_is_one_line_naming_the_closest_key(tmp_path):
     """Hydra alone says "not in struct" in five lines and advises a `+`, which the tool then refuses."""
     from pairedgta.__main__ import mistyped_key

@@ -202,6 +202,7 @@ def test_state_that_is_not_an_object():
     assert not g.ok and g.reasons == ["a: backend state is list, not a JSON object"]
 
 
+@pytest.mark.slow
 def test_a_validation_module_that_fails_to_import_is_one_line_before_any_render(tmp_path, monkeypatch):
     """A broken install once made every scene pass unchecked ({"ok": True, "reasons": ["validation
     unavailable"]}); now `python -m pairedgta` stops with one line naming the module and the fix, and no
