@@ -63,7 +63,7 @@ def main(cfg: DictConfig) -> None:
     try:
         from pairedgta.config_checks import check_added_keys
 
-        check_added_keys(list(HydraConfig.get().overrides.task))
+        check_added_keys(list(HydraConfig.get().overrides.task), dict(HydraConfig.get().runtime.choices))
         summary = run(cfg, task_overrides=list(HydraConfig.get().overrides.task))
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix

@@ -78,8 +78,8 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
         if not (plan.run_pseudo or plan.plotting):
             return summary
         model_runs: list[tuple[str | None, str, str]] = []  # (nested run, model, pass) for the figures
-        for ctx, p in passes:
-            if p.dataset is not None and plan.run_pseudo:
+        for ctx, p in ((c, q) for c, q in passes if q.dataset is not None and plan.run_pseudo):
+            with p.reading():  # a blank or converted image: one warning for the dataset, when its stages are done
                 _log_dataset(tracker, p)
                 model_runs += _data_stages(ctx, p, plan, models, tracker, summary, experiment, multi=len(passes) > 1)
         if plan.plotting:

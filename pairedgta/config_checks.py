@@ -373,8 +373,70 @@ def known_key_paths() -> set[str]:
     return known
 
 
-def check_added_keys(overrides: list[str]) -> None:
-    """A `+key=value` whose key no config reads would be silently ignored: one line instead."""
+# config groups whose option file (with the options its defaults list pulls in) names every key their reader
+# takes: a key added to one (`+renderer.colour=red`) would fail, or be ignored, only when a stage builds it,
+# after generate has written cache entries
+CLOSED_GROUPS = ("renderer", "camera", "metric", "region", "dataset")
+
+
+def group_option_keys(group: str, option: str) -> set[str] | None:
+    """The top-level keys of pairedgta/conf/<group>/<option>.yaml and of the options of the same group its
+    defaults list names (camera=dashcam starts from camera=gta); None when there is no such option file."""
+    from pairedgta.configs import CONFIG_DIR
+
+    path = CONFIG_DIR / group / f"{option}.yaml"
+    if not path.is_file():
+        return None
+    tree = _load_yaml(path)
+    keys = {k for k in tree if k != "defaults"}
+    for entry in tree.get("defaults") or []:
+        if isinstance(entry, str) and entry != "_self_" and entry != option:
+            keys |= group_option_keys(group, entry) or set()
+    return keys
+
+
+def experiment_keys(group: str) -> set[str]:
+    """Keys the experiments set in `group`'s node beyond its options' (region.town_seeds): read by the code too."""
+    from pairedgta.configs import CONFIG_DIR
+
+    keys: set[str] = set()
+    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
+        node = _load_yaml(path).get(group)
+        keys |= set(node) if isinstance(node, dict) else set()
+    return keys
+
+
+def default_choices() -> dict[str, str]:
+    """group -> option as pairedgta/conf/config.yaml's defaults list chooses them."""
+    from pairedgta.configs import CONFIG_DIR
+
+    entries = _load_yaml(CONFIG_DIR / "config.yaml").get("defaults") or []
+    return {str(k): str(v) for e in entries if isinstance(e, dict) for k, v in e.items()}
+
+
+def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
+    """`key` (e.g. renderer.colour) added to a closed group must be a key of the chosen option's file."""
+    group, _, rest = key.partition(".")
+    option = (choices or {}).get(group) or default_choices().get(group)
+    known = group_option_keys(group, str(option)) if option else None
+    child = rest.split(".")[0]
+    if known is None or child in known | experiment_keys(group):
+        return  # a key inside a known key's mapping (renderer.town.x) is checked by that node's reader
+    import difflib
+
+    close = difflib.get_close_matches(child, sorted(known), n=1, cutoff=0.6)
+    hint = f"did you mean {group}.{close[0]}?" if close else f"its keys are {', '.join(sorted(known))}"
+    raise ConfigError(f"{group}.{child} is not a key of {group}={option}; {hint}")
+
+
+def check_added_keys(overrides: list[str], choices: dict[str, Any] | None = None) -> None:
+    """A `+key=value` whose key no config reads would be silently ignored, or fail only when a stage builds
+    it: one line instead, before any stage runs. `choices`: the run's group options (Hydra's runtime choices;
+    config.yaml's defaults when not given), whose files name the keys of the closed groups."""
+    for o in overrides:  # `++` adds a key too, where it does not exist yet
+        key = o.lstrip("+").split("=", 1)[0].strip()
+        if o.startswith("+") and "=" in o and key.split(".")[0] in CLOSED_GROUPS and "." in key:
+            check_group_key(key, choices)
     added = [o[1:] for o in overrides if o.startswith("+") and not o.startswith("++") and "=" in o]
     if not added:
         return
@@ -390,6 +452,9 @@ def check_added_keys(overrides: list[str]) -> None:
             if key.startswith("conditions.") and key.split(".")[-1] in REPLACED_KEYS:
                 raise ConfigError(f"+{key}: {key.split('.')[-1]} is no longer a condition key; use "
                                   f"{REPLACED_KEYS[key.split('.')[-1]]}")
-            close = sorted(k for k in known if k.split(".")[-1] == key.split(".")[-1])[:3]
+            import difflib
+
+            close = (sorted(k for k in known if k.split(".")[-1] == key.split(".")[-1])[:3]
+                     or difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.8))
             hint = f"; did you mean {', '.join(close)}?" if close else "; see python -m pairedgta --cfg job for the keys"
             raise ConfigError(f"+{key}: no part of pairedgta reads this key, so it would be ignored{hint}")

@@ -122,6 +122,7 @@ def test_declared_keys_read_from_source_match_the_signatures():
                 assert declared == accepted_keys(registry.resolve(name)), (registry.kind, name)
 
 
+@pytest.mark.slow
 def test_a_cached_rerun_imports_no_torch(tmp_path):
     """A rerun whose stages are all cached builds no model: torch (~1.2 s), seaborn and scipy.stats stay
     unimported (the cached main job takes ~5 s)."""

@@ -37,6 +37,7 @@ def test_offline_hub_env_is_refused_without_a_network_call(monkeypatch):
     assert availability._hub_answers("nvidia/x", 0.1) == "HF_HUB_OFFLINE is set"
 
 
+@pytest.mark.slow
 def test_the_cli_refuses_before_rendering_and_a_cached_dataset_is_not_refused(tmp_path):
     from pairedgta.app import run
     from pairedgta.testing.cli import compose_cfg, fast_overrides

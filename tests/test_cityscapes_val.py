@@ -122,6 +122,7 @@ def independent_iou(truth: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndar
     return iou, float(np.nanmean(iou))
 
 
+@pytest.mark.slow
 def test_check_matches_numpy_logs_to_mlflow_and_caches(tree, bad_runs, tmp_path):
     # bad_runs: requested so the error cases run alongside this one
     root, truth = tree
@@ -172,6 +173,7 @@ def test_check_matches_numpy_logs_to_mlflow_and_caches(tree, bad_runs, tmp_path)
     assert all(r.data.metrics["cityscapes_val/miou"] == pytest.approx(miou) for r in runs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_CASES))
 def test_bad_input_is_a_one_line_error(bad_runs, case):
     tmp, future = bad_runs[case]

@@ -50,6 +50,32 @@ def test_config_keys_are_exactly_what_the_code_reads(group, registry, choice, ru
         assert set(cfg) - {choice} == keys - set(runtime), f"{group}/{name}"
 
 
+def test_camera_options_name_exactly_the_keys_the_camera_reads():
+    """The camera group is checked against its option files (a `+camera.x` they do not name is refused before
+    any stage runs): so every option, with the option its defaults list starts from, names every field."""
+    import dataclasses
+
+    from pairedgta.config_checks import group_option_keys
+    from pairedgta.render.camera import Camera
+
+    fields = {f.name for f in dataclasses.fields(Camera)}
+    for path in sorted((CONF / "camera").glob("*.yaml")):
+        assert group_option_keys("camera", path.stem) == fields, path
+
+
+def test_keys_added_to_a_group_are_checked_against_the_chosen_option():
+    from pairedgta.config_checks import check_added_keys
+
+    fine = ["+region.town_seeds=[1,2]", "+renderer.town.blocks=3", "renderer.width=3", "++renderer.width=3",
+            "+model_overrides.x.path=/w", "+experiment=smoke", "+metric.rho.m=3", "+camera=dashcam"]
+    check_added_keys(fine, {"renderer": "blender", "region": "procedural_town", "camera": "gta", "metric": "strict"})
+    check_added_keys(["+renderer.port=1"], {"renderer": "deepgtav"})  # a key of the chosen option: Hydra's to refuse
+    with pytest.raises(ConfigError, match=r"^renderer.port is not a key of renderer=blender; its keys are backend, camera"):
+        check_added_keys(["+renderer.port=1"], None)  # config.yaml's choice: blender
+    with pytest.raises(ConfigError, match=r"^renderer.sample is not a key of renderer=blender; did you mean renderer.samples\?$"):
+        check_added_keys(["++renderer.sample=4"], {"renderer": "blender"})
+
+
 def test_model_keys_are_exactly_what_the_families_read():
     from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config
     from pairedgta.registry import accepted_keys

@@ -91,3 +91,118 @@ def test_a_generated_index_with_wrong_types_is_one_line(tmp_path):
         (tmp_path / "index.json").write_text(json.dumps(index))
         with pytest.raises(DataError, match="index.json: not a generated dataset's index"):
             open_generated(root=tmp_path, grid=grid)
+
+
+def _blank(path, colour=(0, 0, 0), size=(64, 32)):
+    import numpy as np
+
+    Image.fromarray(np.full((size[1], size[0], 3), colour, np.uint8)).save(path)
+
+
+def _warnings(caplog):
+    return [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+
+
+def test_blank_images_are_one_warning_per_dataset_naming_a_few(tmp_path, caplog):
+    """An all-black (or any one-colour) image reads fine but scores xi = 1 against another blank one: one
+    warning for the whole scope, with three files named and the rest counted, never one per image."""
+    import numpy as np
+
+    from pairedgta.datasets import image_notes
+
+    blanks = [tmp_path / f"{i}_Night_RAIN.png" for i in range(5)]
+    for i, p in enumerate(blanks):
+        _blank(p, (0, 0, 0) if i else (90, 20, 200))
+    almost = tmp_path / "almost.png"  # one pixel off: not blank
+    arr = np.zeros((32, 64, 3), np.uint8)
+    arr[31, 63, 2] = 1
+    Image.fromarray(arr).save(almost)
+    with caplog.at_level("WARNING"), image_notes("dataset paired_gta"):
+        for p in [*blanks, almost, *blanks]:  # read twice, as evaluate reads a reference image per model
+            assert load_image(p).shape == (32, 64, 3)
+    (msg,) = _warnings(caplog)
+    assert msg.startswith("dataset paired_gta: 5 image(s) are one flat colour (blank): ")
+    assert f"{blanks[0]} (all RGB (90, 20, 200))" in msg and f"{blanks[1]} (all black)" in msg and "and 2 more" in msg
+    assert "almost.png" not in msg and str(blanks[4]) not in msg
+    caplog.clear()
+    with caplog.at_level("WARNING"), image_notes("dataset again"):  # a new scope (a new run) says it again
+        load_image(blanks[0])
+    assert len(_warnings(caplog)) == 1 and "1 image(s)" in _warnings(caplog)[0]
+
+
+def test_images_converted_on_reading_are_named_with_what_was_done(tmp_path, caplog):
+    """16-bit greyscale, 8-bit greyscale and a transparent RGBA image are converted to 8-bit RGB with one warning
+    naming each file and the conversion; a palette image and an opaque RGBA image lose nothing and say nothing."""
+    import numpy as np
+
+    from pairedgta.datasets import image_notes
+
+    rng = np.random.default_rng(0)
+    Image.fromarray(np.array([[0, 257 * 128, 65535]], dtype=np.uint16)).save(tmp_path / "g16.png")
+    Image.fromarray(rng.integers(0, 255, (8, 8), dtype=np.uint8)).save(tmp_path / "grey.png")
+    Image.fromarray(rng.integers(0, 255, (8, 8, 4), dtype=np.uint8), "RGBA").save(tmp_path / "see_through.png")
+    opaque = np.dstack([rng.integers(0, 255, (8, 8, 3), dtype=np.uint8), np.full((8, 8), 255, np.uint8)])
+    Image.fromarray(opaque, "RGBA").save(tmp_path / "opaque.png")
+    Image.fromarray(rng.integers(0, 255, (8, 8, 3), dtype=np.uint8)).convert("P").save(tmp_path / "palette.png")
+    Image.fromarray(rng.integers(0, 255, (8, 8, 3), dtype=np.uint8)).save(tmp_path / "rgb.png")
+    with caplog.at_level("WARNING"), image_notes("dataset generated"):
+        for name in ("g16", "grey", "see_through", "opaque", "palette", "rgb"):
+            img = load_image(tmp_path / f"{name}.png")
+            assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+    (msg,) = _warnings(caplog)
+    assert msg.startswith("dataset generated: 3 image(s) are not 8-bit RGB and were converted on reading: ")
+    assert f"{tmp_path / 'g16.png'} (I;16 greyscale scaled from 16 to 8 bits (divided by 257), copied into R, G and B)" in msg
+    assert f"{tmp_path / 'grey.png'} (L: 8-bit greyscale copied into R, G and B)" in msg
+    assert f"{tmp_path / 'see_through.png'} (RGBA: its alpha channel (not opaque everywhere) dropped)" in msg
+    assert not {"opaque.png", "palette.png", "rgb.png"} & set(msg.replace(",", " ").replace("/", " ").split())
+
+
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_notes_made_in_worker_processes_reach_the_scope(tmp_path, caplog, start):
+    """evaluate.num_workers decodes images in DataLoader workers: their notes reach the run's one warning."""
+    import multiprocessing as mp
+
+    from pairedgta.datasets import image_notes
+
+    paths = [tmp_path / f"{i}.png" for i in range(4)]
+    for p in paths:
+        _blank(p, size=(8, 8))
+    with caplog.at_level("WARNING"), image_notes("dataset workers"):
+        with mp.get_context(start).Pool(2) as pool:
+            assert len(pool.map(load_image, paths)) == 4
+    (msg,) = _warnings(caplog)
+    assert msg.startswith("dataset workers: 4 image(s) are one flat colour") and "and 1 more" in msg
+
+
+def test_a_blank_image_read_outside_a_scope_is_warned_once(tmp_path, caplog):
+    import os
+
+    from pairedgta.datasets.base import NOTES_ENV
+
+    assert NOTES_ENV not in os.environ  # a scope leaves no trace in the environment
+    _blank(tmp_path / "b.png", (7, 7, 7))
+    with caplog.at_level("WARNING"):
+        load_image(tmp_path / "b.png")
+        load_image(tmp_path / "b.png")
+    (msg,) = _warnings(caplog)
+    assert f"{tmp_path / 'b.png'} (all RGB (7, 7, 7))" in msg
+
+
+def test_the_blank_check_costs_little_beside_decoding(tmp_path):
+    """The check looks at a strided sample; only a one-colour sample is confirmed on the whole image."""
+    import time
+
+    import numpy as np
+
+    from pairedgta.datasets.base import is_flat
+
+    arr = np.random.default_rng(1).integers(0, 255, (1024, 2048, 3), dtype=np.uint8)
+    t0 = time.perf_counter()
+    for _ in range(20):
+        assert not is_flat(arr)
+    per_image = (time.perf_counter() - t0) / 20
+    assert per_image < 5e-3, per_image  # decoding a PNG of this size takes ~100 ms
+    flat = np.full((1024, 2048, 3), 9, np.uint8)
+    assert is_flat(flat)
+    flat[1023, 2047, 1] = 8  # off in the last pixel only: the sample misses it, the full check does not
+    assert not is_flat(flat)

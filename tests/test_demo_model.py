@@ -34,6 +34,7 @@ def card(name: str) -> dict:
     return json.loads((WEIGHTS / name / "model_card.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ZOO)
 def test_zoo_weights_ship_load_offline_strictly_and_are_small(name):
     files = {p.name for p in (WEIGHTS / name).iterdir()}
@@ -97,6 +98,7 @@ def predictions(name: str, scenes) -> list[dict[str, tuple[np.ndarray, np.ndarra
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ZOO)
 def test_zoo_model_on_fresh_held_out_scenes(name, held_out):
     cm = ConfusionMatrix()
@@ -105,6 +107,7 @@ def test_zoo_model_on_fresh_held_out_scenes(name, held_out):
     assert cm.miou() >= card(name)["test_floor_miou"], (name, cm.miou(), card(name)["test_floor_miou"])
 
 
+@pytest.mark.slow
 def test_demo_model_degrades_gradually(held_out):
     """Against its own pseudo-labels (tau 0.6, as the main job): the day's rain and the clear sunset cost
     demo_segformer less than the night, clear or foggy (the night keeps about an eighth of the clean luma,
@@ -119,6 +122,7 @@ def test_demo_model_degrades_gradually(held_out):
     assert min(kept["Day-RAIN"], kept["Sunset-EXTRASUNNY"]) > max(kept["Night-EXTRASUNNY"], kept["Night-FOGGY"]), kept
 
 
+@pytest.mark.slow
 def test_the_control_without_photometric_augmentation_keeps_less_under_rain_and_at_sunset(held_out):
     """The known answer: against demo_segformer's pseudo-labels (tau 0.6, as the main job), the brittle
     control keeps less than demo_segformer under Day-RAIN and Sunset-EXTRASUNNY."""

@@ -109,6 +109,7 @@ def check_table(plot_dir: Path, evals: dict[str, Path], reference: str = "Day-EX
     assert "\\toprule" in (plot_dir / "table1_xi.tex").read_text() and "\\bottomrule" in (plot_dir / "table1_xi.tex").read_text()
 
 
+@pytest.mark.slow
 def test_paper_table_one_run_qualitative_and_multirun_aggregate(work):
     s = run(compose_cfg(base(work) + TINY + ["+experiment=paper_table"]))
     plot_dir = Path(s["plot"])
@@ -142,6 +143,7 @@ def test_paper_table_one_run_qualitative_and_multirun_aggregate(work):
 
 
 # -- pseudo-label distribution -------------------------------------------------------------------
+@pytest.mark.slow
 def test_pseudo_label_distribution(work):
     s = run(compose_cfg(base(work) + TINY + ["+experiment=pseudo_label_distribution"]))
     out, pseudo = Path(s["plot"]), Path(s["pseudolabel"])
@@ -178,6 +180,7 @@ def acdc_root(work) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_acdc_reader_layout_missing_reference_and_bad_root(acdc_root, tmp_path, caplog):
     ds = open_acdc(condition="night", splits=["train", "val"], name="acdc", root=acdc_root)
     grid = ds.grid
@@ -198,6 +201,7 @@ def test_acdc_reader_layout_missing_reference_and_bad_root(acdc_root, tmp_path, 
         open_acdc(condition="hail", root=acdc_root)
 
 
+@pytest.mark.slow
 def test_night_vs_acdc(work, acdc_root):
     s = run(compose_cfg(base(work) + TINY + ["+experiment=night_vs_acdc", f"acdc.root={acdc_root}",
                                             "metric.rho.m=3"]))
@@ -254,6 +258,7 @@ def test_night_vs_acdc(work, acdc_root):
     assert not (work / "cache" / "pseudolabel" / pseudo_acdc / "quality.csv").exists()
 
 
+@pytest.mark.slow
 def test_missing_acdc_root_is_a_one_line_cli_error(tmp_path):
     proc = run_cli(["+experiment=night_vs_acdc", "models=[tiny_segformer]", "reference_model=tiny_segformer",
                     f"cache_dir={tmp_path / 'cache'}", "tracking.enabled=false"], tmp_path)
@@ -264,6 +269,7 @@ def test_missing_acdc_root_is_a_one_line_cli_error(tmp_path):
 
 
 # -- cost analysis -------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cost_analysis_cli_with_mlflow(tmp_path):
     db = tmp_path / "mlflow.db"
     proc = run_cli(["+experiment=cost_analysis", "renderer=synthetic", "region=synthetic_street",
@@ -296,6 +302,7 @@ def test_cost_analysis_cli_with_mlflow(tmp_path):
     assert parent.data.metrics["cost/run/total_mean_s"] == pytest.approx(timings.total_time.mean())
 
 
+@pytest.mark.slow
 def test_cost_from_any_csv_says_what_it_derives(tmp_path):
     from pairedgta.data import PAPER_GENERATION_TIMES
     from pairedgta.figures.cost import load_timings, summary
@@ -356,6 +363,7 @@ def test_perturbation_of_the_descriptor():
         pairing_config({"pairing": {"jitter": 1}})
 
 
+@pytest.mark.slow
 def test_pairing_ablation(work):
     only = "conditions.only=[Day-EXTRASUNNY,Day-EXTRASUNNY-repeat]"
     s = run(compose_cfg(base(work) + ["+experiment=pairing_ablation", "models=[tiny_segformer]",

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 import pairedgta.figures.qualitative as qualitative
 from pairedgta.cityscapes import CLASS_NAMES, colorize
@@ -85,6 +86,7 @@ def test_disagreement_overlay_uses_the_legend_colours():
     np.testing.assert_allclose(out[1, 2], grey, atol=1)
 
 
+@pytest.mark.slow
 def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progress(tmp_path, monkeypatch, capsys):
     built: list[str] = []
     build = models.build_segmenter
@@ -157,6 +159,7 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     assert built == ["tiny_segformer", "tiny_segformer"]
 
 
+@pytest.mark.slow
 def test_contact_sheet_has_a_class_colour_key_for_its_label_tile(tmp_path, monkeypatch):
     import pairedgta.figures.contact_sheet as sheet
 

@@ -7,6 +7,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import pandas as pd  # noqa: E402
+import pytest  # noqa: E402
 
 from pairedgta.figures import ranking  # noqa: E402
 
@@ -61,6 +62,7 @@ def _authors_counts(path):
     return path, pd.DataFrame(rows)
 
 
+@pytest.mark.slow
 def test_rho_valid_from_the_authors_frame_counts_through_the_cli(tmp_path):
     import json
     import re

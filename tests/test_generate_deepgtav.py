@@ -6,10 +6,13 @@ import csv
 import json
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from pairedgta.testing.cli import run_cli
 from pairedgta.testing.deepgtav_server import DeepGTAVTestServer
+
+pytestmark = pytest.mark.slow  # end to end: the CLI or the stage graph on every test
 
 PAPER_COLUMNS = ["location_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
                  "condition_wise_rendering_time", "pipeline_time", "overhead_time"]

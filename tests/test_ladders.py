@@ -15,6 +15,8 @@ from pairedgta.app import run
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
 
+pytestmark = pytest.mark.slow  # end to end: the CLI or the stage graph on every test
+
 SKY = CLASS_NAMES.index("sky")
 LADDER = ["conditions=fog_ladder", "conditions.only=null", "generate.num_scenes=4", "renderer.width=96",
           "renderer.height=48"]

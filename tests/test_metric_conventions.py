@@ -23,6 +23,7 @@ def evaluate_dir(summary) -> Path:
     return Path(next(iter(summary["evaluate"].values())))
 
 
+@pytest.mark.slow
 def test_paper_and_strict_outputs_follow_and_record_their_convention(tmp_path):
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "plot.figures=[xi_table]"]
     paper_run = run(compose_cfg(base + ["metric=paper"]))
@@ -95,6 +96,7 @@ def test_paper_and_strict_outputs_follow_and_record_their_convention(tmp_path):
     assert [c for c in table.columns if c in CLASS_NAMES] == PAPER17
 
 
+@pytest.mark.slow
 def test_random_one_sampling_draws_one_adverse_condition_per_group(tmp_path):
     conds = ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"]
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "stages=[generate,pseudolabel,evaluate]",

@@ -10,7 +10,7 @@ import pytest
 from pairedgta.testing.cli import run_cli
 from pairedgta.testing.mlflow_server import mlflow_server, postgres_bin
 
-pytestmark = pytest.mark.cluster
+pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 
 SMALL = ["+experiment=smoke", "generate.num_scenes=2", "renderer.width=64", "renderer.height=32",
          "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "metric.bootstrap.resamples=20",

@@ -28,6 +28,7 @@ def evaluated(cache: Path) -> dict[str, dict]:
     return {m["config"]["model"]["name"]: m["config"]["model"] for m in manifests(cache, "evaluate")}
 
 
+@pytest.mark.slow
 def test_model_key_reaches_the_model_as_subject_and_as_reference(tmp_path):
     proc = run_cli(tiny_smoke(tmp_path) + ["model.init_seed=7", "model_overrides.tiny_mask2former.init_seed=3"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -41,6 +42,7 @@ def test_model_key_reaches_the_model_as_subject_and_as_reference(tmp_path):
     assert pseudo["config"]["reference_model"]["init_seed"] == 7  # the reference is the same model
 
 
+@pytest.mark.slow
 def test_override_of_a_model_the_run_does_not_use_is_one_line(tmp_path):
     proc = run_cli(tiny_smoke(tmp_path) + ["model_overrides.segformer_b5.path=/weights/b5"], tmp_path)
     assert proc.returncode == 2, proc.stderr[-2000:]
@@ -50,12 +52,14 @@ def test_override_of_a_model_the_run_does_not_use_is_one_line(tmp_path):
     assert not (tmp_path / "cache" / "generate").exists()  # refused before anything ran
 
 
+@pytest.mark.slow
 def test_unknown_model_key_is_one_line(tmp_path):
     proc = run_cli(tiny_smoke(tmp_path) + ["+model.widht=3"], tmp_path)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "error: model (tiny_segformer): unknown key(s) widht" in proc.stderr
 
 
+@pytest.mark.slow
 def test_sweep_over_model_evaluates_exactly_the_swept_model(tmp_path):
     proc = run_cli(tiny_smoke(tmp_path) + ["model=tiny_segformer,tiny_mask2former"], tmp_path, multirun=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -113,6 +117,7 @@ def test_an_evaluation_gives_back_a_buildable_model_config(tmp_path):
     assert cfg["path"] == model_config("demo_segformer")["path"]
 
 
+@pytest.mark.slow
 def test_a_sweep_of_models_is_drawn_together_by_collect_cached(tmp_path):
     """`-m model=a,b` evaluates one model per job; a plot run with plot.collect_cached then draws every
     cached evaluation of the same dataset and pseudo-labels in one models x conditions heatmap."""

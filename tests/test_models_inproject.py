@@ -212,6 +212,7 @@ def official_layout(family: str, weights: dict[str, torch.Tensor]) -> dict:
     }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", FAMILIES)
 def test_full_model_loads_released_layout(family, official_keys, tmp_path, caplog):
     arch, full, _, _ = FAMILIES[family]

@@ -12,6 +12,7 @@ import zipfile
 from pathlib import Path
 
 from omegaconf import OmegaConf
+import pytest
 
 from pairedgta.configs import CONFIG_DIR
 from pairedgta.testing.cli import OFFLINE, compose_cfg, run_cli
@@ -55,6 +56,7 @@ def _venv_seeing_these_packages(env_dir: Path) -> Path:
     return py
 
 
+@pytest.mark.slow
 def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     wheel = _build_wheel(tmp_path)
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -105,6 +107,7 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     assert not (work / "mlruns").exists()
 
 
+@pytest.mark.slow
 def test_help_names_the_app(tmp_path):
     proc = run_cli(["--help"], tmp_path, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]

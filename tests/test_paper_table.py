@@ -192,6 +192,7 @@ def test_missing_class_rows_count_as_absent(tmp_path):
     assert "2 missing rows" in (tmp_path / "out" / "table1_xi.md").read_text()
 
 
+@pytest.mark.slow
 def test_cli_writes_table1_from_the_csv_without_data_stages(tmp_path):
     csv = small_csv(tmp_path / "results.csv")
     cache = tmp_path / "cache"
@@ -217,6 +218,7 @@ def test_cli_writes_table1_from_the_csv_without_data_stages(tmp_path):
     assert np.isfinite(metrics["table/authors/xi_mean/Night-EXTRASUNNY/ddrnet_23"])
 
 
+@pytest.mark.slow
 def test_table_from_the_csv_is_a_registered_figure_keyed_by_content(tmp_path):
     """authors_table is a figure of the registry drawn by the plot stage's one loop: the entry is keyed by
     the file's content, filters and convention (the same file elsewhere is a cache hit), the figure is

@@ -11,6 +11,8 @@ import pytest
 from pairedgta.metrics.photometry import band_checks, group_rows, image_stats, physics_checks, summarise
 from pairedgta.testing.cli import base_overrides, run_cli
 
+pytestmark = pytest.mark.slow  # end to end: the CLI or the stage graph on every test
+
 
 def test_luma_and_contrast_of_known_images():
     grey = np.full((4, 4, 3), 128, np.uint8)

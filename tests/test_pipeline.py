@@ -16,6 +16,7 @@ def hits(summary):
     return {(s["stage"], s["label"]): s["hit"] for s in summary["stages"]}
 
 
+@pytest.mark.slow
 def test_cache_hit_selective_recompute_and_force(tmp_path):
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer]"]
     first = run(compose_cfg(base))
@@ -41,6 +42,7 @@ def test_cache_hit_selective_recompute_and_force(tmp_path):
     assert h[("plot", "")]  # same evaluate hash -> the plot input is unchanged
 
 
+@pytest.mark.slow
 def test_killed_run_leftovers_are_never_a_hit(tmp_path):
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "stages=[generate,pseudolabel]"]
     summary = run(compose_cfg(base))
@@ -56,6 +58,7 @@ def test_killed_run_leftovers_are_never_a_hit(tmp_path):
     assert (final / "manifest.json").is_file() and len(list((final / "labels").glob("*.png"))) == 3
 
 
+@pytest.mark.slow
 def test_missing_input_names_the_stage_to_run(tmp_path):
     with pytest.raises(PairedGTAError, match=r"generate: no cached output.*stages=\[generate"):
         run(compose_cfg(fast_overrides(tmp_path) + ["stages=[evaluate,plot]", "models=[tiny_segformer]"]))
@@ -66,12 +69,14 @@ def test_missing_input_names_the_stage_to_run(tmp_path):
     assert not list((tmp_path / "cache").glob("*/.tmp-*"))
 
 
+@pytest.mark.slow
 def test_hash_ignores_run_dir_and_time(tmp_path):
     a = run(compose_cfg(fast_overrides(tmp_path) + ["stages=[generate]"]))
     b = run(compose_cfg(fast_overrides(tmp_path) + ["stages=[generate]", "hydra.run.dir=/elsewhere"]))
     assert a["stages"][0]["key"] == b["stages"][0]["key"] and b["stages"][0]["hit"]
 
 
+@pytest.mark.slow
 def test_generate_resumes_after_a_crash(tmp_path, monkeypatch):
     overrides = fast_overrides(tmp_path) + ["stages=[generate]"]
     real = generate_stage.render_scene
@@ -100,6 +105,7 @@ def test_generate_resumes_after_a_crash(tmp_path, monkeypatch):
     assert [s["scene_id"] for s in index["scenes"]] == ["00000", "00001", "00002"]
 
 
+@pytest.mark.slow
 def test_generate_is_deterministic_and_paired(tmp_path):
     import numpy as np
     from PIL import Image
@@ -131,6 +137,7 @@ def test_two_jobs_on_one_hash_first_rename_wins(tmp_path):
     assert [p.name for p in (tmp_path / "evaluate").iterdir()] == ["abc"]
 
 
+@pytest.mark.slow
 def test_replacing_local_weights_behind_the_same_path_is_not_a_hit(tmp_path):
     from pairedgta.models import build_segmenter
 

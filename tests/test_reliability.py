@@ -133,6 +133,7 @@ def test_forced_recompute_waits_for_a_job_still_reading_the_old_result(tmp_path)
 # --------------------------------------------------------------------------- nothing stale
 
 
+@pytest.mark.slow
 def test_damaged_cache_entries_are_rebuilt_and_the_log_says_why(tmp_path, caplog):
     caplog.set_level(logging.INFO)
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer]"]
@@ -161,6 +162,7 @@ def test_damaged_cache_entries_are_rebuilt_and_the_log_says_why(tmp_path, caplog
         run(compose_cfg(base + ["stages=[plot]"]))
 
 
+@pytest.mark.slow
 def test_cache_verify_content_sees_an_edit_that_kept_size_and_mtime(tmp_path, caplog):
     """As in DVC, the default trusts a file whose size and mtime match the memo; cache.verify=content
     re-hashes every file of an entry on every hit and so sees the edit."""
@@ -179,6 +181,7 @@ def test_cache_verify_content_sees_an_edit_that_kept_size_and_mtime(tmp_path, ca
     assert "scenes/00001/Day-RAIN.png changed content" in caplog.text
 
 
+@pytest.mark.slow
 def test_a_collected_evaluation_missing_a_file_is_an_error_not_a_missing_model(tmp_path):
     base = fast_overrides(tmp_path)
     run(compose_cfg(base + ["models=[tiny_segformer]", "stages=[generate,pseudolabel,evaluate]"]))
@@ -210,6 +213,7 @@ def release_overrides(tmp_path: Path, root: Path) -> list[str]:
                                        "stages=[pseudolabel,evaluate]"]
 
 
+@pytest.mark.slow
 def test_same_size_replaced_dataset_is_not_a_cache_hit(tmp_path):
     root = tmp_path / "release"
     write_release_same_size(root, seed=0)
@@ -250,6 +254,7 @@ def test_dataset_content_hashes_are_memoised_on_path_size_and_mtime(tmp_path):
     assert HashMemo(tmp_path / "cache" / ".hash-memo.sqlite").sha256(png) == __import__("hashlib").sha256(png.read_bytes()).hexdigest()
 
 
+@pytest.mark.slow
 def test_a_group_missing_a_condition_is_counted_and_reported(tmp_path, caplog):
     root = tmp_path / "release"
     write_release_same_size(root, seed=0, locs=(1, 2, 3), missing={(2, "Night-EXTRASUNNY")})
@@ -263,6 +268,7 @@ def test_a_group_missing_a_condition_is_counted_and_reported(tmp_path, caplog):
 # --------------------------------------------------------------------------- strict JSON
 
 
+@pytest.mark.slow
 def test_every_json_written_is_strict(tmp_path):
     from pairedgta.jsonio import dumps
 
@@ -431,6 +437,7 @@ def running_with_tmp(tmp_path: Path) -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_kill_9_mid_run_leaves_nothing_after_the_next_run(tmp_path, slow_dataset):
     cache = tmp_path / "cache"
     with_dataset(tmp_path, slow_dataset)
@@ -460,6 +467,7 @@ def test_kill_9_mid_run_leaves_nothing_after_the_next_run(tmp_path, slow_dataset
     assert [r.info.status for r in mlflow_runs(tmp_path) if r.data.tags.get("pairedgta.pid") == str(nxt.pid)] == ["FINISHED"]
 
 
+@pytest.mark.slow
 def test_sigterm_unwinds_marks_the_run_killed_and_keeps_finished_work(tmp_path, slow_dataset):
     cache = tmp_path / "cache"
     with_dataset(tmp_path, slow_dataset)
@@ -479,6 +487,7 @@ def test_sigterm_unwinds_marks_the_run_killed_and_keeps_finished_work(tmp_path, 
     assert len(entries(cache, "generate")) == 1  # the finished dataset is kept
 
 
+@pytest.mark.slow
 def test_a_crashed_generate_partial_is_removed_after_the_next_successful_run(tmp_path):
     cache = tmp_path / "cache"
     proc = cli(slow_args(tmp_path, scenes=3000) + ["stages=[generate]"], tmp_path)
@@ -497,6 +506,7 @@ def test_a_crashed_generate_partial_is_removed_after_the_next_successful_run(tmp
     assert "left by a crashed run" in out + err
 
 
+@pytest.mark.slow
 def test_concurrent_runs_get_distinct_run_folders(tmp_path):
     # both stop at once on a bad value, after Hydra made their run folders
     procs = [cli([f"cache_dir={tmp_path / 'cache'}", "plot.dpi=0", "tracking.enabled=false"], tmp_path, run_dir=False)
@@ -529,6 +539,7 @@ def test_execution_only_keys_stay_out_of_the_dataset_hash():
     assert key(["renderer.width=640"]) != base and key(["renderer.settle_s=3"]) != base
 
 
+@pytest.mark.slow
 def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     from pairedgta.models import build_segmenter
 
@@ -568,6 +579,7 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     assert not hits(keyed)[("evaluate", "[demo_segformer]")]  # the thread count is part of the hash
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tmp_path, monkeypatch):
     """ENOSPC in the middle of rendering: one line naming the place and the fix, exit 2, no traceback,
     no temporary scene folder or file left, and the scenes finished before it are kept for the rerun."""
@@ -600,6 +612,7 @@ def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tmp_path, monke
     assert run_cli(args, tmp_path).returncode == 0  # the rerun resumes
 
 
+@pytest.mark.slow
 def test_a_full_disk_without_a_file_name_still_names_the_folder(tmp_path, monkeypatch):
     """A real write() that hits ENOSPC carries no file name: the error still names the folder being
     written (the generate entry) and no temporary is left (FAILED in MLflow: tests/test_tracking.py)."""

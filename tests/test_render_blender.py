@@ -175,6 +175,7 @@ def rendered():
     return d, results, again
 
 
+@pytest.mark.slow
 def test_labels_and_instances_are_identical_across_conditions_while_images_differ(rendered):
     _, results, _ = rendered
     ref = results[CONDITIONS[0]]
@@ -193,6 +194,7 @@ def test_labels_and_instances_are_identical_across_conditions_while_images_diffe
         assert res.image.mean() > 15 and res.image.std() > 8, name
 
 
+@pytest.mark.slow
 def test_same_descriptor_and_condition_give_the_same_image(rendered):
     _, results, again = rendered
     first = results[CONDITIONS[0]]
@@ -200,6 +202,7 @@ def test_same_descriptor_and_condition_give_the_same_image(rendered):
     np.testing.assert_array_equal(again.labels, first.labels)
 
 
+@pytest.mark.slow
 def test_images_do_not_depend_on_what_was_rendered_before(rendered):
     """A second renderer in the same process that caches labels, first renders another scene at
     night, then this scene's conditions in reverse order, reproduces every image bit for bit."""
@@ -216,6 +219,7 @@ def test_images_do_not_depend_on_what_was_rendered_before(rendered):
         np.testing.assert_array_equal(again[name].instances, results[name].instances, err_msg=name)
 
 
+@pytest.mark.slow
 def test_labels_contain_the_scene_and_the_placed_objects(rendered):
     _, results, _ = rendered
     res = results[CONDITIONS[0]]
@@ -233,6 +237,7 @@ def test_labels_contain_the_scene_and_the_placed_objects(rendered):
     assert res.state["objects"][0]["category"] == "car"
 
 
+@pytest.mark.slow
 def test_the_label_pass_measures_the_distance_of_every_pixel(rendered):
     """Green channel of the label pass: the camera distance (View Distance), the same in every condition,
     inf for the sky; the placed car 12 m ahead is about 12 m away (its rear is nearer, its roof farther)."""
@@ -251,6 +256,7 @@ def test_the_label_pass_measures_the_distance_of_every_pixel(rendered):
         np.testing.assert_array_equal(results[name].distance, ref.distance, err_msg=name)
 
 
+@pytest.mark.slow
 def test_a_blender_fog_ladder_writes_maps_that_follow_the_images(tmp_path):
     """One scene of the fog ladder through the CLI: the images lose contrast step by step and each
     condition's transmittance map is exp(-3.912 d / V) of the same distances."""
@@ -275,6 +281,7 @@ def test_a_blender_fog_ladder_writes_maps_that_follow_the_images(tmp_path):
                                    rtol=0.02, atol=2e-4 * 600.0 / v)
 
 
+@pytest.mark.slow
 def test_the_sky_behind_thin_haze_is_the_haze_as_its_transmittance_map_says():
     """Light haze (20 km visibility: exp(-0.0002 d)) leaves near objects almost clear, but the sky lies
     behind an unbounded path: its map says transmittance 0 (distance inf), so the image shows the fog's
@@ -295,6 +302,7 @@ def test_the_sky_behind_thin_haze_is_the_haze_as_its_transmittance_map_says():
     assert hazy.image[inner].astype(float).std(axis=0).max() <= 1.0  # the hazy one is the fog colour only
 
 
+@pytest.mark.slow
 def test_physical_order_of_conditions(rendered):
     _, results, _ = rendered
     day, fog, night = (results[n].image.astype(float) for n in ("Day-EXTRASUNNY", "Day-FOGGY", "Night-RAIN"))
@@ -303,6 +311,7 @@ def test_physical_order_of_conditions(rendered):
     assert lum(fog).std() < lum(day).std()  # fog lowers contrast
 
 
+@pytest.mark.slow
 def test_both_fog_models_light_clear_skies_alike_and_fog_the_same_scene():
     """fog_model=volume keeps a scattering box over the town; switched off under a clear sky it must
     let the sun through (an empty box shader once shadowed it), so both models give one clear
@@ -326,6 +335,7 @@ def test_both_fog_models_light_clear_skies_alike_and_fog_the_same_scene():
         assert fogged.state["fog_model"] == model
 
 
+@pytest.mark.slow
 def test_all_nine_paper_conditions_pair_at_very_low_resolution():
     d = _descriptor()
     r = BlenderRenderer(width=48, height=24, samples=1, denoise=False, town=TOWN, labels_per_condition=True)
@@ -339,6 +349,7 @@ def test_all_nine_paper_conditions_pair_at_very_low_resolution():
     assert len(images) == 9
 
 
+@pytest.mark.slow
 def test_bad_scenes_are_one_line_renderer_errors():
     r = BlenderRenderer(width=32, height=16, samples=1, denoise=False, town=TOWN)
     region = ProceduralTownRegion(**TOWN)
@@ -366,6 +377,7 @@ def test_bad_scenes_are_one_line_renderer_errors():
         assert res.image.shape == (16, 32, 3)
 
 
+@pytest.mark.slow
 def test_a_scene_renders_the_same_first_in_a_fresh_renderer_or_after_another_scene():
     """Resume safety (issue 16): a scene rendered right after a different scene (other objects,
     other place) matches the same scene rendered first by a fresh renderer, byte for byte."""
@@ -412,6 +424,7 @@ def populated():
     return d, results
 
 
+@pytest.mark.slow
 def test_population_labels_are_exact_and_identical_under_all_nine_conditions(populated):
     d, results = populated
     assert len(d.ambient) >= 15
@@ -435,6 +448,7 @@ def test_population_labels_are_exact_and_identical_under_all_nine_conditions(pop
     assert {CAR, PERSON} <= set(np.unique(labels).tolist())
 
 
+@pytest.mark.slow
 def test_a_saved_populated_descriptor_replays_to_the_same_images(populated, tmp_path):
     d, results = populated
     d.save(tmp_path / "descriptor.json")
@@ -447,6 +461,7 @@ def test_a_saved_populated_descriptor_replays_to_the_same_images(populated, tmp_
             np.testing.assert_array_equal(res.labels, results[k].labels)
 
 
+@pytest.mark.slow
 def test_the_motox_rider_rides_a_motorcycle():
     loc = ProceduralTownRegion(**TOWN).sample_location(np.random.default_rng(2))
     d = _descriptor(location=loc, objects=(DynamicObject("rider", "a_m_y_motox_01", forward=8.0, right=0.0,
@@ -458,6 +473,7 @@ def test_the_motox_rider_rides_a_motorcycle():
     assert CLASS_NAMES.index("bicycle") not in classes
 
 
+@pytest.mark.slow
 def test_cycles_cuda_probe_stays_quiet_on_the_cpu_and_other_output_passes():
     """Choosing the denoiser makes Cycles probe CUDA; on a CPU machine its 'CUEW initialization failed'
     line must not reach the user, while everything else the block prints still does (fresh process:

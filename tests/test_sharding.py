@@ -2,10 +2,14 @@
 run, into the same cache entry, from the CLI as a cluster job would run it."""
 from __future__ import annotations
 
+import pytest
+
 import json
 from pathlib import Path
 
 from pairedgta.testing.cli import base_overrides, run_cli
+
+pytestmark = pytest.mark.slow  # end to end: the CLI or the stage graph on every test
 
 SMALL = ["+experiment=smoke", "generate.num_scenes=5", "renderer.width=64", "renderer.height=32",
          "conditions.only=[Day-EXTRASUNNY,Day-RAIN,Night-EXTRASUNNY]", "tracking.enabled=false"]

@@ -16,7 +16,7 @@ import pytest
 from pairedgta.testing.cli import OFFLINE, run_cli
 from pairedgta.testing.slurm import Cluster, Unavailable
 
-pytestmark = pytest.mark.cluster
+pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 
 DATA = ["generate.num_scenes=4", "renderer.width=64", "renderer.height=32", "renderer.threads=1",
         "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "model=tiny_segformer",

@@ -45,6 +45,7 @@ def _runs(client, exp_id: str):
     return parents, nested
 
 
+@pytest.mark.slow
 def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch):
     import mlflow
 
@@ -162,6 +163,7 @@ def test_names_locations_and_bundles():
     assert bundle("plot", "abc", "night vs/acdc", "segformer_b5") == "plot.abc.night_vs_acdc.segformer_b5"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("uri", ["sqlite:///{tmp}/a/mlflow.db", "sqlite:///{tmp}/b/other.db"])
 def test_a_user_given_store_gets_the_artifacts_next_to_it(tmp_path, monkeypatch, uri):
     import mlflow
@@ -192,6 +194,7 @@ def _statuses(db: Path) -> list[tuple[str, str]]:
             client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"])]
 
 
+@pytest.mark.slow
 def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(tmp_path, monkeypatch):
     """The parent run opens before generation: stages=[generate] ends FINISHED, a failure there (a renderer
     error, a full disk) FAILED, an interrupt KILLED."""
@@ -229,6 +232,7 @@ def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(
     assert [s for s, _ in _statuses(db)] == ["FINISHED", "FAILED", "FAILED", "KILLED"]
 
 
+@pytest.mark.slow
 def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog):
     db = tmp_path / "mlflow.db"
     db.write_text("not an sqlite database")
@@ -238,6 +242,7 @@ def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog):
     assert len(warned) == 1 and "failed while opening the experiment" in warned[0] and "tracking.enabled=false" in warned[0]
 
 
+@pytest.mark.slow
 def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, caplog, monkeypatch):
     import sqlite3
 
@@ -302,6 +307,7 @@ def _store_warnings(caplog) -> list[str]:
     return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name == "pairedgta.tracking"]
 
 
+@pytest.mark.slow
 def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_results(tmp_path, caplog):
     """MLflow alone waits 20 s per statement on a locked sqlite store and retries creating its engine, so
     the run used to take minutes; the store is probed first: a few seconds, one warning naming the store,
@@ -328,6 +334,7 @@ def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_resul
     assert "readonly database" in warning and f"its results are in {cache}" in warning
 
 
+@pytest.mark.slow
 def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks(tmp_path, caplog, monkeypatch):
     """A lock taken after the run opened: MLflow's 20 s wait per statement is shortened (BUSY_TIMEOUT_MS)
     and its own error log with tracebacks is left out, so the run says it in one line and goes on."""
@@ -359,6 +366,7 @@ def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks
     assert not [r for r in caplog.records if r.name.startswith("mlflow") and r.levelno >= logging.WARNING]
 
 
+@pytest.mark.slow
 def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypatch):
     """Through the CLI: a store that cannot even be created still lets the stages finish, exit 0, the
     results line printed, and MLflow's failure said once."""
@@ -379,6 +387,7 @@ def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypa
 # --------------------------------------------------------------------------- the tracking child (pairedgta.tracking_worker)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("store", ["sqlite", "file"])
 def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path, caplog, store, monkeypatch):
     """BackgroundTracker: a real child process; nested runs, a reopened run, the owner is the run's process;
@@ -423,6 +432,7 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path,
     assert f"#/experiments/{exp.experiment_id}?workflowType=machine_learning" in t.ui_link()
 
 
+@pytest.mark.slow
 def test_a_failing_store_is_one_warning_in_the_runs_own_log(tmp_path, caplog):
     from pairedgta.tracking_worker import BackgroundTracker
 
@@ -437,6 +447,7 @@ def test_a_failing_store_is_one_warning_in_the_runs_own_log(tmp_path, caplog):
     assert not t.enabled and t.ui_link() is None
 
 
+@pytest.mark.slow
 def test_the_child_ends_the_runs_killed_when_the_run_dies_and_the_next_run_ends_orphans(tmp_path):
     """End-of-file before `close` (kill -9 of the run): the child ends what is open KILLED. A run whose
     process and child both died stays RUNNING until the next tracker of the store ends it."""
@@ -492,6 +503,7 @@ def test_nothing_a_library_prints_reaches_the_summary_channel(tmp_path):
     assert b"a library talks" in proc.stderr and b"a C library talks" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_job_that_loses_the_race_to_tag_the_experiment_keeps_its_record(tmp_path, monkeypatch):
     """Jobs opening an experiment at once each see it untagged; on a server the slower one's tag write is
     a unique-key error (seen with 4 jobs on PostgreSQL), which must not switch its record off."""

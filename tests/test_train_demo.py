@@ -163,6 +163,7 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
     tdm.check_config({**cfg, "augment": {**cfg["augment"], "rare_class_sampling": {"temperature": 0.05, "min_pixels": 16}}})
 
 
+@pytest.mark.slow
 def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     """Two towns, three steps, then a longer rerun that continues from the checkpoint."""
     out = tmp_path / "model"
@@ -240,6 +241,7 @@ def test_without_photometric_distortion_a_crop_keeps_its_colours():
         assert torch.allclose(x, torch.tensor(image).permute(2, 0, 1).float() / 255)
 
 
+@pytest.mark.slow
 def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_path):
     """The project's own families train through the same script and load through the model config."""
     out = tmp_path / "model"

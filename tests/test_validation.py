@@ -200,3 +200,28 @@ def test_state_that_is_not_an_object():
     img = blocks_picture(8)
     g = validate_group({"a": img}, "a", DESC, {"a": ["not", "a", "dict"]})  # type: ignore[dict-item]
     assert not g.ok and g.reasons == ["a: backend state is list, not a JSON object"]
+
+
+@pytest.mark.slow
+def test_a_validation_module_that_fails_to_import_is_one_line_before_any_render(tmp_path, monkeypatch):
+    """A broken install once made every scene pass unchecked ({"ok": True, "reasons": ["validation
+    unavailable"]}); now `python -m pairedgta` stops with one line naming the module and the fix, and no
+    scene is rendered or kept."""
+    import sys
+
+    from pairedgta.testing.cli import fast_overrides, run_cli
+
+    monkeypatch.setitem(sys.modules, "pairedgta.scene.validation", None)  # `import` of it raises ImportError
+    proc = run_cli(fast_overrides(tmp_path) + ["stages=[generate]"], tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, proc.stderr[-2000:]
+    assert "pairedgta.scene.validation" in errors[0] and "pip install -e ." in errors[0], errors[0]
+    assert "generate.validation.enabled=false" in errors[0]
+    assert "Traceback" not in proc.stderr
+    generated = tmp_path / "cache" / "generate"
+    assert not list(generated.glob("[!.]*")) if generated.exists() else True  # no dataset entry
+    assert not list(generated.glob(".partial-*/scenes/[!.]*")) if generated.exists() else True  # no scene rendered
+    # with validation off the same install renders (the escape the message offers is real)
+    proc = run_cli(fast_overrides(tmp_path) + ["stages=[generate]", "generate.validation.enabled=false"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -98,6 +98,7 @@ def test_validity_checks_the_group_ids_not_only_their_number():
     validity([a, dataclasses.replace(b, group_ids=a.group_ids)], "clean", include, resamples=20)  # same groups: fine
 
 
+@pytest.mark.slow
 def test_metric_validity_from_the_pipeline_agrees_with_each_models_own_evaluation(tmp_path):
     """Point estimates of the validity table are the evaluate stage's own numbers, per model and condition."""
     base = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_ddrnet,tiny_pidnet]", "generate.num_scenes=4",

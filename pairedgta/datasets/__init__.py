@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pairedgta.conditions import ConditionGrid
-from pairedgta.datasets.base import (Group, LabelMaps, PairedDataset, load_group_images, load_image, load_label,
-                                     load_transmittance)
+from pairedgta.datasets.base import (Group, LabelMaps, PairedDataset, image_notes, load_group_images, load_image,
+                                     load_label, load_transmittance)
 from pairedgta.registry import Registry
 
 DATASETS = Registry("dataset", "dataset.kind")
@@ -37,4 +37,4 @@ def missing_root_message(cfg: Mapping[str, Any], key: str) -> str:
 
 
 __all__ = ["DATASETS", "Group", "LabelMaps", "PairedDataset", "open_dataset", "missing_root_message",
-           "load_image", "load_label", "load_group_images", "load_transmittance"]
+           "load_image", "load_label", "load_group_images", "load_transmittance", "image_notes"]

@@ -1,12 +1,15 @@
 """Paired datasets: groups of images of one scene keyed by condition name, plus image I/O."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import json
 import logging
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -60,29 +63,162 @@ class PairedDataset:
 
 
 def load_image(path: Path) -> np.ndarray:
-    """RGB uint8 H x W x 3; a corrupt or missing file is a one-line DataError naming it."""
+    """RGB uint8 H x W x 3; a corrupt or missing file is a one-line DataError naming it. An image that reads
+    but deserves a word (one flat colour; not 8-bit RGB and converted) is noted (see `image_notes`)."""
     try:
         with Image.open(path) as im:
             im.load()
             if im.mode.startswith("I"):  # 16/32-bit greyscale: PIL's convert("RGB") clips it to white
-                return _wide_grey_to_rgb(path, np.asarray(im))
-            if im.mode == "F":
+                arr, done = _wide_grey_to_rgb(path, np.asarray(im))
+                note_image(path, CONVERTED, f"{im.mode} greyscale {done}, copied into R, G and B")
+            elif im.mode == "F":
                 raise DataError(f"{path}: a floating-point image; export it as 8-bit (or 16-bit) RGB or greyscale PNG")
-            return np.asarray(im.convert("RGB"))
+            elif im.mode == "RGB":
+                arr = np.asarray(im)
+            else:
+                done = _conversion(im)
+                arr = np.asarray(im.convert("RGB"))
+                if done:
+                    note_image(path, CONVERTED, done)
     except FileNotFoundError:
         raise DataError(f"{path}: image not found; regenerate the dataset or fix dataset.root") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise DataError(f"{path}: not a readable image ({type(exc).__name__}); re-export or delete the file") from None
+    if is_flat(arr):
+        colour = "black" if not arr[0, 0].any() else f"RGB {tuple(int(v) for v in arr[0, 0])}"
+        note_image(path, BLANK, f"all {colour}")
+    return arr
 
 
-def _wide_grey_to_rgb(path: Path, arr: np.ndarray) -> np.ndarray:
-    """A 16-bit (or 32-bit int) greyscale image as 8-bit RGB, scaled from its bit depth."""
+def _wide_grey_to_rgb(path: Path, arr: np.ndarray) -> tuple[np.ndarray, str]:
+    """A 16-bit (or 32-bit int) greyscale image as 8-bit RGB, scaled from its bit depth; and what was done."""
     top = int(arr.max()) if arr.size else 0
     if top > 65535 or int(arr.min()) < 0:
         raise DataError(f"{path}: greyscale values {int(arr.min())}..{top} fit no 8- or 16-bit range; re-export the image")
     grey = arr if top <= 255 else arr / 257.0  # 65535 -> 255
     grey = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
-    return np.repeat(grey[..., None], 3, axis=2)
+    done = "read as 8 bits (its values are 0..255)" if top <= 255 else "scaled from 16 to 8 bits (divided by 257)"
+    return np.repeat(grey[..., None], 3, axis=2), done
+
+
+def _conversion(im: Image.Image) -> str | None:
+    """What reading `im` (not RGB, not wide greyscale) as 8-bit RGB changes, or None when nothing is lost
+    (a palette image, an alpha channel that is opaque everywhere)."""
+    mode = im.mode
+    alpha = mode in ("RGBA", "LA", "PA") and im.getchannel("A").getextrema()[0] < 255
+    if mode == "P":
+        return "palette with transparency: transparency dropped" if "transparency" in im.info else None
+    if mode in ("RGBA", "RGBX", "PA"):
+        return f"{mode}: its alpha channel (not opaque everywhere) dropped" if alpha else None
+    if mode in ("L", "LA", "1"):
+        grey = "1-bit black-and-white" if mode == "1" else "8-bit greyscale"
+        return f"{mode}: {grey} copied into R, G and B" + (", its alpha channel dropped" if alpha else "")
+    return f"{mode}: converted to RGB by Pillow"
+
+
+def is_flat(arr: np.ndarray) -> bool:
+    """Whether every pixel has one colour (a blank image). A strided sample first, so an ordinary image
+    costs a few thousand comparisons; only a flat sample is confirmed on the whole array."""
+    if arr.size == 0:
+        return False
+    step = max(1, min(arr.shape[:2]) // 32)
+    sample = arr[::step, ::step]
+    if not (sample == sample[0, 0]).all():
+        return False
+    rows = arr.reshape(arr.shape[0], -1)
+    return bool((rows == rows[0]).all()) and bool((arr[0] == arr[0, 0]).all())
+
+
+# -- what a run should hear about the images it read ------------------------------------------------------
+# A blank image or one converted on reading is no error, but a result built on it should say so: once per
+# dataset (a few files named, and the count), not once per image. `image_notes` opens a scope for that; the
+# images may be decoded in DataLoader worker processes (evaluate.num_workers), so notes go to a file that the
+# scope names in the environment, which forked and spawned workers both inherit.
+BLANK, CONVERTED = "blank", "converted"
+NOTES_ENV = "PAIREDGTA_IMAGE_NOTES"
+SHOWN = 3  # files a warning names; the rest are counted
+_SCOPES: list[tuple[str, set[tuple[str, str]]]] = []  # this process's open scopes: (notes file, notes warned)
+_warned: set[tuple[str, str]] = set()  # (kind, file) warned about in this process: not again outside a scope
+
+
+def note_image(path: Path, kind: str, detail: str) -> None:
+    """Record that `path` read with a note of `kind` (BLANK, CONVERTED): warned when the open scope ends, or at
+    once outside any scope (once per file and process, e.g. a figure reading images a stage warned about)."""
+    where = os.environ.get(NOTES_ENV)
+    if where:
+        try:  # no O_CREAT: a scope that has ended takes no more notes
+            fd = os.open(where, os.O_WRONLY | os.O_APPEND)
+        except OSError:
+            fd = -1
+        if fd >= 0:
+            try:
+                os.write(fd, (json.dumps([kind, str(path), detail]) + "\n").encode())
+            finally:
+                os.close(fd)
+            return
+    if (kind, str(path)) not in _warned:
+        _warned.add((kind, str(path)))
+        log.warning("%s", _message("reading images", kind, [(str(path), detail)], 1))
+
+
+def _message(what: str, kind: str, notes: list[tuple[str, str]], count: int) -> str:
+    named = ", ".join(f"{p} ({d})" for p, d in notes[:SHOWN])
+    more = f" and {count - SHOWN} more" if count > SHOWN else ""
+    if kind == BLANK:
+        return (f"{what}: {count} image(s) are one flat colour (blank): {named}{more}; blank images agree with each "
+                "other perfectly, so xi and the pixel agreement on them (up to 1.0) mean nothing: re-render or "
+                "re-export them, or remove their groups")
+    return (f"{what}: {count} image(s) are not 8-bit RGB and were converted on reading: {named}{more}; export "
+            "8-bit RGB images to have them read as they are")
+
+
+@contextlib.contextmanager
+def image_notes(what: str) -> Iterator[None]:
+    """Collect the notes of the images read inside, in this process and its workers; at the end, one warning
+    per kind of note (blank, converted) naming a few files and the count, `what` (e.g. "dataset paired_gta")
+    saying who read them. Scopes nest: an inner one warns about what was read inside it, and the outermost
+    warns about nothing twice."""
+    if _SCOPES:
+        path, said = _SCOPES[0]
+        start = os.path.getsize(path) if os.path.isfile(path) else 0
+        owner, previous = False, None
+    else:
+        fd, path = tempfile.mkstemp(prefix="pairedgta-image-notes-", suffix=".jsonl")
+        os.close(fd)
+        said, start, owner = set(), 0, True
+        previous = os.environ.get(NOTES_ENV)
+        os.environ[NOTES_ENV] = path
+    _SCOPES.append((path, said))
+    try:
+        yield
+    finally:
+        _SCOPES.pop()
+        try:
+            with open(path, "rb") as f:
+                f.seek(start)
+                lines = f.read().decode("utf-8", "replace").splitlines()
+        except OSError:
+            lines = []
+        if owner:
+            if previous is None:
+                os.environ.pop(NOTES_ENV, None)
+            else:
+                os.environ[NOTES_ENV] = previous
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+        by_kind: dict[str, dict[str, str]] = {}
+        for line in lines:
+            try:
+                kind, file, detail = json.loads(line)
+            except ValueError:  # a worker killed mid-write
+                continue
+            if (kind, file) not in said:
+                by_kind.setdefault(kind, {}).setdefault(file, detail)
+        for kind in sorted(by_kind):
+            notes = sorted(by_kind[kind].items())
+            said.update((kind, file) for file, _ in notes)
+            _warned.update((kind, file) for file, _ in notes)
+            log.warning("%s", _message(what, kind, notes, len(notes)))
 
 
 def load_label(path: Path, train_ids: bool = True) -> np.ndarray:

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
-from pairedgta.datasets import open_dataset
+from pairedgta.datasets import image_notes, open_dataset
 from pairedgta.datasets.cityscapes import CityscapesSplit
 from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
@@ -132,26 +132,27 @@ def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[st
         "dataset": str(dataset.root), "evaluate": {}, "plot": None, "cityscapes_val": {},
         "stages": ctx.results.setdefault("stages", []),
     }
-    for model_cfg in models:
-        name = model_cfg["name"]
-        with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
-            result = check_model(ctx, dataset, dataset_key, model_cfg)
-            tracker.params({"model": model_cfg, "dataset": ctx.cfg["dataset"]})
-            tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit), "model": name})
-            tracker.metrics(tracked_metrics(result.path))
-            tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1], {"split": dataset.split})
-            tracker.config({**{k: v for k, v in ctx.cfg.items() if k != "hydra"}, "model": model_cfg})
-            tracker.stage_files(bundle(STAGE, result.key), result.hit, [result.path / "iou.csv", result.path / "summary.json"],
-                                STAGE)
-        s = json.loads((result.path / "summary.json").read_text())
-        published = s.get("published_miou")
-        log.info(
-            "%s [%s]: mIoU %.3f, pixel accuracy %.3f over %d %s images%s", STAGE, name, s["miou"], s["pixel_accuracy"],
-            s["n_images"], s["split"], f" (published {published:.3f})" if published else "",
-        )
-        warning = preprocessing_warning(name, s["miou"])
-        if warning:
-            log.warning("%s", warning)
-        summary["evaluate"][name] = str(result.path)
-        summary["cityscapes_val"][name] = {"miou": s["miou"], "published_miou": published, "warning": warning}
+    with image_notes(f"dataset {dataset.name}"):  # a blank or converted image: one warning, after every model
+        for model_cfg in models:
+            name = model_cfg["name"]
+            with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
+                result = check_model(ctx, dataset, dataset_key, model_cfg)
+                tracker.params({"model": model_cfg, "dataset": ctx.cfg["dataset"]})
+                tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit), "model": name})
+                tracker.metrics(tracked_metrics(result.path))
+                tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1], {"split": dataset.split})
+                tracker.config({**{k: v for k, v in ctx.cfg.items() if k != "hydra"}, "model": model_cfg})
+                tracker.stage_files(bundle(STAGE, result.key), result.hit, [result.path / "iou.csv", result.path / "summary.json"],
+                                    STAGE)
+            s = json.loads((result.path / "summary.json").read_text())
+            published = s.get("published_miou")
+            log.info(
+                "%s [%s]: mIoU %.3f, pixel accuracy %.3f over %d %s images%s", STAGE, name, s["miou"], s["pixel_accuracy"],
+                s["n_images"], s["split"], f" (published {published:.3f})" if published else "",
+            )
+            warning = preprocessing_warning(name, s["miou"])
+            if warning:
+                log.warning("%s", warning)
+            summary["evaluate"][name] = str(result.path)
+            summary["cityscapes_val"][name] = {"miou": s["miou"], "published_miou": published, "warning": warning}
     return summary

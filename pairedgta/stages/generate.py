@@ -29,7 +29,7 @@ from tqdm import tqdm
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, scene_files, transmittance_file, transmittance_png
-from pairedgta.errors import ConfigError, PairedGTAError, RendererError
+from pairedgta.errors import ConfigError, PairedGTAError, RendererError, reason
 from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
@@ -238,11 +238,30 @@ def render_scene(
         raise
 
 
+def validation_enabled(cfg: dict[str, Any]) -> bool:
+    return bool((cfg["generate"].get("validation") or {}).get("enabled", True))
+
+
+def validators() -> tuple[Any, Any]:
+    """(validate_group, entity_mismatches) of pairedgta.scene.validation. A module that fails to import
+    is a broken install: one line naming what is missing and the fix, never a scene passed unchecked."""
+    try:
+        from pairedgta.scene.validation import entity_mismatches, validate_group
+    except ImportError as exc:
+        package = exc.name and exc.name.split(".")[0] != "pairedgta"
+        what = f"the Python package '{exc.name}' is not installed" if package else "pairedgta.scene.validation is broken"
+        raise PairedGTAError(
+            f"generate: pair validation cannot run: {what} ({reason(exc)}); reinstall pairedgta (pip install -e . "
+            "in the project), or set generate.validation.enabled=false to render without pair validation"
+        ) from None
+    return validate_group, entity_mismatches
+
+
 def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str, Any]:
     vcfg = cfg["generate"].get("validation") or {}
-    if not vcfg.get("enabled", True):
+    if not validation_enabled(cfg):
         return {"ok": True, "reasons": [], "structure": {}}
-    from pairedgta.scene.validation import entity_mismatches, validate_group  # a broken install fails, never passes
+    validate_group, entity_mismatches = validators()  # a broken install fails, never passes
 
     perturbed = perturbed or {}
     res = validate_group(
@@ -318,6 +337,8 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
     workers = int(gen.get("workers", 1))
     if workers < 1:
         raise ConfigError(f"generate.workers={workers}; set it to at least 1")
+    if validation_enabled(cfg):
+        validators()  # a broken install says so before the first scene is rendered, not after it
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for tmp in scenes_dir.glob(".tmp-*"):

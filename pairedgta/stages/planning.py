@@ -19,7 +19,7 @@ from typing import Any
 
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.configs import merge_variant
-from pairedgta.datasets import DATASETS, PairedDataset, missing_root_message, open_dataset
+from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
 from pairedgta.models import check_model_config, model_config
 from pairedgta.stages import evaluate, generate
@@ -46,6 +46,11 @@ class PassResult:
     @property
     def pairing(self) -> dict[str, float]:
         return generate.pairing_config(self.cfg.get("generate") or {})
+
+    def reading(self) -> Any:
+        """A context for the stages that read this pass's images: a blank image, or one converted on reading,
+        is one warning for the dataset (a few files named, and the count) when they are done."""
+        return image_notes(f"dataset {self.label}")
 
 
 @dataclass
