@@ -89,7 +89,8 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
         assert config["model"]["name"] == model and config["metric"]["bootstrap"]["resamples"] == 50
         # the means and the headline rho per class; per-class xi only with tracking.class_metrics (below)
         prefixes = {k.split("/")[0] + "/*" * k.count("/") for k in r.data.metrics}
-        assert {"xi_mean/*", "xi_gt_mean/*", "gt_miou/*", "agreement/*"} == prefixes - {"rho_valid/*/*"}, prefixes
+        assert {"xi_mean/*", "xi_gt_mean/*", "gt_miou/*", "agreement/*", "estimator/*/*"} == prefixes - {"rho_valid/*/*"}, prefixes
+        assert 0 < r.data.metrics["estimator/ac/Day-RAIN"] <= 1  # the label-free estimators beside xi
         assert r.data.metrics["xi_mean/Day-RAIN"] == pytest.approx(
             xi[(xi.condition == "Day-RAIN") & (xi.class_name == "mean") & (xi.reference_model != "ground_truth")].xi.item())
     # the parent carries each model's numbers with the model in the key: one chart compares them

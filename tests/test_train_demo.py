@@ -301,6 +301,7 @@ def test_exported_data_reads_back_pixel_exact_and_refuses_other_settings(tmp_pat
         tdm.import_data(cfg, tmp_path)
 
 
+@pytest.mark.slow  # loader worker processes
 def test_worker_batches_are_seeded_per_step_so_a_resume_draws_the_same_batches():
     rng = np.random.default_rng(1)
     images = rng.integers(0, 256, (4, 32, 64, 3), dtype=np.uint8)
