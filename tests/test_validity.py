@@ -101,14 +101,15 @@ def test_validity_checks_the_group_ids_not_only_their_number():
 @pytest.mark.slow
 def test_metric_validity_from_the_pipeline_agrees_with_each_models_own_evaluation(tmp_path):
     """Point estimates of the validity table are the evaluate stage's own numbers, per model and condition."""
-    base = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_ddrnet,tiny_pidnet]", "generate.num_scenes=4",
-                                       "plot.figures=[metric_validity,xi_models]"]
+    base = fast_overrides(tmp_path) + ["models=[tiny_segformer,tiny_ddrnet,tiny_pidnet,tiny_deeplabv3plus]",
+                                       "generate.num_scenes=4", "plot.figures=[metric_validity,xi_models]"]
     summary = run(compose_cfg(base))
     out = tmp_path / "cache" / "plot"
     plot_dir = next(p for p in out.iterdir() if (p / "metric_validity.csv").is_file())
     cells = pd.read_csv(plot_dir / "metric_validity_cells.csv")
     corr = pd.read_csv(plot_dir / "metric_validity.csv")
-    assert set(cells["model"]) == {"tiny_segformer", "tiny_ddrnet", "tiny_pidnet"}
+    # the reference model (tiny_segformer, the pseudo-label source) is evaluated but not ranked
+    assert set(cells["model"]) == {"tiny_ddrnet", "tiny_pidnet", "tiny_deeplabv3plus"}
     assert set(corr["scope"]) == {"Day-RAIN", "Night-EXTRASUNNY", "pooled"} and (corr["n_groups"] == 4).all()
     for model, path in summary["evaluate"].items():
         s = json.loads((Path(path) / "summary.json").read_text())
@@ -122,4 +123,4 @@ def test_metric_validity_from_the_pipeline_agrees_with_each_models_own_evaluatio
     assert (plot_dir / "metric_validity.png").is_file() and (plot_dir / "xi_models.png").is_file()
 
     with pytest.raises(ConfigError, match="at least 3"):
-        run(compose_cfg(base[:-2] + ["models=[tiny_segformer,tiny_ddrnet]", "plot.figures=[metric_validity]"]))
+        run(compose_cfg(base[:-2] + ["models=[tiny_segformer,tiny_ddrnet,tiny_pidnet]", "plot.figures=[metric_validity]"]))

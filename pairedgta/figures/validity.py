@@ -45,10 +45,13 @@ def group_counts(passes: list) -> list[GroupCounts]:
 
 
 def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
-    models = group_counts(passes)
+    from pairedgta.figures.estimators import references
+
+    refs = references(passes, opts)  # the pseudo-label source is not ranked: it would grade itself
+    models = [m for m in group_counts(passes) if m.model not in refs]
     if len(models) < 3:  # two models always rank-correlate at +1 or -1: no evidence either way
-        raise ConfigError(f"plot.figures: metric_validity ranks models and found {len(models)} evaluated on every pass; "
-                          "evaluate at least 3 (models=[...])")
+        raise ConfigError(f"plot.figures: metric_validity ranks models and found {len(models)} evaluated on every pass "
+                          f"besides the reference model {', '.join(sorted(refs))}; evaluate at least 3 (models=[...])")
     cfg = opts.cfg
     metric = cfg.get("metric") or {}
     conv = convention_from_config(metric)

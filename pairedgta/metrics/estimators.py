@@ -36,7 +36,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from pairedgta.metrics.bootstrap import resample_weights
-from pairedgta.metrics.validity import GroupCounts, _interval, cell_measures, kendall_rows, spearman_rows
+from pairedgta.metrics.validity import GroupCounts, _interval, cell_measures, kendall_rows, spearman_rows, stack_passes
 
 ESTIMATORS = ("xi", "ac", "doc", "atc", "entropy", "gde", "self_agreement", "clean_miou")
 USES_CLEAN_LABELS = frozenset({"doc", "atc", "clean_miou"})  # clean ground truth; none uses adverse labels
@@ -78,12 +78,8 @@ class EstimatorCounts:
 def concat_counts(parts: Iterable[EstimatorCounts]) -> EstimatorCounts:
     """Groups of several passes of one model, stacked (as `validity.concat_groups`)."""
     parts = list(parts)
-    if len({p.conditions for p in parts}) != 1:
-        raise ValueError("the passes were evaluated on different conditions")
-    ids = tuple(f"{i}:{g}" for i, p in enumerate(parts) for g in p.group_ids) if all(p.group_ids for p in parts) else ()
-    return EstimatorCounts(parts[0].model, parts[0].conditions,
-                           *(np.concatenate([getattr(p, f) for p in parts]) for f in
-                             ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean")), ids)
+    arrays, ids = stack_passes(parts, ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean"))
+    return EstimatorCounts(parts[0].model, parts[0].conditions, *arrays, ids)
 
 
 def _weigh(w: np.ndarray, a: np.ndarray) -> np.ndarray:

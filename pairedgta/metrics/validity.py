@@ -46,15 +46,20 @@ class GroupCounts:
                    a["ground_truth_retained"], a["ground_truth_reference"], a["cm"], ids)
 
 
-def concat_groups(parts: Iterable[GroupCounts]) -> GroupCounts:
-    """Groups of several datasets (passes) of one model, stacked: the bootstrap then resamples all of them."""
-    parts = list(parts)
+def stack_passes(parts: list, fields: tuple[str, ...]) -> tuple[list[np.ndarray], tuple[str, ...]]:
+    """Per-group arrays of one model over several passes, stacked along the groups, and the group ids made
+    unique per pass (`<pass>:<group>`): the bootstrap then resamples all of them."""
     if len({p.conditions for p in parts}) != 1:
         raise ValueError("the passes were evaluated on different conditions")
     ids = tuple(f"{i}:{g}" for i, p in enumerate(parts) for g in p.group_ids) if all(p.group_ids for p in parts) else ()
-    return GroupCounts(parts[0].model, parts[0].conditions,
-                       *(np.concatenate([getattr(p, f) for p in parts]) for f in
-                         ("pl_retained", "pl_reference", "gt_retained", "gt_reference", "cm")), ids)
+    return [np.concatenate([getattr(p, f) for p in parts]) for f in fields], ids
+
+
+def concat_groups(parts: Iterable[GroupCounts]) -> GroupCounts:
+    """Groups of several datasets (passes) of one model, stacked."""
+    parts = list(parts)
+    arrays, ids = stack_passes(parts, ("pl_retained", "pl_reference", "gt_retained", "gt_reference", "cm"))
+    return GroupCounts(parts[0].model, parts[0].conditions, *arrays, ids)
 
 
 def mean_xi(retained: np.ndarray, reference: np.ndarray, include: np.ndarray, absent: str) -> np.ndarray:
@@ -203,5 +208,5 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     return cells, corr
 
 
-__all__ = ["GroupCounts", "concat_groups", "cell_measures", "validity", "spearman_rows", "kendall_rows", "miou",
+__all__ = ["GroupCounts", "concat_groups", "stack_passes", "cell_measures", "validity", "spearman_rows", "kendall_rows", "miou",
            "mean_xi", "supported", "MEASURES", "TARGETS"]
