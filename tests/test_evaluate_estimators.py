@@ -114,9 +114,9 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
                                                    "conf_hist": hist(clean_bin), "agree_clean": 10},
                                        conds[1]: {"pixels": 10, "conf_sum": 10 * adv_bin / 1000, "entropy_sum": 4.0,
                                                    "conf_hist": hist(adv_bin), "agree_clean": 3 + g}}})
-    ev.write_group_counts(tmp_path / "group_counts.npz", results, conds)
+    arrays = ev.write_group_counts(tmp_path / "group_counts.npz", results, conds)
     conv = {"mean_exclude": [], "absent": "nan", "min_images": 0, "min_pixels": 0}
-    out = ev.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv})
+    out = ev.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv}, arrays)
     adv = out["Night-RAIN"]
     assert adv["ac"] == pytest.approx(0.5) and adv["self_agreement"] == pytest.approx(7 / 20)
     assert adv["entropy"] == pytest.approx(1 - 8 / 20)

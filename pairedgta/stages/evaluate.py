@@ -487,9 +487,9 @@ def compute(
         done[r["group_id"]] = r
     results = [done[g.group_id] for g in dataset.groups if g.group_id in done]
     model = str(model_cfg["name"])
-    write_group_counts(out / "group_counts.npz", results, conditions)
+    counts = write_group_counts(out / "group_counts.npz", results, conditions)
     write_predictions(out / "predictions.npz", results, conditions)
-    estimators = write_estimators(out, model, conditions, s)
+    estimators = write_estimators(out, model, conditions, s, counts)
     acc: dict[tuple[str, str], _Accumulator] = {}
     gt_cm: dict[str, ConfusionMatrix] = {}
     agreement_rows: list[dict[str, Any]] = []
@@ -510,7 +510,8 @@ def compute(
                           "estimators": estimators})
 
 
-def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any]) -> dict[str, dict[str, float]]:
+def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any],
+                     arrays: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     """estimators.csv: per condition the label-free estimators of this model (pairedgta.metrics.estimators;
     GDE needs the other models and is computed where they meet, the `estimators` figure) beside xi and the
     ground-truth targets where labels exist. AC, entropy and plain agreement use no label; DoC, ATC and the
@@ -519,14 +520,12 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
     from pairedgta.metrics.validity import GroupCounts
 
     clean, conv = s["clean"], s["convention"]
-    with np.load(out / "group_counts.npz", allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
-    if clean not in conditions or not len(arrays["group_id"]):
+    n = len(arrays["group_id"])
+    if clean not in conditions or not n:
         return {}
     g, c = GroupCounts.from_arrays(model, arrays), EstimatorCounts.from_arrays(model, arrays)
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
-    values = model_values(g, c, np.ones((1, len(g.group_ids))), clean, include, conv["absent"], conv["min_images"],
-                          conv["min_pixels"])
+    values = model_values(g, c, np.ones((1, n)), clean, include, conv["absent"], conv["min_images"], conv["min_pixels"])
     rows = {cond: {"model": model, "condition": cond,
                    **{k: float(v[0, i]) for k, v in values.items() if k != "atc_threshold"},
                    "atc_threshold": float(values["atc_threshold"][0])} for i, cond in enumerate(conditions)}
@@ -534,7 +533,7 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
     return {cond: {k: v for k, v in r.items() if k not in ("model", "condition")} for cond, r in rows.items()}
 
 
-def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
+def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
     """What a paired bootstrap over groups needs, per group g and condition i: `present[g, i]`; for each
     reference source (`pseudo_label`, `ground_truth`) the retained and reference pixels per class
     (`<source>_retained[g, i, c]`, `<source>_reference[g, i, c]`); and the confusion matrix against the
@@ -571,6 +570,7 @@ def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: li
                 arrays["cm"][g, index[cond]] = np.asarray(mat, dtype=np.int64)
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
+    return arrays
 
 
 def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
