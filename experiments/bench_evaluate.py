@@ -49,6 +49,7 @@ import json, resource, sys, time
 import numpy as np
 from hydra import compose, initialize_config_dir
 import pairedgta.stages.evaluate as ev
+from pairedgta.evaluation import tables
 from pairedgta.models.base import Segmenter
 from pairedgta.app import run
 from pairedgta.configs import CONFIG_DIR
@@ -74,10 +75,10 @@ def wrapped(*a, **k):
     finally:
         timers["evaluate"] += time.perf_counter() - t; inside[0] = False
 ev.count_groups = wrapped
-write_outputs = ev.write_outputs
+write_outputs = tables.write_outputs
 def written(*a, **k):
     t = time.perf_counter(); out = write_outputs(*a, **k); timers["write"] += time.perf_counter() - t; return out
-ev.write_outputs = written
+tables.write_outputs = written
 overrides = ["dataset=paired_gta", f"dataset.root={root}", f"cache_dir={cache}", "stages=[pseudolabel,evaluate]",
              "tracking.enabled=false", f"model={model}", f"reference_model={model}", f"evaluate.num_workers={workers}",
              f"evaluate.batch_size={batch}", "conditions.only=[Day-EXTRASUNNY,Day-RAIN,Night-EXTRASUNNY]",
@@ -129,7 +130,8 @@ def main() -> None:
         print(f"evaluate, {args.model} {'SegFormer-B0 widths' if args.arch == B0 else 'arch=' + args.arch}, {args.width}x{args.height}, {args.groups} groups x 3 conditions, "
               f"batch {args.batch}")
         # forward share: of count_groups' time, the model's forward; decode + counting: the rest of it;
-        # writing: write_outputs (tables, bootstrap), after count_groups, relative to it
+        # writing: tables.write_outputs (every file of the entry: tables, bootstrap, group counts, label maps),
+        # after count_groups, relative to it
         print(f"{'workers':>7} {'eval img/s':>10} {'bare img/s':>10} {'ratio':>6} {'forward share':>13} "
               f"{'decode+count':>12} {'writing':>8}")
         for workers in sorted({0, args.workers}):

@@ -29,6 +29,7 @@ import re
 import shutil
 import uuid
 import weakref
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Iterator
 
@@ -100,6 +101,16 @@ def list_files(root: Path) -> list[Path]:
     return sorted(p for p in root.rglob("*") if p.is_file() and p.name != MANIFEST)
 
 
+@dataclass(frozen=True)
+class Entry:
+    """A finished cache entry as `StageCache.entries` lists it."""
+
+    key: str
+    path: Path
+    manifest: dict[str, Any]
+    mtime: float  # the manifest's, i.e. when the entry was finished
+
+
 _INSTANCES: "weakref.WeakSet[StageCache]" = weakref.WeakSet()
 
 
@@ -135,6 +146,23 @@ class StageCache:
         import json
 
         return json.loads((self.path(stage, key) / MANIFEST).read_text())
+
+    def entries(self, stage: str) -> list["Entry"]:
+        """The finished entries of `stage` with their manifests, by key: what a search over earlier runs
+        (e.g. evaluations of other models) reads. Work and leftover folders are not entries, and one whose
+        manifest cannot be read is skipped; the files are not checked here (`entry_problem` does that)."""
+        import json
+
+        found = []
+        for manifest in sorted((self.root / stage).glob(f"*/{MANIFEST}")):
+            d = manifest.parent
+            if d.name.startswith("."):
+                continue
+            try:
+                found.append(Entry(d.name, d, json.loads(manifest.read_text()), manifest.stat().st_mtime))
+            except (OSError, json.JSONDecodeError):
+                continue
+        return found
 
     def partial_path(self, stage: str, key: str) -> Path:
         """A stable work directory for resumable stages (generate): never a hit, reused by a rerun."""

@@ -225,7 +225,7 @@ def check_metric(cfg: dict[str, Any], where: str) -> None:
 
 
 def check_evaluate(cfg: dict[str, Any], where: str) -> None:
-    from pairedgta.stages.evaluate import SAMPLINGS
+    from pairedgta.evaluation.inputs import SAMPLINGS
 
     sampling = (cfg.get("evaluate") or {}).get("sampling")
     if sampling is not None and sampling not in SAMPLINGS:
@@ -237,7 +237,7 @@ def check_stage_keys(cfg: dict[str, Any], names: set[str], where: str) -> None:
     """Keys the stages read and validate themselves, checked with the same code before any stage writes:
     shards, decode workers, condition names, the renderer backend, the objects' range and the camera."""
     from pairedgta.stages.common import shard_keys
-    from pairedgta.stages.evaluate import decode_workers
+    from pairedgta.evaluation.inputs import decode_workers
 
     def again(exc: ConfigError) -> ConfigError:
         return ConfigError(f"{where}{exc}")

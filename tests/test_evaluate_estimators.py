@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pairedgta.models.base import normalised_entropy
-from pairedgta.stages import evaluate as ev
+from pairedgta.evaluation import counting, shards, tables
 
 
 def test_normalised_entropy_is_zero_when_certain_one_when_uniform_and_renormalises():
@@ -27,11 +27,11 @@ def test_estimator_sums_of_one_image_by_hand():
     clean = np.array([[1, 2], [0, 0]])           # two of four pixels predicted as on the clean image
     conf = np.array([[0.25, 0.5], [0.9995, 1.0]], dtype=np.float32)
     entropy = np.array([[0.5, 0.25, 0.0, 0.0]], dtype=np.float32).reshape(2, 2)
-    s = ev.estimator_sums(pred, conf, entropy, clean)
+    s = counting.estimator_sums(pred, conf, entropy, clean)
     assert s["pixels"] == 4 and s["agree_clean"] == 2
     assert s["conf_sum"] == pytest.approx(2.7495, abs=1e-6) and s["entropy_sum"] == pytest.approx(0.75)
     hist = np.asarray(s["conf_hist"])
-    assert hist.shape == (ev.CONF_BINS,) and hist.sum() == 4
+    assert hist.shape == (counting.CONF_BINS,) and hist.sum() == 4
     # bin k holds [k/1000, (k+1)/1000); 1.0 falls into the last bin with 0.9995
     assert hist[250] == 1 and hist[500] == 1 and hist[999] == 2
 
@@ -61,7 +61,7 @@ def test_group_counts_carry_estimator_sums_and_label_maps_from_the_same_pass():
     pseudo = np.zeros((4, 6), np.uint8)
     item = {"group_id": "g0", "present": [clean, adverse], "images": images, "pseudo": pseudo, "own": {}}
     s = {"clean": clean, "tau_mass": 0.5, "class_ids": [0, 1]}
-    out = ev.group_counts(item, _Fixed(), s, clean, True, 2, "fixed", "d")
+    out = counting.group_counts(item, _Fixed(), s, clean, True, 2, "fixed", "d")
     e = out["estimators"][adverse]
     assert e["pixels"] == 24 and e["agree_clean"] == 12  # the right half turns from class 0 to class 1
     assert e["conf_sum"] == pytest.approx(12 * 0.875 + 12 * 0.625, rel=1e-5)
@@ -72,27 +72,27 @@ def test_group_counts_carry_estimator_sums_and_label_maps_from_the_same_pass():
 
 def test_estimator_arrays_predictions_and_shard_parts_round_trip(tmp_path):
     conds = ["Day-EXTRASUNNY", "Day-RAIN"]
-    hist = [0] * ev.CONF_BINS
+    hist = [0] * counting.CONF_BINS
     hist[10] = 6
     results = [{"group_id": f"s{g}", "xi": {}, "cm": {}, "agreement": [], "counts": [],
                 "estimators": {c: {"pixels": 6, "conf_sum": 1.5 + g, "entropy_sum": 0.5, "conf_hist": hist,
                                    "agree_clean": 3} for c in conds[: 2 - g]},
                 "pred": {c: np.full((2, 3), g + i, np.uint8) for i, c in enumerate(conds[: 2 - g])}} for g in range(2)]
-    ev.write_group_counts(tmp_path / "gc.npz", results, conds)
+    tables.write_group_counts(tmp_path / "gc.npz", results, conds)
     a = np.load(tmp_path / "gc.npz")
     assert a["est_pixels"].tolist() == [[6, 6], [6, 0]] and a["est_conf_sum"][1, 0] == 2.5
     assert a["est_conf_hist"][0, 1, 10] == 6 and a["est_agree_clean"].sum() == 9
-    ev.write_predictions(tmp_path / "p.npz", results, conds)
+    tables.write_predictions(tmp_path / "p.npz", results, conds)
     p = np.load(tmp_path / "p.npz")
     assert p["group_id"].tolist() == ["s0", "s1"] and p["g00000"].shape == (2, 2, 3)
     assert (p["g00001"][1] == 255).all() and (p["g00001"][0] == 1).all()  # absent condition: 255
     parts = tmp_path / "parts"
-    ev.write_part(parts, 0, 1, results)
-    back = ev.read_parts(parts)
+    shards.write_part(parts, 0, 1, results)
+    back = shards.read_parts(parts)
     assert set(back) == {"s0", "s1"} and np.array_equal(back["s0"]["pred"]["Day-RAIN"], results[0]["pred"]["Day-RAIN"])
     assert back["s1"]["estimators"]["Day-EXTRASUNNY"]["conf_sum"] == 2.5
     (parts / "part-00000-of-00001.npz").unlink()  # maps lost: the part is not trusted, its groups are redone
-    assert ev.read_parts(parts) == {}
+    assert shards.read_parts(parts) == {}
 
 
 def test_estimators_csv_per_model_by_hand(tmp_path):
@@ -100,7 +100,7 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
     conds = ["Day-EXTRASUNNY", "Night-RAIN"]
     k = 19
     def hist(at):  # all of a group's 10 pixels in bin `at`
-        h = [0] * ev.CONF_BINS
+        h = [0] * counting.CONF_BINS
         h[at] = 10
         return h
     cm_clean = np.zeros((k, k), int)
@@ -114,9 +114,9 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
                                                    "conf_hist": hist(clean_bin), "agree_clean": 10},
                                        conds[1]: {"pixels": 10, "conf_sum": 10 * adv_bin / 1000, "entropy_sum": 4.0,
                                                    "conf_hist": hist(adv_bin), "agree_clean": 3 + g}}})
-    arrays = ev.write_group_counts(tmp_path / "group_counts.npz", results, conds)
+    arrays = tables.write_group_counts(tmp_path / "group_counts.npz", results, conds)
     conv = {"mean_exclude": [], "absent": "nan", "min_images": 0, "min_pixels": 0}
-    out = ev.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv}, arrays)
+    out = tables.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv}, arrays)
     adv = out["Night-RAIN"]
     assert adv["ac"] == pytest.approx(0.5) and adv["self_agreement"] == pytest.approx(7 / 20)
     assert adv["entropy"] == pytest.approx(1 - 8 / 20)

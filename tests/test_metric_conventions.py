@@ -13,7 +13,7 @@ import pytest
 from pairedgta.app import run
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError
-from pairedgta.stages.evaluate import sampled_conditions
+from pairedgta.evaluation.inputs import sampled_conditions
 from pairedgta.testing.cli import compose_cfg, fast_overrides
 
 PAPER17 = [c for c in CLASS_NAMES if c not in ("bus", "train")]

@@ -140,6 +140,38 @@ def test_pixel_agreement_masks_void():
     assert (agree, valid) == (2, 3)
 
 
+def test_pixel_agreement_of_arrays_equals_that_of_tensors():
+    rng = np.random.default_rng(7)
+    a, b, ref = (rng.integers(0, 4, size=(5, 6)) for _ in range(3))
+    ref[0] = 255
+    assert pixel_agreement(a, b, ref) == pixel_agreement(*(torch.from_numpy(x) for x in (a, b, ref)))
+    assert pixel_agreement(a, b, ref) == (int(((a == b) & (ref != 255)).sum()), 24)
+
+
+def test_metrics_fed_per_image_counts_equal_the_streaming_update():
+    """evaluate sums per-image counts (counted in a worker or a shard job) through `update_counts`: the
+    result must be what `update` on the label maps themselves gives."""
+    from pairedgta.metrics import reference_consistency_counts
+    from pairedgta.metrics.segmentation import confusion_counts
+
+    rng = np.random.default_rng(8)
+    refs, preds = random_maps(rng, 4)
+    streamed, summed = ReferenceConsistency(C, 255), ReferenceConsistency(C, 255)
+    cm_streamed, cm_summed = ConfusionMatrix(C), ConfusionMatrix(C)
+    for r, p in zip(refs, preds):
+        streamed.update(torch.from_numpy(r), torch.from_numpy(p))
+        summed.update_counts(*(x.tolist() for x in reference_consistency_counts(r, p, C, 255)))
+        cm_streamed.update(r, p)
+        cm_summed.update_counts(confusion_counts(r, p, C, 255).tolist())
+    np.testing.assert_array_equal(summed.compute().numpy(), streamed.compute().numpy())
+    assert torch.equal(summed.reference, streamed.reference) and torch.equal(cm_summed.mat, cm_streamed.mat)
+    assert cm_summed.miou() == cm_streamed.miou() and int(cm_summed.mat.sum()) == sum(int((r != 255).sum()) for r in refs)
+    with pytest.raises(ValueError, match="19 classes"):
+        summed.update_counts([1, 2], [3, 4])
+    with pytest.raises(ValueError, match="confusion matrix"):
+        cm_summed.update_counts(np.zeros((4, 4), int))
+
+
 def test_bootstrap_intervals_are_seeded_and_bracket_the_estimate():
     rng = np.random.default_rng(3)
     den = rng.integers(10, 100, size=(40, 3)).astype(float)

@@ -18,11 +18,14 @@ torch = lazy_module("torch")  # imported on first use: a cached run needs none
 AGREEMENT_MODES = ("pooled", "per_image")
 
 
-def pixel_agreement(a: torch.Tensor, b: torch.Tensor, reference_labels: torch.Tensor, ignore_index: int = 255) -> tuple[int, int]:
-    """(agreeing pixels, valid pixels) where valid = reference is not void."""
-    a, b = torch.as_tensor(a), torch.as_tensor(b)
-    valid = torch.as_tensor(reference_labels) != ignore_index
-    return int(((a == b) & valid).sum()), int(valid.sum())
+def _np(x) -> np.ndarray:
+    return x.numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def pixel_agreement(a, b, reference_labels, ignore_index: int = 255) -> tuple[int, int]:
+    """(agreeing pixels, valid pixels) of two label maps (arrays or tensors) where valid = reference is not void."""
+    valid = _np(reference_labels) != ignore_index
+    return int(((_np(a) == _np(b)) & valid).sum()), int(valid.sum())
 
 
 def aggregate_agreement(agree, valid, mode: str = "pooled") -> float:

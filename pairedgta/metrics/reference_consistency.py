@@ -103,9 +103,17 @@ class ReferenceConsistency:
         retained, reference = reference_consistency_counts(
             reference_labels, predicted_labels, self.num_classes, self.ignore_index
         )
+        self.update_counts(retained, reference)
+        return retained, reference
+
+    def update_counts(self, retained, reference) -> None:
+        """Add per-class counts taken elsewhere (one image's, from evaluate's group counts or a shard job)."""
+        retained, reference = torch.as_tensor(_np(retained).astype(np.int64)), torch.as_tensor(_np(reference).astype(np.int64))
+        if retained.shape != (self.num_classes,) or reference.shape != (self.num_classes,):
+            raise ValueError(f"counts of shape {tuple(retained.shape)} and {tuple(reference.shape)}; this metric "
+                             f"counts {self.num_classes} classes")
         self.retained += retained
         self.reference += reference
-        return retained, reference
 
     def merge(self, other: "ReferenceConsistency") -> "ReferenceConsistency":
         self.retained += other.retained

@@ -1,0 +1,123 @@
+"""What evaluate reads of one group: the conditions it evaluates (all, or the authors' random draw) and
+their images, label maps and visibility masks, decoded in DataLoader workers so that the model forward,
+not PNG decoding, bounds evaluation."""
+from __future__ import annotations
+
+import os
+import zlib
+from typing import Any
+
+import numpy as np
+
+from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images, load_label, load_transmittance
+from pairedgta.errors import ConfigError, DataError, PairedGTAError
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
+
+SAMPLINGS = ("all", "random_one")
+
+
+def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: str, seed: int) -> list[str]:
+    """The conditions of one group to evaluate: all, or the clean one plus one adverse condition drawn
+    as the authors' loader draws it: a time of day uniformly (the part of the name before the first
+    "-": Day, Sunset, Night), then one of that time's adverse weathers uniformly. On the paper's grid a
+    Day condition is drawn for 1/3 of the groups, not 2/8. The draw depends only on (seed, group id), so
+    it is reproducible and does not change when groups are added, reordered or split over shards."""
+    if sampling == "all":
+        return present
+    adverse = [c for c in present if c != clean]
+    if not adverse:
+        return present
+    by_time: dict[str, list[str]] = {}
+    for c in adverse:
+        by_time.setdefault(c.split("-", 1)[0], []).append(c)
+    rng = np.random.default_rng([seed, zlib.crc32(str(group_id).encode())])
+    weathers = list(by_time.values())[int(rng.integers(len(by_time)))]
+    return [clean, weathers[int(rng.integers(len(weathers)))]]
+
+
+class GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __getitem__)
+    """Decodes one group's images and label maps, in DataLoader workers (`evaluate.num_workers`). Errors
+    come back as values, so the main process raises the same one-line error a sequential run would."""
+
+    def __init__(self, dataset: PairedDataset, groups: list[Any], order: list[str], clean: str,
+                 labels: LabelMaps, use_gt: bool, sampling: str = "all", sampling_seed: int = 0,
+                 min_transmittance: float = 0.0) -> None:
+        self.dataset, self.groups, self.order, self.clean = dataset, groups, order, clean
+        self.labels, self.use_gt = labels, use_gt
+        self.sampling, self.sampling_seed = sampling, sampling_seed
+        self.min_transmittance = min_transmittance
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        try:
+            return self._load(self.groups[i])
+        except PairedGTAError as exc:
+            return {"error": str(exc), "kind": type(exc).__name__}
+
+    def _load(self, group: Any) -> dict[str, Any]:
+        present = [c for c in self.order if c in group.images]
+        if self.clean not in present:
+            return {"group_id": group.group_id, "present": []}
+        present = sampled_conditions(group.group_id, present, self.clean, self.sampling, self.sampling_seed)
+        images = load_group_images(group, present)
+        shape = images[self.clean].shape[:2]
+        pl_path = self.labels.path(group.group_id)
+        pseudo = load_label(pl_path)
+        if pseudo.shape != shape:
+            raise DataError(
+                f"{pl_path}: pseudo-label is {pseudo.shape[1]}x{pseudo.shape[0]} but the images of group "
+                f"{group.group_id} are {shape[1]}x{shape[0]}; rerun with force=[pseudolabel]"
+            )
+        own: dict[str, np.ndarray] = {}
+        for c in present if self.use_gt else []:
+            if c in group.labels:
+                own[c] = load_label(group.labels[c])
+                if own[c].shape != shape:
+                    raise DataError(f"{group.labels[c]}: label map size differs from its image")
+        return {"group_id": group.group_id, "present": present, "images": images, "pseudo": pseudo, "own": own,
+                "visible": self._visible(group, present, shape)}
+
+    def _visible(self, group: Any, present: list[str], shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+        """metric.min_transmittance > 0: per condition, the pixels visible in it and in the clean image."""
+        if self.min_transmittance <= 0.0:
+            return {}
+        seen: dict[str, np.ndarray] = {}
+        for c in present:
+            if c not in group.transmittance:
+                raise DataError(f"group {group.group_id} of {self.dataset.root} has no transmittance map for {c}; "
+                                "regenerate it with renderer=blender or synthetic, or set metric.min_transmittance=0")
+            t = load_transmittance(group.transmittance[c])
+            if t.shape != shape:
+                raise DataError(f"{group.transmittance[c]}: transmittance map size differs from its image")
+            seen[c] = t >= self.min_transmittance
+        return {c: seen[c] & seen[self.clean] for c in present}
+
+
+def decode_workers(value: Any, device: str) -> int:
+    """`evaluate.num_workers`: a count, or auto = none on the CPU (the forward already uses every core;
+    measured in experiments/bench_evaluate.py) and up to 4 beside a GPU."""
+    if value in (None, "auto"):
+        return 0 if device == "cpu" else min(4, os.cpu_count() or 1)
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"evaluate.num_workers={value!r}; use a whole number >= 0 or auto") from None
+    if n < 0:
+        raise ConfigError(f"evaluate.num_workers={n}; use a whole number >= 0 or auto")
+    return n
+
+
+def _identity(item: Any) -> Any:
+    return item
+
+
+def load_groups(inputs: GroupInputs, workers: int) -> Any:
+    """The groups' inputs in order: decoded in this process (workers=0) or by `workers` DataLoader workers."""
+    if workers < 1:
+        return (inputs[i] for i in range(len(inputs)))
+    return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
+                                       collate_fn=_identity, prefetch_factor=2, persistent_workers=False)
