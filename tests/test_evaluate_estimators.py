@@ -129,3 +129,40 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
 
     table = pd.read_csv(tmp_path / "estimators.csv")
     assert list(table["condition"]) == conds and table.loc[0, "self_agreement"] == 1.0
+
+
+def test_entry_written_from_counted_groups_by_hand(tmp_path):
+    """Two groups counted by `group_counts` (the _Fixed model keeps half of class 0 at night), summed and
+    written by `tables.write_outputs`: xi, IoU and agreement by hand, through the metrics' update_counts."""
+    import json
+
+    import pandas as pd
+
+    clean, adverse = "Day-EXTRASUNNY", "Night-RAIN"
+    images = {clean: np.full((4, 6, 3), 200, np.uint8), adverse: np.full((4, 6, 3), 20, np.uint8)}
+    zeros = np.zeros((4, 6), np.uint8)
+    conv = {"name": "strict", "absent": "nan", "mean_exclude": [], "agreement": "pooled", "rho_headline": "top_m",
+            "min_images": 1, "min_pixels": 1}
+    s = {"clean": clean, "tau_mass": 0.5, "class_ids": [0, 1], "convention": conv, "sampling": "all",
+         "min_transmittance": 0.0, "resamples": 20, "confidence": 0.9, "seed": 0, "selections": ["top_m"], "m": 25}
+    groups = [counting.group_counts({"group_id": f"g{i}", "present": [clean, adverse], "images": images, "pseudo": zeros,
+                                     "own": {clean: zeros}}, _Fixed(), s, clean, True, 2, "fixed", "d") for i in range(2)]
+    covered = {"groups_per_condition": {clean: 2, adverse: 2}, "groups_without_clean": 0}
+    out = tables.write_outputs(tmp_path, tables.ModelEvaluation("d", "fixed", "ref", [clean, adverse], s, groups, covered))
+    assert out == {"xi_mean": {clean: 1.0, adverse: 0.5}}
+    xi = pd.read_csv(tmp_path / tables.XI).set_index(["reference_model", "condition", "class_name"])
+    for source in ("ref", counting.GT):
+        row = xi.loc[(source, adverse, "road")]
+        assert (row.xi, row.retained_pixels, row.reference_pixels, row.images, row.n_pairs) == (0.5, 24, 48, 2, 2)
+        assert np.isnan(xi.loc[(source, adverse, "sidewalk")].xi) and xi.loc[(source, adverse, "mean")].xi == 0.5
+    iou = pd.read_csv(tmp_path / tables.GT_IOU).set_index(["condition", "class_name"]).iou
+    assert (iou[(adverse, "road")], iou[(adverse, "sidewalk")], iou[(adverse, "mean")], iou[(clean, "mean")]) == (0.5, 0, 0.25, 1)
+    agree = pd.read_csv(tmp_path / tables.AGREEMENT, dtype={"pair_id": str}).set_index(["condition", "pair_id"])
+    assert agree.loc[(adverse, "ALL")].agreement_reference == 0.5 and agree.loc[(adverse, "g1")].valid_pixels == 24
+    frames = pd.read_csv(tmp_path / tables.FRAME_COUNTS)
+    assert frames.groupby("class_name")[["clean_count", "adv_count"]].sum().to_dict("index") == {
+        "road": {"clean_count": 48, "adv_count": 24}, "sidewalk": {"clean_count": 0, "adv_count": 24}}
+    summary = json.loads((tmp_path / tables.SUMMARY).read_text())
+    assert summary["gt_miou"] == {clean: 1.0, adverse: 0.25} and summary["n_pairs"] == {clean: 2, adverse: 2}
+    assert summary["xi_mean_gt"] == {clean: 1.0, adverse: 0.5} and summary["groups_per_condition"][adverse] == 2
+    assert set(tables.RESULT_FILES) <= {p.name for p in tmp_path.iterdir()}

@@ -96,6 +96,25 @@ def test_failed_forced_recompute_keeps_the_previous_result(tmp_path):
     assert leftovers(tmp_path) == [] and [p.name for p in entries(tmp_path, "evaluate")] == [first.key]
 
 
+def test_stage_cache_lists_finished_entries_with_their_manifests(tmp_path):
+    """What evaluate's search for other models' evaluations reads: finished entries only, unreadable skipped."""
+    ctx = context(tmp_path)
+    a = run_cached(ctx, "evaluate", "1", {"a": 1}, {"in": "x"}, lambda out: (out / "xi.csv").write_text("a"))
+    b = run_cached(ctx, "evaluate", "1", {"a": 2}, {"in": "x"}, lambda out: (out / "xi.csv").write_text("b"))
+    crashed = tmp_path / "evaluate" / f".tmp-{a.key}-1-0000abcd"  # a crashed build, manifest already written
+    crashed.mkdir()
+    (crashed / MANIFEST).write_text((a.path / MANIFEST).read_text())
+    broken = tmp_path / "evaluate" / "0123456789abcdef"
+    broken.mkdir()
+    (broken / MANIFEST).write_text("{")
+    found = StageCache(tmp_path).entries("evaluate")
+    assert [e.key for e in found] == sorted([a.key, b.key])
+    assert {e.key: (e.path, e.manifest["config"], e.manifest["inputs"]) for e in found} == {
+        a.key: (a.path, {"a": 1}, {"in": "x"}), b.key: (b.path, {"a": 2}, {"in": "x"})}
+    assert all(e.mtime == (e.path / MANIFEST).stat().st_mtime for e in found)
+    assert StageCache(tmp_path).entries("pseudolabel") == []
+
+
 def test_forced_recompute_waits_for_a_job_still_reading_the_old_result(tmp_path):
     def old(out: Path):
         (out / "a.png").write_text("old")

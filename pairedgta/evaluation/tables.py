@@ -51,7 +51,7 @@ class ModelEvaluation:
     coverage: dict[str, Any]  # `coverage`: how many groups each condition averages over
 
 
-class ImageCounts:
+class ConsistencyCounts:
     """xi of one (reference source, condition): the metric, fed through its own `update_counts`, and the
     per-image counts its bootstrap resamples."""
 
@@ -91,11 +91,11 @@ def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
     """xi.csv: xi per (reference source, condition, class) pooled over images, its interval, and the
     class-wise mean under the convention with its own interval."""
     s, conv = e.settings, e.settings["convention"]
-    xi_counts: dict[tuple[str, str], ImageCounts] = {}
+    xi_counts: dict[tuple[str, str], ConsistencyCounts] = {}
     for r in e.groups:
         for key, (retained, reference) in r["xi"].items():
             source, cond = key.split("|", 1)
-            xi_counts.setdefault((source, cond), ImageCounts(conv["absent"])).add(retained, reference)
+            xi_counts.setdefault((source, cond), ConsistencyCounts(conv["absent"])).add(retained, reference)
     in_mean = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
     rows = []
     for (source, cond), a in sorted(xi_counts.items(), key=lambda kv: (kv[0][0], e.conditions.index(kv[0][1]))):
