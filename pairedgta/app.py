@@ -25,11 +25,10 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     """`task_overrides`: the command line's overrides (Hydra's), to know whether `model=` was chosen."""
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
-    check_run_config(container)
+    check_run_config(container)  # every key, before any stage writes (pairedgta/schema.py owns the run's keys)
     planning.check_roots(container)
     plan = planning.make_plan(container)
     models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
-    pseudolabel.check_tau(container)
     cache = StageCache(container["cache_dir"], str((container.get("cache") or {}).get("verify", "stat")))
     tracker = open_tracker(container)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []

@@ -524,12 +524,13 @@ def test_concurrent_runs_get_distinct_run_folders(tmp_path):
 
 
 def test_execution_only_keys_stay_out_of_the_dataset_hash():
+    from pairedgta import schema
     from pairedgta.stages.generate import hash_config
 
     def key(extra):
         cfg = OmegaConf.to_container(compose_cfg(["renderer=deepgtav", "region=los_santos", *extra]), resolve=True)
         grid = build_condition_grid(cfg["conditions"])
-        return json.dumps(hash_config(cfg, grid), sort_keys=True)
+        return json.dumps(hash_config(schema.parse(cfg), grid), sort_keys=True)
 
     base = key([])
     for extra in (["renderer.backoff_s=7"], ["renderer.retries=9"], ["renderer.timeout_s=99"],

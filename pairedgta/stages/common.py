@@ -10,9 +10,9 @@ from typing import Any, Callable, Iterator
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")
-STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
 # model keys that change speed, not numbers: left out of cache hashes
 RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
@@ -56,12 +56,19 @@ class StageResult:
 
 @dataclass
 class Context:
-    cfg: dict[str, Any]
+    cfg: dict[str, Any]  # the pass's composed config: the chosen group options (renderer, region, dataset ...)
     grid: ConditionGrid
     cache: StageCache
     stages: list[str]
     force: set[str]
     results: dict[str, Any] = field(default_factory=dict)
+    run: RunConfig = None  # type: ignore[assignment]  # the same config, typed (pairedgta/schema.py); parsed if not given
+
+    def __post_init__(self) -> None:
+        if self.run is None:
+            from pairedgta import schema
+
+            self.run = schema.parse(self.cfg)
 
 
 def whole_number(node: dict[str, Any], key: str, default: int, where: str) -> int:

@@ -23,10 +23,11 @@ from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_roo
 from pairedgta.errors import ConfigError
 from pairedgta.models import check_model_config, model_config
 from pairedgta.stages import evaluate, generate
-from pairedgta.stages.common import STAGES, Context, StageResult
+from pairedgta import schema
+from pairedgta.schema import MISSING
+from pairedgta.stages.common import Context, StageResult
 
 log = logging.getLogger("pairedgta")
-MISSING = "???"
 CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
 
 
@@ -45,7 +46,7 @@ class PassResult:
 
     @property
     def pairing(self) -> dict[str, float]:
-        return generate.pairing_config(self.cfg.get("generate") or {})
+        return schema.as_dict(schema.parse(self.cfg).generate.pairing)
 
     def reading(self) -> Any:
         """A context for the stages that read this pass's images: a blank image, or one converted on reading,
@@ -94,13 +95,7 @@ def _as_list(value: Any) -> list[str]:
 def make_plan(cfg: dict[str, Any]) -> Plan:
     from pairedgta.stages import plot
 
-    stages, force = _as_list(cfg.get("stages")), set(_as_list(cfg.get("force")))
-    for key, values in (("stages", stages), ("force", force)):
-        bad = [s for s in values if s not in STAGES]
-        if bad:
-            raise ConfigError(f"{key}={bad} names unknown stage(s); stages are {', '.join(STAGES)}")
-    if CHECK_STAGE in stages and len(stages) > 1:
-        raise ConfigError(f"stages={stages}: {CHECK_STAGE} is a model check of its own; run it alone (stages=[{CHECK_STAGE}])")
+    stages, force = _as_list(cfg.get("stages")), set(_as_list(cfg.get("force")))  # checked in pairedgta/schema.py
     device = str(cfg.get("device"))
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
         raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
@@ -264,8 +259,8 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
 
 
 def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any]) -> Context:
-    return Context(cfg=cfg, grid=build_condition_grid(cfg["conditions"]), cache=cache, stages=plan.stages,
-                   force=plan.force, results=results)
+    return Context(cfg=cfg, run=schema.parse(cfg), grid=build_condition_grid(cfg["conditions"]), cache=cache,
+                   stages=plan.stages, force=plan.force, results=results)
 
 
 def collect_cached(ctx: Context, p: PassResult) -> list[StageResult]:

@@ -14,10 +14,9 @@ from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 import pandas as pd
 
 from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
-from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
+from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached, torch_threads
 
 from pairedgta.lazy import lazy_module
 
@@ -57,13 +56,13 @@ def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
-    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    segmenter = shared_segmenter(model_cfg, device=ctx.run.device)
     maps = LabelMaps(out)
     hist = np.zeros(NUM_CLASSES, dtype=np.int64)
     total = 0
     gt_cm = ConfusionMatrix(NUM_CLASSES)
     gt_kept = gt_pixels = 0
-    batch_size = int(ctx.cfg["pseudolabel"].get("batch_size", 4))
+    batch_size = ctx.run.pseudolabel.batch_size
     rows = []
     pending: list[tuple[str, np.ndarray]] = []
 
@@ -121,17 +120,9 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
     return extra
 
 
-def check_tau(cfg: dict[str, Any]) -> float:
-    tau = float(cfg["pseudolabel"]["tau"])
-    if not 0.0 <= tau <= 1.0:
-        raise ConfigError(f"pseudolabel.tau={tau} must be in [0, 1]")
-    return tau
-
-
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
     """`model_cfg`: the reference model's composed config (the run's `reference_model`)."""
-    tau = check_tau(ctx.cfg)
-    threads = inference_threads(ctx.cfg)
+    tau, threads = ctx.run.pseudolabel.tau, ctx.run.threads
     config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
               "threads": threads}
 
