@@ -19,7 +19,7 @@ import os
 import shutil
 import time
 import zlib
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,9 +35,9 @@ from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region, region_for_scene
-from pairedgta.cache import SHARED_WORK, stage_hash
+from pairedgta.cache import SHARED_WORK
 from pairedgta.schema import GenerateConfig, PairingConfig, RunConfig, ValidationConfig, as_dict
-from pairedgta.stages.common import Context, StageResult, run_cached
+from pairedgta.stages.common import Context, StageResult, run_cached, stage_key
 
 log = logging.getLogger("pairedgta.generate")
 VERSION = "7"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
@@ -57,8 +57,6 @@ RENDERER_EXECUTION_KEYS = ("host", "port", "timeout_s", "retries", "backoff_s")
 class GeneratedData(StageResult):
     """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records.
     `complete` is False for a shard job that left scenes to other shards (nothing to read yet)."""
-
-    complete: bool = True
 
     @property
     def timings_csv(self) -> Path:
@@ -399,52 +397,54 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     os.replace(tmp, path)
 
 
-def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
-    """A shard job renders its scenes straight into the entry's resumable work directory (no stage lock:
-    shards write disjoint per-scene directories, each renamed into place when complete). When every
-    scene is there, None: the caller finalises the entry as an unsharded run would."""
-    num, shard = ctx.run.generate.num_shards, ctx.run.generate.shard
-    key = stage_hash("generate", VERSION, config, {})
-    final = ctx.cache.path("generate", key)
-    if num == 1 or ctx.cache.is_hit("generate", key):
-        return None
-    if "generate" in ctx.force:
-        raise ConfigError("force=[generate] with generate.shard set would discard other shards' scenes; "
-                          "force the unsharded run (no generate.shard/num_shards) instead")
-    if "generate" not in ctx.stages:
-        raise PairedGTAError(f"generate: no cached output for this configuration ({final}); run it first, "
-                             f"e.g. stages=[generate]")
-    n = ctx.run.generate.num_scenes
-    work = ctx.cache.partial_path("generate", key)
-    mine = list(range(shard, n, num))
-    work.mkdir(parents=True, exist_ok=True)
-    (work / SHARED_WORK).touch()
-    log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
-    render_scenes(ctx.run, ctx.grid, work, mine)
-    have = len(finished_scenes(work / "scenes"))
-    if have == n:
-        return None
-    log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
-             "(then run without generate.shard to go on)", have, n)
-    result = GeneratedData("generate", key, work, hit=False)
-    result.complete = False
-    return result
+@dataclass
+class Generate:
+    """The generate stage (pairedgta.stages.common.Stage): the run's dataset, rendered under every condition."""
+
+    ctx: Context
+    name: str = "generate"
+    version: str = VERSION
+    label: str = ""
+    resumable: bool = True  # scenes land one by one in the work folder: a crash resumes where it stopped
+    result_cls: type[GeneratedData] = GeneratedData
+
+    def hash_config(self) -> dict[str, Any]:
+        return hash_config(self.ctx.run, self.ctx.grid)
+
+    def inputs(self) -> dict[str, str]:
+        return {}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return generate_dataset(self.ctx.run, self.ctx.grid, out)
+
+    def shards(self) -> tuple[int, int]:
+        return self.ctx.run.generate.num_shards, self.ctx.run.generate.shard
+
+    def build_shard(self, key: str) -> Path | None:
+        """Shards render straight into the entry's resumable work folder (no stage lock: they write disjoint
+        per-scene folders, each renamed into place when complete), where the unsharded build resumes."""
+        num, shard = self.shards()
+        n = self.ctx.run.generate.num_scenes
+        work = self.ctx.cache.partial_path(self.name, key)
+        mine = list(range(shard, n, num))
+        work.mkdir(parents=True, exist_ok=True)
+        (work / SHARED_WORK).touch()
+        log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
+        render_scenes(self.ctx.run, self.ctx.grid, work, mine)
+        have = len(finished_scenes(work / "scenes"))
+        if have == n:
+            return None
+        log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
+                 "(then run without generate.shard to go on)", have, n)
+        return work
 
 
 def will_compute(ctx: Context) -> bool:
     """Whether `run` would render (no intact cached dataset for this config, or generate is forced)."""
-    key = stage_hash("generate", VERSION, hash_config(ctx.run, ctx.grid), {})
-    return "generate" in ctx.force or ctx.cache.problem("generate", key) is not None
+    return "generate" in ctx.force or ctx.cache.problem("generate", stage_key(Generate(ctx))) is not None
 
 
 def run(ctx: Context) -> GeneratedData:
-    config = hash_config(ctx.run, ctx.grid)
-    partial = run_shard(ctx, config)
-    if partial is not None:
-        return partial
-    result = run_cached(
-        ctx, "generate", VERSION, config, {},
-        lambda out: generate_dataset(ctx.run, ctx.grid, out), resumable=True, result_cls=GeneratedData,
-    )
+    result = run_cached(ctx, Generate(ctx))
     assert isinstance(result, GeneratedData)
     return result

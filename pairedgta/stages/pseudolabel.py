@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -120,17 +121,42 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
     return extra
 
 
+@dataclass
+class Pseudolabel:
+    """The pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference model."""
+
+    ctx: Context
+    dataset: PairedDataset
+    dataset_key: str
+    model_cfg: dict[str, Any]  # the reference model's composed config (the run's `reference_model`)
+    name: str = "pseudolabel"
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[PseudoLabels] = PseudoLabels
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"reference_model": model_hash_config(self.model_cfg), "tau": self.ctx.run.pseudolabel.tau,
+                "reference": self.dataset.reference, "threads": self.ctx.run.threads}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        with torch_threads(self.ctx.run.threads):
+            return compute(self.ctx, self.dataset, out, self.model_cfg, self.ctx.run.pseudolabel.tau)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise NotImplementedError("the pseudo-label stage is not sharded")
+
+
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
-    """`model_cfg`: the reference model's composed config (the run's `reference_model`)."""
-    tau, threads = ctx.run.pseudolabel.tau, ctx.run.threads
-    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
-              "threads": threads}
-
-    def build(out: Path) -> dict[str, Any]:
-        with torch_threads(threads):
-            return compute(ctx, dataset, out, model_cfg, tau)
-
-    result = run_cached(ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key}, build,
-                        label=f"[{model_cfg['name']}]", result_cls=PseudoLabels)
+    result = run_cached(ctx, Pseudolabel(ctx, dataset, dataset_key, model_cfg))
     assert isinstance(result, PseudoLabels)
     return result
