@@ -831,3 +831,49 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
         result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
         shutil.rmtree(stage.parts(result.key), ignore_errors=True)  # merged into the entry
     return result
+
+
+def step(ctx: Context, p: Any, state: Any) -> None:
+    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): every model's evaluation,
+    each in a nested MLflow run; with plot.collect_cached, the cached evaluations of other models too."""
+    from pairedgta.tracking import bundle, class_metrics, dataset_label, run_name, xi_table
+
+    plan, recorder = state.plan, state.recorder
+    if not plan.run_eval:
+        return
+    collect = plan.plotting and ctx.run.plot.collect_cached
+    for model_cfg in state.models.evaluated:
+        name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]
+        try:
+            result = run(ctx, p.dataset, p.dataset_key, p.pseudo, model_cfg)
+        except PairedGTAError as exc:
+            if collect and "evaluate" not in plan.stages and "no cached output" in str(exc):
+                log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
+                continue
+            raise
+        if not result.complete:  # a shard job: its partial sums wait for the other shards
+            if plan.plotting:
+                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
+                                  "shards, then plot without evaluate.shard/num_shards")
+            continue
+        p.evaluations.append(result)
+        label = dataset_label(p.dataset.name, p.dataset_key)
+        with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
+            recorder.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": state.models.reference["name"]})
+            recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
+                           "pass": p.label, "model": model_cfg["name"]})
+            recorder.metrics(result.metrics(per_class=class_metrics(ctx.cfg)))
+            p.record_dataset(recorder)
+            recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
+            recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
+                                 tables={"xi_table.json": xi_table(result.xi())})
+            state.model_runs.append((recorder.run_id(), model_cfg["name"], p.label))
+        state.summary["evaluate"][name] = str(result.path)
+    if collect:
+        extra = find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
+        if extra:
+            log.info("plot: collected %d cached evaluation(s) of this dataset: %s", len(extra),
+                     ", ".join(e.model for e in extra))
+            p.evaluations.extend(extra)
+    if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
+        raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")

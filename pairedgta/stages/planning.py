@@ -25,7 +25,7 @@ from pairedgta.models import check_model_config, model_config
 from pairedgta.stages import evaluate, generate
 from pairedgta import schema
 from pairedgta.schema import MISSING
-from pairedgta.stages.common import Context, StageResult
+from pairedgta.stages.common import Context
 
 log = logging.getLogger("pairedgta")
 CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
@@ -47,6 +47,12 @@ class PassResult:
     @property
     def pairing(self) -> dict[str, float]:
         return schema.as_dict(schema.parse(self.cfg).generate.pairing)
+
+    def record_dataset(self, recorder: Any) -> None:
+        """The pass's dataset as an MLflow dataset input of the active run."""
+        assert self.dataset is not None
+        recorder.dataset(self.dataset.name, self.dataset.root, str(self.dataset_key).split(":", 1)[-1],
+                         {"pass": self.label, "dataset_key": str(self.dataset_key), "reference": self.dataset.reference})
 
     def reading(self) -> Any:
         """A context for the stages that read this pass's images: a blank image, or one converted on reading,
@@ -82,6 +88,20 @@ class Plan:
 class RunModels:
     evaluated: list[dict[str, Any]]
     reference: dict[str, Any]
+
+
+@dataclass
+class RunState:
+    """What the stages of a run share beyond their context: the plan, the models, the MLflow recorder, the
+    summary the run returns and the nested runs of the models (which the plot stage gives their own figures)."""
+
+    plan: Plan
+    models: RunModels
+    recorder: Any          # pairedgta.tracking's recorder (in-process or background)
+    experiment: str
+    multi: bool            # several passes: names carry the pass label
+    summary: dict[str, Any]
+    model_runs: list[tuple[str | None, str, str]] = field(default_factory=list)  # (nested run, model, pass)
 
 
 def _as_list(value: Any) -> list[str]:
@@ -263,11 +283,5 @@ def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str,
                    stages=plan.stages, force=plan.force, results=results)
 
 
-def collect_cached(ctx: Context, p: PassResult) -> list[StageResult]:
-    """Cached evaluations of this pass's dataset by models this run did not evaluate (multirun aggregate)."""
-    assert p.dataset is not None and p.pseudo is not None and p.dataset_key is not None
-    return evaluate.find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
-
-
-__all__ = ["PassResult", "Plan", "RunModels", "make_plan", "run_models", "model_group_overridden", "pass_configs",
-           "check_roots", "open_pass", "pass_context", "collect_cached"]
+__all__ = ["PassResult", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",
+           "check_roots", "open_pass", "pass_context"]

@@ -172,3 +172,19 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
     result = run_cached(ctx, Plot(ctx, passes))
     assert isinstance(result, Figures)
     return result
+
+
+def step(ctx: Context, passes: list[Any], state: Any) -> None:
+    """The app's step over all passes (RunState in pairedgta.stages.planning): the figures, in the run's MLflow
+    record, and each model's own figures in that model's nested run."""
+    from pairedgta.tracking import bundle
+
+    figures, recorder = run(ctx, passes), state.recorder
+    state.summary["plot"] = str(figures.path)
+    own_runs = {(model, label) for _, model, label in state.model_runs}
+    recorder.stage_files(bundle("plot", figures.key), figures.hit, figures.files_except(own_runs), "figures")
+    recorder.metrics(figures.metrics())
+    for run_id, model, label in state.model_runs:
+        with recorder.run(run_id=run_id, nested=True):
+            recorder.stage_files(bundle("plot", figures.key, label, model), figures.hit, figures.files_of(model, label),
+                                 "figures")

@@ -160,3 +160,14 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[
     result = run_cached(ctx, Pseudolabel(ctx, dataset, dataset_key, model_cfg))
     assert isinstance(result, PseudoLabels)
     return result
+
+
+def step(ctx: Context, p: Any, state: Any) -> None:
+    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): the reference model's
+    pseudo-labels, their files in the run's MLflow record."""
+    from pairedgta.tracking import bundle
+
+    p.pseudo = run(ctx, p.dataset, p.dataset_key, state.models.reference)
+    state.summary.setdefault("pseudolabel", str(p.pseudo.path))
+    state.recorder.stage_files(bundle("pseudolabel", p.pseudo.key), p.pseudo.hit, p.pseudo.artifacts(),
+                               f"pseudolabel/{p.label}" if state.multi else "pseudolabel")
