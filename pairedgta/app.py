@@ -28,11 +28,11 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     """`task_overrides`: the command line's overrides (Hydra's), to know whether `model=` was chosen."""
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
     assert isinstance(container, dict)
-    check_run_config(container)  # every key, before any stage writes (pairedgta/schema.py owns the run's keys)
+    typed = check_run_config(container)  # every key, before any stage writes (pairedgta/schema.py owns the run's keys)
     planning.check_roots(container)
-    plan = planning.make_plan(container)
-    models = plan.models = planning.run_models(container, planning.model_group_overridden(task_overrides))
-    cache = StageCache(container["cache_dir"], str((container.get("cache") or {}).get("verify", "stat")))
+    plan = planning.make_plan(container, typed)
+    models = plan.models = planning.run_models(typed, planning.model_group_overridden(task_overrides))
+    cache = StageCache(typed.cache_dir, typed.cache.verify)
     tracker = open_tracker(container)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything

@@ -279,7 +279,7 @@ class RunConfig:
     """The composed config of one run (or of one pass of a run with `variants`)."""
     name: str = key("default")
     models: Optional[list[str]] = key(["demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"])
-    reference_model: str = key("demo_segformer")
+    reference_model: Optional[str] = key("demo_segformer")  # null: the `model` group's
     model_overrides: dict[str, Any] = key({})
     variants: Optional[list[Any]] = key(None)
     stages: list[str] = key(["generate", "pseudolabel", "evaluate", "plot"])

@@ -104,21 +104,13 @@ class RunState:
     model_runs: list[tuple[str | None, str, str]] = field(default_factory=list)  # (nested run, model, pass)
 
 
-def _as_list(value: Any) -> list[str]:
-    if value is None:
-        return []
-    if isinstance(value, str):
-        return [value]
-    return [str(v) for v in value]
-
-
-def make_plan(cfg: dict[str, Any]) -> Plan:
+def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
     from pairedgta.stages import plot
 
-    stages, force = _as_list(cfg.get("stages")), set(_as_list(cfg.get("force")))  # checked in pairedgta/schema.py
-    device = str(cfg.get("device"))
+    stages, force = list(run.stages), set(run.force)
+    device = run.device
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
-        raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
+        raise ConfigError(f"device={device!r}; use cpu, cuda or auto")
     check_cuda(device)
     sourced = plot.sourced(cfg)
     if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
@@ -160,20 +152,20 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_models(cfg: dict[str, Any], model_chosen: bool = False) -> RunModels:
+def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
     """The composed config of every model the run evaluates and of its reference model.
 
     `models=[...]` lists the evaluated models; when the user chose `model=` on the command line (e.g. a
     sweep `-m model=a,b`), the chosen model replaces that list for this job."""
-    primary = dict(cfg["model"])
-    names = _as_list(cfg.get("models"))
+    primary = dict(run.model)
+    names = list(run.models or [])
     if names and model_chosen and names != [primary["name"]]:
         log.info("model=%s replaces the experiment's models=%s for this job", primary["name"], names)
         names = [primary["name"]]
     names = names or [primary["name"]]
-    reference = str(cfg.get("reference_model") or primary["name"])
+    reference = run.reference_model or primary["name"]
     used = list(dict.fromkeys(names + [reference]))
-    overrides = dict(cfg.get("model_overrides") or {})
+    overrides = dict(run.model_overrides)
     unused = [n for n in overrides if n not in used]
     if unused:
         raise ConfigError(
