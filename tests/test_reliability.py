@@ -368,7 +368,8 @@ def test_refused_checkpoint_shows_its_whole_reason(tmp_path):
 
 
 def test_deeply_nested_frame_json_is_a_renderer_error(tmp_path):
-    from pairedgta.render.deepgtav import DeepGTAVRenderer, frame_nbytes
+    from pairedgta.render.deepgtav import DeepGTAVRenderer
+    from pairedgta.render.deepgtav_protocol import frame_nbytes
     from pairedgta.scene.descriptor import Location, SceneDescriptor
 
     listener = socket.socket()
