@@ -15,8 +15,7 @@ from pairedgta.config_checks import check_run_config
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
-from pairedgta.tracking import Tracker, bundle, class_metrics, dataset_label, run_name, xi_table
-from pairedgta.tracking_worker import open_tracker
+from pairedgta.tracking import Recorder, TrackingSettings, bundle, dataset_label, open_tracker, run_name, xi_table
 
 log = logging.getLogger("pairedgta")
 
@@ -38,14 +37,14 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     return {**summary, "mlflow": tracker.ui_link()}
 
 
-def _log_invocation(tracker: Tracker, container: dict[str, Any]) -> None:
+def _log_invocation(tracker: Recorder, container: dict[str, Any]) -> None:
     tracker.params(config := {k: v for k, v in container.items() if k != "hydra"})
     tracker.config(config)
     tracker.hydra_config()
 
 
 def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunModels, cache: StageCache,
-         tracker: Tracker, experiment: str, model_names: list[str]) -> dict[str, Any]:
+         tracker: Recorder, experiment: str, model_names: list[str]) -> dict[str, Any]:
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 
@@ -95,13 +94,13 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
     return summary
 
 
-def _log_dataset(tracker: Tracker, p: planning.PassResult) -> None:
+def _log_dataset(tracker: Recorder, p: planning.PassResult) -> None:
     assert p.dataset is not None
     tracker.dataset(p.dataset.name, p.dataset.root, str(p.dataset_key).split(":", 1)[-1],
                     {"pass": p.label, "dataset_key": str(p.dataset_key), "reference": p.dataset.reference})
 
 
-def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: planning.RunModels, tracker: Tracker,
+def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: planning.RunModels, tracker: Recorder,
                  summary: dict[str, Any], experiment: str, multi: bool) -> list[tuple[str | None, str, str]]:
     """Pseudo-labels, then every model's evaluation (a nested MLflow run each) of one pass."""
     assert p.dataset is not None and p.dataset_key is not None
@@ -132,7 +131,7 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})
             tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label,
                           "model": model_cfg["name"]})
-            tracker.metrics(result.metrics(per_class=class_metrics(ctx.cfg)))
+            tracker.metrics(result.metrics(per_class=TrackingSettings.from_config(ctx.cfg).class_metrics))
             _log_dataset(tracker, p)
             tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             tracker.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
