@@ -86,6 +86,9 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
 
 
 class Tracker:
+    """The Recorder that logs to MLflow itself (the tracking child's, or the run's with
+    tracking.background=false); `begin`/`finish`/`log_hydra` are the child's halves of `run`/`hydra_config`."""
+
     def __init__(self, uri: str, experiment: str, enabled: bool = True,
                  results: str | os.PathLike | None = None, owner: int | None = None, source: str | None = None) -> None:
         """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning;
