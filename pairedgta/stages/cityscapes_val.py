@@ -96,17 +96,45 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, devi
     return {"miou": miou}
 
 
+@dataclasses.dataclass
+class CityscapesVal:
+    """The model check (pairedgta.stages.common.Stage): one model on the Cityscapes val split, against the
+    published mIoU. Outside the paired graph."""
+
+    ctx: Context
+    dataset: CityscapesSplit
+    dataset_key: str
+    model_cfg: dict[str, Any]
+    name: str = STAGE
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[StageResult] = StageResult
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"model": model_hash_config(self.model_cfg),
+                "dataset": {"split": self.dataset.split, "n_images": len(self.dataset), "scale": self.dataset.scale}}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return compute(self.dataset, self.model_cfg, out, self.ctx.run.device)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise NotImplementedError("the model check is not sharded")
+
+
 def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_cfg: dict[str, Any]) -> StageResult:
-    config = {
-        "model": model_hash_config(model_cfg),
-        "dataset": {"split": dataset.split, "n_images": len(dataset), "scale": dataset.scale},
-    }
     # a check outside the paired graph: it always may compute when this experiment runs
     own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
-    result = run_cached(
-        own, STAGE, VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(dataset, model_cfg, out, ctx.cfg.get("device", "cpu")), label=f"[{model_cfg['name']}]",
-    )
+    result = run_cached(own, CityscapesVal(own, dataset, dataset_key, model_cfg))
     if result.hit:
         log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
     return result
