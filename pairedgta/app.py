@@ -14,8 +14,7 @@ from pairedgta.cache import StageCache
 from pairedgta.config_checks import check_run_config
 from pairedgta.models import run_models as loaded_once
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
-from pairedgta.tracking import Tracker, dataset_label, run_name
-from pairedgta.tracking_worker import open_tracker
+from pairedgta.tracking import Recorder, dataset_label, open_tracker, run_name
 
 log = logging.getLogger("pairedgta")
 # The stages after a pass's dataset is open (generate opens it: planning.open_pass), in order: each module's
@@ -33,21 +32,21 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     plan = planning.make_plan(container, typed)
     models = plan.models = planning.run_models(typed, planning.model_group_overridden(task_overrides))
     cache = StageCache(typed.cache_dir, typed.cache.verify)
-    tracker = open_tracker(container)  # MLflow is a record: a failing store costs one warning, not the run
+    tracker = open_tracker(typed)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything
         summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names)
     return {**summary, "mlflow": tracker.ui_link()}
 
 
-def _log_invocation(tracker: Tracker, container: dict[str, Any]) -> None:
+def _log_invocation(tracker: Recorder, container: dict[str, Any]) -> None:
     tracker.params(config := {k: v for k, v in container.items() if k != "hydra"})
     tracker.config(config)
     tracker.hydra_config()
 
 
 def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunModels, cache: StageCache,
-         tracker: Tracker, experiment: str, model_names: list[str]) -> dict[str, Any]:
+         tracker: Recorder, experiment: str, model_names: list[str]) -> dict[str, Any]:
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 

@@ -30,7 +30,7 @@ from pairedgta.metrics import ConfusionMatrix
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.tracking import Tracker, bundle, dataset_label, run_name
+from pairedgta.tracking import Recorder, bundle, dataset_label, run_name
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -150,7 +150,7 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
     return metrics
 
 
-def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[str, Any]:
+def run(ctx: Context, models: list[dict[str, Any]], tracker: Recorder) -> dict[str, Any]:
     dataset = open_dataset(ctx.cfg["dataset"])
     if not isinstance(dataset, CityscapesSplit):
         raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")

@@ -836,7 +836,7 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
 def step(ctx: Context, p: Any, state: Any) -> None:
     """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): every model's evaluation,
     each in a nested MLflow run; with plot.collect_cached, the cached evaluations of other models too."""
-    from pairedgta.tracking import bundle, class_metrics, dataset_label, run_name, xi_table
+    from pairedgta.tracking import bundle, dataset_label, run_name, xi_table
 
     plan, recorder = state.plan, state.recorder
     if not plan.run_eval:
@@ -862,7 +862,7 @@ def step(ctx: Context, p: Any, state: Any) -> None:
             recorder.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": state.models.reference["name"]})
             recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
                            "pass": p.label, "model": model_cfg["name"]})
-            recorder.metrics(result.metrics(per_class=class_metrics(ctx.cfg)))
+            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
             p.record_dataset(recorder)
             recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",

@@ -26,6 +26,7 @@ from pairedgta.stages import evaluate, generate
 from pairedgta import schema
 from pairedgta.schema import MISSING
 from pairedgta.stages.common import Context
+from pairedgta.tracking.recorder import Recorder
 
 log = logging.getLogger("pairedgta")
 CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
@@ -48,7 +49,7 @@ class PassResult:
     def pairing(self) -> dict[str, float]:
         return schema.as_dict(schema.parse(self.cfg).generate.pairing)
 
-    def record_dataset(self, recorder: Any) -> None:
+    def record_dataset(self, recorder: Recorder) -> None:
         """The pass's dataset as an MLflow dataset input of the active run."""
         assert self.dataset is not None
         recorder.dataset(self.dataset.name, self.dataset.root, str(self.dataset_key).split(":", 1)[-1],
@@ -97,7 +98,7 @@ class RunState:
 
     plan: Plan
     models: RunModels
-    recorder: Any          # pairedgta.tracking's recorder (in-process or background)
+    recorder: Recorder     # in-process or background (pairedgta/tracking/recorder.py)
     experiment: str
     multi: bool            # several passes: names carry the pass label
     summary: dict[str, Any]
