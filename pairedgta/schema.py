@@ -411,9 +411,9 @@ def _node(cls: type, raw: Any, path: str) -> Any:
         meta = f.metadata
         value = _value(hints[name], raw[name], full, meta.get("use", "fix the value"))
         if value is not None and meta.get("choices") and value not in meta["choices"]:
-            raise ConfigError(f"{full}={value!r}; use one of {', '.join(meta['choices'])} ({meta['use']})"
-                              if meta["use"] != "fix the value" else f"{full}={value!r}; use one of "
-                              f"{', '.join(meta['choices'])}")
+            use = meta["use"] if meta["use"].startswith("use ") else f"use one of {', '.join(meta['choices'])}" + (
+                f" ({meta['use']})" if meta["use"] != "fix the value" else "")
+            raise ConfigError(f"{full}={value!r}; {use}")
         ok = meta.get("ok")
         if value is not None and ok is not None and not ok(value):
             raise ConfigError(f"{full}={raw[name]!r} is out of range; {meta['use']}")
