@@ -116,7 +116,7 @@ def test_parse_types_and_numbers():
     ({"metric": {"reference": "oracle"}}, "metric.reference='oracle'; use one of pseudo_label, ground_truth, both"),
     ({"plot": {"formats": ["gif89"]}}, "plot.formats=['gif89']: unknown format(s) ['gif89']"),
     ({"plot": {"dpi": "high"}}, "plot.dpi='high' is not a number"),
-    ({"cache": {"verify": "sometimes"}}, "cache.verify='sometimes'; use one of stat, content"),
+    ({"cache": {"verify": "sometimes"}}, "cache.verify='sometimes'; use stat (trust size + mtime"),
     ({"tracking": {"enabled": "maybe"}}, "tracking.enabled='maybe' must be true or false"),
     ({"stages": []}, "stages=[] runs nothing"),
     ({"colour": "red"}, "colour is not a key of pairedgta"),
