@@ -17,9 +17,7 @@ import torch.nn.functional as F
 
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.models.base import Segmenter
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+from pairedgta.models.runtime import RuntimeOptions
 
 log = logging.getLogger(__name__)
 
@@ -172,9 +170,9 @@ class NormalizedSegmenter(Segmenter):
         std: Sequence[float],
         pad_multiple: int = 1,
         align_corners: bool = False,
-        **runtime: Any,
+        runtime: RuntimeOptions | None = None,
     ) -> None:
-        super().__init__(name, module, **runtime)
+        super().__init__(name, module, runtime)
         self.pad_multiple = max(1, int(pad_multiple))
         self.align_corners = bool(align_corners)
         self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
@@ -209,23 +207,22 @@ def _check_triplet(cfg: Mapping[str, Any], key: str) -> list[float]:
 def build_inproject(
     cfg: Mapping[str, Any],
     make_module: Callable[[], torch.nn.Module],
+    runtime: RuntimeOptions,
     *,
     training_only_prefixes: Iterable[str] = (),
     checkpoint_file: str,
     checkpoint_source: str,
-    default_align_corners: bool = False,
-    default_pad_multiple: int = 1,
 ) -> NormalizedSegmenter:
-    """Common `build(cfg)` body: validate runtime keys, seed, construct, load weights, wrap."""
+    """Common `build` body of the in-project families (cfg: the builder's keyword arguments, defaults filled
+    in by its signature): validate the input options, seed, construct, load weights, wrap."""
     name = str(cfg.get("name") or cfg.get("family"))
-    amp = cfg.get("amp")
-    if amp not in (None, "bf16", "fp16"):
-        raise ConfigError(f"model '{name}': amp must be null, bf16 or fp16, got {amp!r}")
-    mean = _check_triplet(cfg, "mean") if cfg.get("mean") is not None else list(IMAGENET_MEAN)
-    std = _check_triplet(cfg, "std") if cfg.get("std") is not None else list(IMAGENET_STD)
-    pad_multiple = int(cfg.get("pad_multiple") or default_pad_multiple)
-    if pad_multiple < 1:
-        raise ConfigError(f"model '{name}': pad_multiple must be >= 1, got {pad_multiple}")
+    mean, std = _check_triplet(cfg, "mean"), _check_triplet(cfg, "std")
+    pad_multiple = cfg["pad_multiple"]
+    if isinstance(pad_multiple, bool) or not isinstance(pad_multiple, int) or pad_multiple < 1:
+        raise ConfigError(f"model '{name}': pad_multiple must be a whole number >= 1, got {pad_multiple!r}")
+    align = cfg["upsample_align_corners"]
+    if not isinstance(align, bool):
+        raise ConfigError(f"model '{name}': upsample_align_corners must be true or false, got {align!r}")
 
     checkpoint_path = cfg.get("checkpoint_path")
     if not checkpoint_path and not cfg.get("random_init", False):
@@ -243,21 +240,8 @@ def build_inproject(
         module = make_module()
     if checkpoint_path:
         load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=training_only_prefixes, model_name=name)
-
-    align = cfg.get("upsample_align_corners")
-    return NormalizedSegmenter(
-        name,
-        module,
-        mean=mean,
-        std=std,
-        pad_multiple=pad_multiple,
-        align_corners=default_align_corners if align is None else bool(align),
-        device=cfg.get("device", "cpu"),
-        batch_size=int(cfg.get("batch_size", 4)),
-        amp=amp,
-        channels_last=bool(cfg.get("channels_last", False)),
-        compile=bool(cfg.get("compile", False)),
-    )
+    return NormalizedSegmenter(name, module, mean=mean, std=std, pad_multiple=pad_multiple, align_corners=align,
+                               runtime=runtime)
 
 
 __all__ = ["load_checkpoint_strict", "read_state_dict", "NormalizedSegmenter", "build_inproject"]

@@ -21,7 +21,7 @@ from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
-from pairedgta.models import check_model_config, model_config
+from pairedgta.models import check_model_config, model_config, with_defaults
 from pairedgta.stages import evaluate, generate
 from pairedgta import schema
 from pairedgta.schema import MISSING
@@ -179,7 +179,7 @@ def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
         extra = overrides.get(name) or {}
         if not isinstance(extra, dict):
             raise ConfigError(f"model_overrides.{name} must be a mapping of model keys, got {extra!r}")
-        merged = _merge(base, extra)
+        merged = with_defaults(_merge(base, extra))  # the hashed config names every shared option
         check_model_config(merged, "model" if name == primary["name"] and not extra else f"model_overrides.{name}")
         resolved[name] = merged
     return RunModels([resolved[n] for n in names], resolved[reference])
