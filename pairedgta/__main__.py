@@ -142,8 +142,21 @@ OPEN_MAPPINGS = ("model_overrides.",)
 
 def _open_mapping_overrides(argv: list[str]) -> list[str]:
     """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in pairedgta/conf/config.yaml, which
-    Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`."""
-    return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
+    Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`. So do
+    `model.<key>=v` for a key some family reads (model.amp, model.batch_size): a model YAML names only what
+    differs from the defaults (pairedgta/models/runtime.py), and the family's check names a key it does not read."""
+    model_keys: set[str] | None = None
+    out = []
+    for a in argv:
+        if a.startswith("model.") and "=" in a:
+            if model_keys is None:
+                from pairedgta.models import model_keys as keys_of_families
+
+                model_keys = keys_of_families()
+            if a.split("=", 1)[0][len("model."):] in model_keys:
+                a = f"++{a}"
+        out.append(f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a)
+    return out
 
 
 # keys that moved in a release: the old name says where to

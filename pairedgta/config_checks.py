@@ -260,7 +260,9 @@ def known_key_paths() -> set[str]:
         known.add(group.name)
         for option in group.glob("*.yaml"):
             known |= _paths(_load_yaml(option), f"{group.name}.")
-    return known
+    from pairedgta.models import model_keys
+
+    return known | {f"model.{k}" for k in model_keys()}  # a model YAML names only what differs from the defaults
 
 
 # config groups whose option file (with the options its defaults list pulls in) names every key their reader

@@ -77,16 +77,17 @@ def test_keys_added_to_a_group_are_checked_against_the_chosen_option():
 
 
 def test_model_keys_are_exactly_what_the_families_read():
-    from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config
+    from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config, with_defaults
+    from pairedgta.models.runtime import MODEL_KEYS
     from pairedgta.registry import accepted_keys
 
     by_family: dict[str, set[str]] = {}
     for name, cfg in _options("model"):
         check_model_config(cfg)  # no key a family does not read
         assert not set(cfg) & set(RUNTIME_KEYS), f"model/{name} sets a runtime key"
-        by_family.setdefault(cfg["family"], set()).update(cfg)
+        by_family.setdefault(cfg["family"], set()).update(with_defaults(cfg))  # as the stages see it
     for family, defined in by_family.items():
-        read = accepted_keys(FAMILIES.resolve(family)) - set(RUNTIME_KEYS)
+        read = (accepted_keys(FAMILIES.resolve(family)) - {"runtime"} | set(MODEL_KEYS)) - set(RUNTIME_KEYS)
         assert read == defined, f"{family}: read but never defined {sorted(read - defined)}"
 
 

@@ -90,6 +90,11 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     RuntimeOptions.from_config(cfg)  # a bad model.batch_size / amp is the same one-line error before any stage
 
 
+def model_keys() -> set[str]:
+    """Every key some family's model config may set (the command line's `model.<key>=`)."""
+    return set().union(*(family_keys(f) for f in FAMILIES.names()))
+
+
 def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Segmenter:
     """Build a segmenter by model name or from a composed model config mapping."""
     cfg = dict(model) if isinstance(model, Mapping) else model_config(str(model))
@@ -130,5 +135,5 @@ def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Seg
     return _RUN_CACHE[key]
 
 
-__all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
+__all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
            "resolve_device", "FAMILIES", "RUNTIME_KEYS"]
