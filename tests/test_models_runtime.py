@@ -120,6 +120,18 @@ def test_a_bad_runtime_option_is_one_line_before_anything_is_built(key, value, m
         RuntimeOptions(**{key: value})
 
 
+@pytest.mark.parametrize("key, value, message", [
+    ("pad_multiple", 0, "pad_multiple=0 must be a whole number >= 1, e.g. pad_multiple=32"),
+    ("pad_multiple", None, "pad_multiple=None must be a whole number >= 1"),
+    ("upsample_align_corners", None, "upsample_align_corners=None must be true or false"),
+])
+def test_a_bad_input_option_of_an_in_project_family_is_one_line_before_anything_is_built(key, value, message):
+    with pytest.raises(ConfigError, match=r"^model \(demo_pidnet\): " + message):
+        check_model_config(model_config("demo_pidnet", **{key: value}))
+    with pytest.raises(ConfigError, match=r"^model \(tiny_pidnet\): " + message):
+        build_segmenter("tiny_pidnet", **{key: value})
+
+
 def test_the_family_receives_the_parsed_runtime_options():
     assert RuntimeOptions() == RuntimeOptions.from_config({})
     assert tuple(MODEL_KEYS) == ("batch_size", "amp", "channels_last", "compile")

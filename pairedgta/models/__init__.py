@@ -87,6 +87,13 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
             raise ConfigError(f"{where} ({cfg.get('name')}): {key}={list(value) if isinstance(value, (list, tuple)) else value!r} "
                               f"must be {need}, one per RGB channel, e.g. {key}={example}")
     check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
+    pad = cfg.get("pad_multiple", 1)
+    if isinstance(pad, bool) or not isinstance(pad, int) or pad < 1:
+        raise ConfigError(f"{where} ({cfg.get('name')}): pad_multiple={pad!r} must be a whole number >= 1, "
+                          "e.g. pad_multiple=32")
+    if not isinstance(cfg.get("upsample_align_corners", False), bool):
+        raise ConfigError(f"{where} ({cfg.get('name')}): upsample_align_corners={cfg['upsample_align_corners']!r} "
+                          "must be true or false")
     RuntimeOptions.from_config(cfg)  # a bad model.batch_size / amp is the same one-line error before any stage
 
 
@@ -100,6 +107,7 @@ def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, *
     cfg = dict(model) if isinstance(model, Mapping) else model_config(str(model))
     cfg.update(overrides)
     device = device or cfg.pop("device", None) or "cpu"
+    check_model_config(cfg)
     own, runtime = split_runtime(cfg, device)
     return FAMILIES.build(cfg.get("family"), own, where=f"model ({cfg.get('name')})", runtime=runtime)
 

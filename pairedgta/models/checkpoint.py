@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pairedgta.errors import ConfigError, ModelError, reason
+from pairedgta.errors import ModelError, reason
 from pairedgta.models.base import Segmenter
 from pairedgta.models.runtime import RuntimeOptions
 
@@ -197,13 +197,6 @@ class NormalizedSegmenter(Segmenter):
         return self._logits(images).softmax(dim=1)
 
 
-def _check_triplet(cfg: Mapping[str, Any], key: str) -> list[float]:
-    value = cfg.get(key)
-    if isinstance(value, str) or not isinstance(value, Sequence) or len(value) != 3:
-        raise ConfigError(f"model '{cfg.get('name')}': {key} must be a list of 3 floats (RGB), got {value!r}")
-    return [float(v) for v in value]
-
-
 def build_inproject(
     cfg: Mapping[str, Any],
     make_module: Callable[[], torch.nn.Module],
@@ -214,15 +207,9 @@ def build_inproject(
     checkpoint_source: str,
 ) -> NormalizedSegmenter:
     """Common `build` body of the in-project families (cfg: the builder's keyword arguments, defaults filled
-    in by its signature): validate the input options, seed, construct, load weights, wrap."""
+    in by its signature, checked by pairedgta/models/__init__.py: check_model_config): seed, construct, load
+    weights, wrap."""
     name = str(cfg.get("name") or cfg.get("family"))
-    mean, std = _check_triplet(cfg, "mean"), _check_triplet(cfg, "std")
-    pad_multiple = cfg["pad_multiple"]
-    if isinstance(pad_multiple, bool) or not isinstance(pad_multiple, int) or pad_multiple < 1:
-        raise ConfigError(f"model '{name}': pad_multiple must be a whole number >= 1, got {pad_multiple!r}")
-    align = cfg["upsample_align_corners"]
-    if not isinstance(align, bool):
-        raise ConfigError(f"model '{name}': upsample_align_corners must be true or false, got {align!r}")
 
     checkpoint_path = cfg.get("checkpoint_path")
     if not checkpoint_path and not cfg.get("random_init", False):
@@ -240,7 +227,8 @@ def build_inproject(
         module = make_module()
     if checkpoint_path:
         load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=training_only_prefixes, model_name=name)
-    return NormalizedSegmenter(name, module, mean=mean, std=std, pad_multiple=pad_multiple, align_corners=align,
+    return NormalizedSegmenter(name, module, mean=[float(v) for v in cfg["mean"]], std=[float(v) for v in cfg["std"]],
+                               pad_multiple=cfg["pad_multiple"], align_corners=cfg["upsample_align_corners"],
                                runtime=runtime)
 
 
