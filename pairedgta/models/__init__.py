@@ -56,7 +56,7 @@ def with_defaults(cfg: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(cfg)
     defaults = runtime_defaults()
     family = out.get("family")
-    if family in FAMILIES:
+    if isinstance(family, str) and family in FAMILIES:  # an unknown one: check_model_config says so
         declared = FAMILIES.declared_defaults(family)
         defaults.update({k: declared[k] for k in FAMILIES.meta(family).get("filled", ())})
     for key, value in defaults.items():
