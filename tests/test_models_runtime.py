@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from pairedgta.cache import canonical_json
-from pairedgta.configs import CONFIG_DIR, group_option
+from pairedgta.configs import CONFIG_DIR
 from pairedgta.errors import ConfigError
 from pairedgta.models import (FAMILIES, IN_PROJECT_OPTIONS, RuntimeOptions, available_models, build_segmenter,
                               check_model_config, model_config, with_defaults)
@@ -61,13 +61,21 @@ def test_every_model_hashes_as_before_its_yaml_dropped_the_defaults():
 
 
 def test_a_run_fills_the_same_defaults_for_its_primary_and_its_other_models():
-    """The primary model comes composed by Hydra (the raw YAML), the others through model_config: both are
-    completed by planning.run_models before any stage hashes them."""
+    """The primary model comes composed by Hydra (with the command line's `model.<key>=`), the others through
+    model_config: planning.run_models completes both before any stage hashes them."""
+    from omegaconf import OmegaConf
+
+    from pairedgta import schema
+    from pairedgta.__main__ import _open_mapping_overrides
+    from pairedgta.testing.cli import compose_cfg
+
     for primary, other in (("demo_ddrnet", "tiny_pidnet"), ("segformer_b5", "mask2former_swin_l"),
                            ("tiny_deeplabv3plus", "demo_segformer")):
-        models = run_models({"model": group_option("model", primary), "models": [primary, other]})
+        argv = _open_mapping_overrides([f"model={primary}", f"models=[{primary},{other}]", "model.batch_size=2"])
+        cfg = OmegaConf.to_container(compose_cfg(argv), resolve=True)
+        models = run_models(schema.parse(cfg))
         assert [_digest(m) for m in models.evaluated] == [MAIN_MODEL_HASHES[primary], MAIN_MODEL_HASHES[other]]
-        assert models.evaluated[0]["batch_size"] == model_config(primary)["batch_size"]
+        assert models.evaluated[0]["batch_size"] == 2 and models.evaluated[1]["amp"] is None
 
 
 def test_model_yamls_never_repeat_a_default():
