@@ -27,7 +27,10 @@ def test_smoke_experiment_end_to_end(tmp_path):
     db = tmp_path / "mlflow.db"
     proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri={mlflow_store(db)}",
                     "generate.num_scenes=3", "metric.bootstrap.resamples=50",
-                    "plot.qualitative_conditions=[Night-EXTRASUNNY]"],  # every figure; one condition's grid (6 s less)
+                    # the conditions the checks below read and one more adverse one (a third of the paper's nine:
+                    # a third of the rendering and inference); every figure; one condition's grid (6 s less)
+                    "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY,Day-RAIN]",
+                    "plot.qualitative_conditions=[Night-EXTRASUNNY]"],
                    tmp_path, subprocess_=True)  # true end to end
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "results: " in proc.stdout
