@@ -7,9 +7,9 @@ import signal
 import sys
 
 if __name__ == "__main__":  # `python -m pairedgta`: the tracking child's MLflow imports start before Hydra's
-    from pairedgta import tracking_worker as _tracking_worker
+    from pairedgta.tracking import background as _tracking_child
 
-    _tracking_worker.prestart(sys.argv[1:])
+    _tracking_child.prestart(sys.argv[1:])
 
 import hydra  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -192,7 +192,7 @@ def mistyped_key(argv: list[str]) -> str | None:
 
 
 def cli() -> None:
-    from pairedgta import tracking_worker
+    from pairedgta.tracking import background
 
     sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
     wrong = mistyped_key(sys.argv[1:])
@@ -203,11 +203,11 @@ def cli() -> None:
         from pairedgta import launchers
 
         launchers.install()  # SLURM job states from squeue where accounting is off
-    tracking_worker.prestart(sys.argv[1:])
+    background.prestart(sys.argv[1:])
     try:
         main()
     finally:
-        tracking_worker.discard()
+        background.discard()
 
 
 if __name__ == "__main__":
