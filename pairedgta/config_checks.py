@@ -177,6 +177,16 @@ def check_stage_keys(run: RunConfig, names: set[str], where: str) -> None:
         clean = run.metric.rho.clean_condition
         if clean is not None and clean not in names:
             raise ConfigError(f"{where}metric.rho.clean_condition={clean!r} is not a condition; known: {', '.join(sorted(names))}")
+    exposures = run.camera.get("overrides") or {}
+    if exposures and run.conditions:  # Camera.exposure looks them up by these names
+        from pairedgta.conditions import build_condition_grid
+
+        grid = build_condition_grid(run.conditions)
+        valid = [*grid.names, *dict.fromkeys(c.time for c in grid)]
+        bad = [str(k) for k in exposures if str(k) not in valid]
+        if bad:
+            raise ConfigError(f"{where}camera.overrides.{bad[0]} is not a condition or time of this run, so no image "
+                              f"would use it; use one of {', '.join(valid)}")
     renderer = run.renderer
     backend = renderer.get("backend")
     if backend is not None:
@@ -224,7 +234,13 @@ def check_run_config(cfg: dict[str, Any]) -> RunConfig:
 
 
 # -- keys added on the command line (`+key=value`) -------------------------------------------------
-OPEN_KEYS = ("model_overrides", "variants", "hydra")  # mappings whose keys are the user's to choose
+# mappings whose keys are the user's to choose (camera.overrides: condition or time names, checked against the
+# run's grid by check_stage_keys)
+OPEN_KEYS = ("model_overrides", "variants", "hydra", "camera.overrides")
+
+
+def open_key(key: str) -> bool:
+    return any(key == k or key.startswith(k + ".") for k in OPEN_KEYS)
 # nodes whose builder checks its keys itself, naming the keys it reads (pairedgta/registry.py: check_keys)
 BUILT_NODES = ("model", "renderer", "region", "dataset")
 
@@ -306,8 +322,24 @@ def default_choices() -> dict[str, str]:
     return {str(k): str(v) for e in entries if isinstance(e, dict) for k, v in e.items()}
 
 
+def argv_choices(argv: list[str]) -> dict[str, str]:
+    """group -> option as Hydra will choose them, read from the command line before it composes:
+    config.yaml's defaults, then the experiment's `override /group: option`, then `group=option`."""
+    from pairedgta.configs import CONFIG_DIR
+
+    choices = default_choices()
+    given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a and not a.startswith(("-", "~")))
+    experiment = CONFIG_DIR / "experiment" / f"{given.get('experiment')}.yaml"
+    for entry in (_load_yaml(experiment).get("defaults") or []) if experiment.is_file() else []:
+        for k, v in (entry.items() if isinstance(entry, dict) else ()):
+            choices[str(k).removeprefix("override").strip().lstrip("/")] = str(v)
+    return {**choices, **{k: v for k, v in given.items() if k in choices}}
+
+
 def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
     """`key` (e.g. renderer.colour) added to a closed group must be a key of the chosen option's file."""
+    from pairedgta.configs import CONFIG_DIR
+
     group, _, rest = key.partition(".")
     option = (choices or {}).get(group) or default_choices().get(group)
     known = group_option_keys(group, str(option)) if option else None
@@ -317,7 +349,10 @@ def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
     import difflib
 
     close = difflib.get_close_matches(child, sorted(known), n=1, cutoff=0.6)
-    hint = f"did you mean {group}.{close[0]}?" if close else f"its keys are {', '.join(sorted(known))}"
+    others = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml") if child in (group_option_keys(group, p.stem) or ()))
+    more = f" and {len(others) - 2} more" if len(others) > 3 else ""
+    hint = (f"did you mean {group}.{close[0]}?" if close and not others else f"its keys are {', '.join(sorted(known))}"
+            + (f" ({group}.{child} is a key of {group}={', '.join(others[:2] if more else others)}{more})" if others else ""))
     raise ConfigError(f"{group}.{child} is not a key of {group}={option}; {hint}")
 
 
@@ -335,7 +370,7 @@ def check_added_keys(overrides: list[str], choices: dict[str, Any] | None = None
     known = None
     for item in added:
         key = item.split("=", 1)[0].strip()
-        if key.split(".")[0] in OPEN_KEYS + BUILT_NODES or key.startswith("experiment"):
+        if open_key(key) or key.split(".")[0] in BUILT_NODES or key.startswith("experiment"):
             continue
         known = known if known is not None else known_key_paths()
         if key not in known:
