@@ -343,6 +343,10 @@ def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
     group, _, rest = key.partition(".")
     option = (choices or {}).get(group) or default_choices().get(group)
     known = group_option_keys(group, str(option)) if option else None
+    if known is not None and group == "model":  # a model YAML names only what differs from its family's defaults
+        from pairedgta.models import model_keys
+
+        known |= model_keys()
     child = rest.split(".")[0]
     if known is None or child in known | experiment_keys(group):
         return  # a key inside a known key's mapping (renderer.town.x) is checked by that node's reader
