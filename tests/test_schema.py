@@ -138,3 +138,9 @@ def test_yaml_lists_no_key_twice_within_the_defaults():
     tree = yaml.safe_load((CONF / "config.yaml").read_text())
     names = {f.name for f in dataclasses.fields(schema.RunConfig)} | {"defaults", "hydra"}
     assert set(tree) <= names
+
+
+def test_the_table_filter_keys_are_the_columns_the_figure_filters_by():
+    from pairedgta.figures.paper_table import FILTERS
+
+    assert tuple(f.name for f in dataclasses.fields(schema.TableFilterConfig)) == FILTERS
