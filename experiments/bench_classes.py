@@ -30,6 +30,7 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.conditions import build_condition_grid
 from pairedgta.render.blender import BlenderRenderer
 from pairedgta.scene.town import ProceduralTownRegion
+from pairedgta import schema
 from pairedgta.stages.generate import build_descriptor
 
 # Cityscapes gtFine train: share of all pixels per class, in percent (train ids 0..18). Source: the
@@ -75,7 +76,7 @@ def main() -> None:
     region = ProceduralTownRegion(**region_cfg)
     main_cfg = OmegaConf.load(ROOT / "pairedgta" / "conf" / "config.yaml")
     gen = OmegaConf.to_container(main_cfg.generate, resolve=False)
-    cfg = {"generate": {"seed": args.seed, "objects": gen["objects"], "camera": gen["camera"]}}
+    gen_cfg = schema.parse({"generate": {"seed": args.seed, "objects": gen["objects"], "camera": gen["camera"]}}).generate
     grid = build_condition_grid(OmegaConf.to_container(OmegaConf.load(ROOT / "pairedgta" / "conf" / "conditions" / "paper.yaml")))
     cond = grid[args.condition]
     counts = np.zeros(NUM_CLASSES + 1, dtype=np.int64)  # last: void
@@ -84,7 +85,7 @@ def main() -> None:
     t0 = time.perf_counter()
     with BlenderRenderer(width=w, height=h, samples=1, denoise=False, town=region_cfg) as r:
         for k in range(args.scenes):
-            d, _ = build_descriptor(k, cfg, region)
+            d, _ = build_descriptor(k, gen_cfg, region)
             d = region.populate(d)
             ambient.append(len(d.ambient))
             labels = r.render(d, cond).labels

@@ -268,7 +268,7 @@ def check(server: Server, exp: dict, work: Path, out: Path, chromium: str) -> No
     import mlflow
 
     from pairedgta.figures.common import model_color
-    from pairedgta.tracking import RUN_COLOR_TAG, SWEEP_TAG
+    from pairedgta.tracking.naming import RUN_COLOR_TAG, SWEEP_TAG
     from matplotlib.colors import to_hex
 
     eid = exp["experiment_id"]

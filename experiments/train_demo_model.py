@@ -66,7 +66,8 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
             "endpoints": [], "drop_invalid": False, "validation": {"enabled": False},
             "objects": cfg["data"]["objects"], "camera": cfg["data"]["camera"],
         }
-        ctx = Context(cfg=gcfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
+        run_cfg = {k: gcfg[k] for k in ("region", "renderer", "generate", "conditions") if k in gcfg}  # a run's keys
+        ctx = Context(cfg=run_cfg, grid=grid, cache=StageCache(cfg["cache_dir"]), stages=["generate"], force=set())
         result = generate.run(ctx)
         seconds += float(pd.read_csv(result.timings_csv)["total_time"].sum())
         ds = open_dataset({"kind": "generated", "name": "train_demo"}, grid, root=result.path)

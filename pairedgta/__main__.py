@@ -7,9 +7,9 @@ import signal
 import sys
 
 if __name__ == "__main__":  # `python -m pairedgta`: the tracking child's MLflow imports start before Hydra's
-    from pairedgta import tracking_worker as _tracking_worker
+    from pairedgta.tracking import background as _tracking_child
 
-    _tracking_worker.prestart(sys.argv[1:])
+    _tracking_child.prestart(sys.argv[1:])
 
 import hydra  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -137,13 +137,27 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-OPEN_MAPPINGS = ("model_overrides.",)
+OPEN_MAPPINGS = ("model_overrides.", "camera.overrides.")
 
 
 def _open_mapping_overrides(argv: list[str]) -> list[str]:
-    """`model_overrides.<name>.<key>=v` adds keys to a mapping that is empty in pairedgta/conf/config.yaml, which
-    Hydra's struct mode refuses without a `+`; that mapping is open by design, so its keys go in as `++`."""
-    return [f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a for a in argv]
+    """`model_overrides.<name>.<key>=v` and `camera.overrides.<condition>=ev` add keys to mappings that are empty in
+    the config files, which Hydra's struct mode refuses without a `+`; they are open by design, so their keys go in
+    as `++` (and are checked by the code that reads them). So do
+    `model.<key>=v` for a key some family reads (model.amp, model.batch_size): a model YAML names only what
+    differs from the defaults (pairedgta/models/runtime.py), and the family's check names a key it does not read."""
+    model_keys: set[str] | None = None
+    out = []
+    for a in argv:
+        if a.startswith("model.") and "=" in a:
+            if model_keys is None:
+                from pairedgta.models import model_keys as keys_of_families
+
+                model_keys = keys_of_families()
+            if a.split("=", 1)[0][len("model."):] in model_keys:
+                a = f"++{a}"
+        out.append(f"++{a}" if a.startswith(OPEN_MAPPINGS) and "=" in a else a)
+    return out
 
 
 # keys that moved in a release: the old name says where to
@@ -152,33 +166,46 @@ MOVED_KEYS = {"renderer.exposure_bias": "camera.bias", "renderer.exposure": "cam
 
 
 def mistyped_key(argv: list[str]) -> str | None:
-    """A `key=value` whose key no config defines would get Hydra's five-line "not in struct" message and the
-    advice to prepend `+`, which the tool then refuses: one line naming the closest known key instead."""
+    """A `key=value` whose key the composed config will not have gets Hydra's five-line "not in struct" message
+    and the advice to prepend `+`, which the tool then refuses: one line naming the key and its group option
+    (the chosen one: renderer=synthetic has other keys than blender) or the closest known key instead."""
     import difflib
 
-    from pairedgta.config_checks import BUILT_NODES, OPEN_KEYS, known_key_paths
+    from pairedgta.config_checks import BUILT_NODES, argv_choices, check_group_key, known_key_paths, open_key
+    from pairedgta.errors import ConfigError
 
     known: set[str] | None = None
+    choices: dict[str, str] | None = None
     for arg in argv:
         if arg.startswith(("-", "+", "~")) or "=" not in arg:
             continue
         key = arg.split("=", 1)[0].strip()
-        if "/" in key or key.split(".")[0] in (*OPEN_KEYS, "hydra"):
+        if "/" in key or open_key(key):
             continue
         moved = next((old for old in MOVED_KEYS if key == old or key.startswith(old + ".")), None)
         if moved:
             return f"{moved} is now {MOVED_KEYS[moved]} (the camera group, pairedgta/conf/camera/); set that instead"
+        choices = choices if choices is not None else argv_choices(argv)
+        if key.split(".")[0] in choices and "." in key:
+            try:  # the same check as a `+group.key`, against the option this command line chooses
+                check_group_key(key, choices)
+            except ConfigError as exc:
+                return str(exc)
         known = known if known is not None else known_key_paths()
         if key in known or (key.split(".")[0] in BUILT_NODES and key.count(".") > 1):
             continue  # a key inside a built node's mapping (e.g. renderer.town.x) is checked by its builder
-        close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.8)
-        if close:
-            return f"{key} is not a key of pairedgta; did you mean {close[0]}?"
+        close = difflib.get_close_matches(key, sorted(k for k in known if not key.startswith(k + ".")), n=1, cutoff=0.8)
+        parent = key.rpartition(".")[0]
+        siblings = sorted(k.rpartition(".")[2] for k in known if k.rpartition(".")[0] == parent)
+        hint = (f"did you mean {close[0]}?" if close else
+                f"{f'the keys of {parent} are' if parent else 'its top-level keys are'} {', '.join(siblings)}"
+                if siblings else "see python -m pairedgta --cfg job for the keys")
+        return f"{key} is not a key of pairedgta; {hint}"
     return None
 
 
 def cli() -> None:
-    from pairedgta import tracking_worker
+    from pairedgta.tracking import background
 
     sys.argv[1:] = _open_mapping_overrides(sys.argv[1:])
     wrong = mistyped_key(sys.argv[1:])
@@ -189,11 +216,11 @@ def cli() -> None:
         from pairedgta import launchers
 
         launchers.install()  # SLURM job states from squeue where accounting is off
-    tracking_worker.prestart(sys.argv[1:])
+    background.prestart(sys.argv[1:])
     try:
         main()
     finally:
-        tracking_worker.discard()
+        background.discard()
 
 
 if __name__ == "__main__":

@@ -12,10 +12,12 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
+from pairedgta import schema
 from pairedgta.configs import merge_variant
 from pairedgta.errors import ConfigError
+from pairedgta.schema import RunConfig
 
-MISSING = "???"
+from pairedgta.schema import MISSING
 
 
 def _get(cfg: dict[str, Any], dotted: str) -> Any:
@@ -59,43 +61,15 @@ def _hint(key: str) -> str:
     return _HINTS.get(key, "fix the value")
 
 
+# the chosen group options' numeric keys (the run's own nodes are typed in pairedgta/schema.py)
 RULES = [
     _rule("renderer.width", int, lambda v: v > 0, "use a width in pixels >= 1", optional=False),
     _rule("renderer.height", int, lambda v: v > 0, "use a height in pixels >= 1", optional=False),
     _rule("renderer.timeout_s", float, lambda v: v > 0, "use seconds > 0"),
     _rule("renderer.retries", int, lambda v: v >= 0, "use an integer >= 0"),
     _rule("renderer.backoff_s", float, lambda v: v >= 0, "use seconds >= 0"),
-    _rule("generate.num_scenes", int, lambda v: 1 <= v <= 10_000_000, "use an integer from 1 to 10,000,000",
-          optional=False),
-    _rule("generate.camera.fov", float, lambda v: 0.0 < v < 180.0,
-          "use a horizontal field of view in degrees, 0 < fov < 180 (the paper's camera: 60)"),
     _rule("renderer.max_distance", float, lambda v: v > 0, "use metres > 0 (how far the street is traced; default 150)"),
     _rule("renderer.noise_std", float, lambda v: v >= 0, "use a standard deviation >= 0 (0 = no sensor noise)"),
-    _rule("generate.workers", int, lambda v: v >= 1, "use an integer >= 1"),
-    _rule("generate.seed", int, lambda v: True, "use an integer"),
-    _rule("pseudolabel.tau", float, lambda v: 0.0 <= v <= 1.0, "use a softmax threshold in [0, 1]", optional=False),
-    _rule("pseudolabel.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
-    _rule("evaluate.batch_size", int, lambda v: v >= 1, "use an integer >= 1"),
-    _rule("threads", int, lambda v: v >= 1, "use the number of CPU threads for inference, >= 1"),
-    _rule("evaluate.sampling_seed", int, lambda v: True, "use an integer"),
-    _rule("metric.tau_mass", float, lambda v: 0.0 <= v <= 1.0, "use a threshold in [0, 1]"),
-    _rule("metric.min_transmittance", float, lambda v: 0.0 <= v < 1.0,
-          "use a transmittance in [0, 1): 0 scores every pixel (the paper), e.g. 0.05 leaves out what the air hides"),
-    _rule("metric.rho.m", int, lambda v: v >= 1, "use an integer >= 1"),
-    _rule("metric.bootstrap.resamples", int, lambda v: v >= 0, "use an integer >= 0 (0 = no intervals)"),
-    _rule("metric.bootstrap.confidence", float, lambda v: 0.0 < v < 1.0, "use a level strictly between 0 and 1, e.g. 0.95"),
-    _rule("metric.bootstrap.seed", int, lambda v: True, "use an integer"),
-    _rule("metric.validity.permutations", int, lambda v: v >= 0, "use an integer >= 0 (0 = no permutation p-value)"),
-    _rule("plot.dpi", float, lambda v: v > 0, "use dots per inch > 0, e.g. 150"),
-    _rule("plot.qualitative_groups", int, lambda v: v >= 0, "use an integer >= 0"),
-    _rule("plot.ranking.window", int, lambda v: v >= 1, "use an integer >= 1"),
-    _rule("plot.robustness.break_below", float, lambda v: 0.0 < v <= 1.0,
-          "use a mean-xi level in (0, 1]: the breaking point is the first ladder step below it (default 0.5)"),
-    _rule("generate.validation.structure_threshold", float, lambda v: 0.0 <= v <= 1.0,
-          "use a structure agreement in [0, 1] (default 0.3): above 1 every scene fails validation"),
-    _rule("generate.objects.min", int, lambda v: v >= 0, "use a number of dynamic objects >= 0"),
-    _rule("generate.objects.max", int, lambda v: v >= 0, "use a number of dynamic objects >= 0"),
-    _rule("generate.objects.d_min", float, lambda v: v >= 0, "use a minimum distance between objects in metres >= 0"),
 ]
 
 
@@ -127,7 +101,7 @@ def check_cache_dir(value: Any) -> None:
                               "folder of that name; move the file away or use another cache_dir")
 
 
-CACHE_STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")
+CACHE_STAGES = schema.STAGES
 
 
 def passes(cfg: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
@@ -163,104 +137,57 @@ def _known_model(name: Any, key: str) -> None:
         raise ConfigError(f"{key}: {exc}") from None
 
 
-def check_plot(cfg: dict[str, Any], names: set[str], where: str) -> None:
-    plot = cfg.get("plot") or {}
-    formats = plot.get("formats")
-    if formats is not None:
-        from matplotlib.backend_bases import FigureCanvasBase
-
-        supported = FigureCanvasBase.get_supported_filetypes()
-        listed = [formats] if isinstance(formats, str) else list(formats)
-        bad = [f for f in listed if str(f).lower() not in supported]
-        if bad or not listed:
-            raise ConfigError(f"{where}plot.formats={listed}: unknown format(s) {bad}; matplotlib writes "
-                              f"{', '.join(sorted(supported))}")
-    wanted = plot.get("qualitative_conditions")
-    if wanted is not None:
-        listed = [wanted] if isinstance(wanted, str) else list(wanted)
-        bad = [c for c in listed if c not in names]
+def check_plot(run: RunConfig, names: set[str], where: str) -> None:
+    """The plot keys that name conditions or classes, which only the run's grid and Cityscapes know."""
+    plot = run.plot
+    if plot.qualitative_conditions is not None:
+        bad = [c for c in plot.qualitative_conditions if c not in names]
         if bad:
             raise ConfigError(f"{where}plot.qualitative_conditions: unknown condition(s) {bad}; known: {', '.join(sorted(names))}")
     from pairedgta.cityscapes import CLASS_NAMES
 
-    for key, classes in (("plot.ranking.classes", (plot.get("ranking") or {}).get("classes")),
-                         ("plot.robustness.classes", (plot.get("robustness") or {}).get("classes")),
-                         ("metric.rho.classes", ((cfg.get("metric") or {}).get("rho") or {}).get("classes"))):
-        listed = [classes] if isinstance(classes, str) else list(classes or [])
-        unknown = [c for c in listed if c not in CLASS_NAMES]
+    for key, classes in (("plot.ranking.classes", plot.ranking.classes), ("plot.robustness.classes", plot.robustness.classes),
+                         ("metric.rho.classes", run.metric.rho.classes)):
+        unknown = [c for c in classes or [] if c not in CLASS_NAMES]
         if unknown:
             raise ConfigError(f"{where}{key}: unknown class(es) {unknown}; use Cityscapes names, e.g. [person, car] "
                               f"(known: {', '.join(CLASS_NAMES)})")
-    cond = (plot.get("ranking") or {}).get("condition")
+    cond = plot.ranking.condition
     if cond is not None and cond not in names:
         raise ConfigError(f"{where}plot.ranking.condition={cond!r} is not a condition of this run; known: {', '.join(sorted(names))}")
 
 
-REFERENCE_SOURCES = ("pseudo_label", "ground_truth", "both")
-_HINTS["plot.table_filter.conf_threshold"] = "use the confidence threshold as the CSV writes it, e.g. 0.6"
-
-
-def check_metric(cfg: dict[str, Any], where: str) -> None:
-    """The metric convention (metric.convention, absent, mean_exclude, agreement, rho.selections,
-    rho.headline) parsed as the evaluate stage will parse it, and the reference source."""
-    metric = cfg.get("metric")
-    if not isinstance(metric, dict):
-        return
-    from pairedgta.metrics.conventions import convention_from_config
-
-    try:
-        convention_from_config(metric)
-    except ConfigError as exc:
-        raise ConfigError(f"{where}{exc}") from None
-    if float(metric.get("min_transmittance") or 0.0) > 0.0:
-        kind = (cfg.get("dataset") or {}).get("kind")
-        backend = (cfg.get("renderer") or {}).get("backend")
+def check_transmittance(run: RunConfig, where: str) -> None:
+    """metric.min_transmittance > 0 needs transmittance maps: rendered by blender and synthetic only."""
+    if run.metric.min_transmittance > 0.0:
+        kind, backend = run.dataset.get("kind"), run.renderer.get("backend")
         if kind != "generated" or backend == "deepgtav":
             source = f"dataset={kind}" if kind != "generated" else "renderer=deepgtav (GTA V gives no depth)"
             raise ConfigError(f"{where}metric.min_transmittance>0 needs transmittance maps, which {source} does not have; "
                               "set metric.min_transmittance=0 or generate with renderer=blender or synthetic")
-    reference = metric.get("reference")
-    if reference is not None and reference not in REFERENCE_SOURCES:
-        raise ConfigError(f"{where}metric.reference={reference!r}; use one of {', '.join(REFERENCE_SOURCES)}")
 
 
-def check_evaluate(cfg: dict[str, Any], where: str) -> None:
-    from pairedgta.evaluation.inputs import SAMPLINGS
-
-    sampling = (cfg.get("evaluate") or {}).get("sampling")
-    if sampling is not None and sampling not in SAMPLINGS:
-        raise ConfigError(f"{where}evaluate.sampling={sampling!r}; use one of {', '.join(SAMPLINGS)} (all = every adverse "
-                          "condition per group, random_one = one drawn per group, the authors' loader)")
-
-
-def check_stage_keys(cfg: dict[str, Any], names: set[str], where: str) -> None:
-    """Keys the stages read and validate themselves, checked with the same code before any stage writes:
-    shards, decode workers, condition names, the renderer backend, the objects' range and the camera."""
-    from pairedgta.stages.common import shard_keys
-    from pairedgta.evaluation.inputs import decode_workers
-
-    def again(exc: ConfigError) -> ConfigError:
-        return ConfigError(f"{where}{exc}")
-
-    gen, ev = cfg.get("generate") or {}, cfg.get("evaluate") or {}
-    try:
-        shard_keys(gen, "generate")
-        shard_keys(ev, "evaluate")
-        decode_workers(ev.get("num_workers"), "cpu")
-    except ConfigError as exc:
-        raise again(exc) from None
-    objects = gen.get("objects") or {}
-    if isinstance(objects.get("min"), int) and isinstance(objects.get("max"), int) and objects["min"] > objects["max"]:
-        raise ConfigError(f"{where}generate.objects.min={objects['min']} is above generate.objects.max={objects['max']}; "
-                          "set min <= max")
+def check_stage_keys(run: RunConfig, names: set[str], where: str) -> None:
+    """Keys the stages check against the run's grid or a registry, checked before any stage writes: condition
+    names, the renderer backend and the camera."""
     if names:
-        unknown = [c for c in (ev.get("conditions") or []) if c not in names]
+        unknown = [c for c in run.evaluate.conditions or [] if c not in names]
         if unknown:
             raise ConfigError(f"{where}evaluate.conditions: unknown condition(s) {unknown}; known: {', '.join(sorted(names))}")
-        clean = ((cfg.get("metric") or {}).get("rho") or {}).get("clean_condition")
+        clean = run.metric.rho.clean_condition
         if clean is not None and clean not in names:
             raise ConfigError(f"{where}metric.rho.clean_condition={clean!r} is not a condition; known: {', '.join(sorted(names))}")
-    renderer = cfg.get("renderer") or {}
+    exposures = run.camera.get("overrides") or {}
+    if exposures and run.conditions:  # Camera.exposure looks them up by these names
+        from pairedgta.conditions import build_condition_grid
+
+        grid = build_condition_grid(run.conditions)
+        valid = [*grid.names, *dict.fromkeys(c.time for c in grid)]
+        bad = [str(k) for k in exposures if str(k) not in valid]
+        if bad:
+            raise ConfigError(f"{where}camera.overrides.{bad[0]} is not a condition or time of this run, so no image "
+                              f"would use it; use one of {', '.join(valid)}")
+    renderer = run.renderer
     backend = renderer.get("backend")
     if backend is not None:
         from pairedgta.render import RENDERERS
@@ -274,47 +201,21 @@ def check_stage_keys(cfg: dict[str, Any], names: set[str], where: str) -> None:
             try:
                 Camera.from_cfg(renderer["camera"])
             except ConfigError as exc:
-                raise again(exc) from None
+                raise ConfigError(f"{where}{exc}") from None
 
 
-def check_table_filter(plot: dict[str, Any], where: str) -> None:
-    """plot.table_filter picks rows of the authors' CSV (plot.table_csv) by these columns only."""
-    filters = plot.get("table_filter")
-    if filters is None:
-        return
-    from pairedgta.figures.paper_table import FILTERS  # with pyplot, 0.4 s: only when a filter is given
-
-    if not isinstance(filters, dict):
-        raise ConfigError(f"{where}plot.table_filter={filters!r} must be a mapping with the keys {', '.join(FILTERS)}")
-    unknown = sorted(set(filters) - set(FILTERS))
-    if unknown:
-        raise ConfigError(f"{where}plot.table_filter: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(FILTERS)}")
-    if filters.get("conf_threshold") is not None:
-        _number(filters["conf_threshold"], "plot.table_filter.conf_threshold", float, where)
-
-
-def check_run_config(cfg: dict[str, Any]) -> None:
-    """Raise one ConfigError for the first bad value of a resolved run config (see the module doc).
-    The first step of every run, so it also starts the run's cache of composed model configs."""
+def check_run_config(cfg: dict[str, Any]) -> RunConfig:
+    """Raise one ConfigError for the first bad value of a resolved run config (see the module doc), else return
+    the run's typed config. The first step of every run, so it also starts the run's cache of composed model configs."""
     from pairedgta import configs
 
     configs.reset_cache()
     check_cache_dir(cfg.get("cache_dir"))
-    from pairedgta.cache import VERIFY_MODES
-
-    verify = (cfg.get("cache") or {}).get("verify", "stat")
-    if verify not in VERIFY_MODES:
-        raise ConfigError(f"cache.verify={verify!r}; use stat (trust size + mtime, the default) or content "
-                          "(re-hash every file on every hit)")
-    stages = cfg.get("stages")
-    if stages is not None and not list(stages):
-        raise ConfigError("stages=[] runs nothing; list the stages to run, e.g. stages=[generate,pseudolabel,evaluate,plot] "
-                          "(the default) or stages=[plot]")
-    configs = passes(cfg)
+    typed = [(where, pcfg, schema.parse(pcfg, where)) for where, pcfg in passes(cfg)]
     names: set[str] = set()
-    for where, pcfg in configs:
+    for where, pcfg, _ in typed:
         names |= set(condition_names(pcfg))
-    for where, pcfg in configs:
+    for where, pcfg, run in typed:
         for key, kind, ok, use, optional in RULES:
             value = _get(pcfg, key)
             if value is None or value == MISSING:
@@ -323,18 +224,23 @@ def check_run_config(cfg: dict[str, Any]) -> None:
                 raise ConfigError(f"{where}{key} is not set; {use}")
             if not ok(_number(value, key, kind, where)):
                 raise ConfigError(f"{where}{key}={value!r} is out of range; {use}")
-        _known_model(pcfg.get("reference_model"), f"{where}reference_model")
-        check_plot(pcfg, names, where)
-        check_table_filter(pcfg.get("plot") or {}, where)
-        check_metric(pcfg, where)
-        check_evaluate(pcfg, where)
-        check_stage_keys(pcfg, set(condition_names(pcfg)), where)
-    for i, name in enumerate(cfg.get("models") or []):
+        _known_model(run.reference_model, f"{where}reference_model")
+        check_plot(run, names, where)
+        check_transmittance(run, where)
+        check_stage_keys(run, set(condition_names(pcfg)), where)
+    for i, name in enumerate(typed[0][2].models or []):
         _known_model(name, f"models[{i}]")
+    return typed[0][2]
 
 
 # -- keys added on the command line (`+key=value`) -------------------------------------------------
-OPEN_KEYS = ("model_overrides", "variants", "hydra")  # mappings whose keys are the user's to choose
+# mappings whose keys are the user's to choose (camera.overrides: condition or time names, checked against the
+# run's grid by check_stage_keys)
+OPEN_KEYS = ("model_overrides", "variants", "hydra", "camera.overrides")
+
+
+def open_key(key: str) -> bool:
+    return any(key == k or key.startswith(k + ".") for k in OPEN_KEYS)
 # nodes whose builder checks its keys itself, naming the keys it reads (pairedgta/registry.py: check_keys)
 BUILT_NODES = ("model", "renderer", "region", "dataset")
 
@@ -370,7 +276,9 @@ def known_key_paths() -> set[str]:
         known.add(group.name)
         for option in group.glob("*.yaml"):
             known |= _paths(_load_yaml(option), f"{group.name}.")
-    return known
+    from pairedgta.models import model_keys
+
+    return known | {f"model.{k}" for k in model_keys()}  # a model YAML names only what differs from the defaults
 
 
 # config groups whose option file (with the options its defaults list pulls in) names every key their reader
@@ -414,18 +322,41 @@ def default_choices() -> dict[str, str]:
     return {str(k): str(v) for e in entries if isinstance(e, dict) for k, v in e.items()}
 
 
+def argv_choices(argv: list[str]) -> dict[str, str]:
+    """group -> option as Hydra will choose them, read from the command line before it composes:
+    config.yaml's defaults, then the experiment's `override /group: option`, then `group=option`."""
+    from pairedgta.configs import CONFIG_DIR
+
+    choices = default_choices()
+    given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a and not a.startswith(("-", "~")))
+    experiment = CONFIG_DIR / "experiment" / f"{given.get('experiment')}.yaml"
+    for entry in (_load_yaml(experiment).get("defaults") or []) if experiment.is_file() else []:
+        for k, v in (entry.items() if isinstance(entry, dict) else ()):
+            choices[str(k).removeprefix("override").strip().lstrip("/")] = str(v)
+    return {**choices, **{k: v for k, v in given.items() if k in choices}}
+
+
 def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
     """`key` (e.g. renderer.colour) added to a closed group must be a key of the chosen option's file."""
+    from pairedgta.configs import CONFIG_DIR
+
     group, _, rest = key.partition(".")
     option = (choices or {}).get(group) or default_choices().get(group)
     known = group_option_keys(group, str(option)) if option else None
+    if known is not None and group == "model":  # a model YAML names only what differs from its family's defaults
+        from pairedgta.models import model_keys
+
+        known |= model_keys()
     child = rest.split(".")[0]
     if known is None or child in known | experiment_keys(group):
         return  # a key inside a known key's mapping (renderer.town.x) is checked by that node's reader
     import difflib
 
     close = difflib.get_close_matches(child, sorted(known), n=1, cutoff=0.6)
-    hint = f"did you mean {group}.{close[0]}?" if close else f"its keys are {', '.join(sorted(known))}"
+    others = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml") if child in (group_option_keys(group, p.stem) or ()))
+    more = f" and {len(others) - 2} more" if len(others) > 3 else ""
+    hint = (f"did you mean {group}.{close[0]}?" if close and not others else f"its keys are {', '.join(sorted(known))}"
+            + (f" ({group}.{child} is a key of {group}={', '.join(others[:2] if more else others)}{more})" if others else ""))
     raise ConfigError(f"{group}.{child} is not a key of {group}={option}; {hint}")
 
 
@@ -443,7 +374,7 @@ def check_added_keys(overrides: list[str], choices: dict[str, Any] | None = None
     known = None
     for item in added:
         key = item.split("=", 1)[0].strip()
-        if key.split(".")[0] in OPEN_KEYS + BUILT_NODES or key.startswith("experiment"):
+        if open_key(key) or key.split(".")[0] in BUILT_NODES or key.startswith("experiment"):
             continue
         known = known if known is not None else known_key_paths()
         if key not in known:

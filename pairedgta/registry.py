@@ -9,7 +9,11 @@ of them, naming the config key and the keys that exist.
 """
 from __future__ import annotations
 
+import ast
+import contextlib
+import functools
 import importlib
+import importlib.util
 import inspect
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -90,26 +94,36 @@ class Registry:
             ) from None
         return getattr(module, attr)
 
+    def _function_node(self, name: str) -> tuple[str, Any] | None:
+        self._check_name(name)
+        module_name, attr = self._targets[name].split(":")
+        tree = _module_tree(module_name)
+        node = next((n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == attr), None) if tree else None
+        return (module_name, node) if node is not None else None
+
     def declared_keys(self, name: str) -> set[str] | None:
         """The keyword names a plain-function target accepts, read from its module's source, so checking
         a config does not import the module (a model family imports torch and transformers). None when
         the source does not say (then `resolve` and `accepted_keys`)."""
-        import ast
-        import importlib.util
-
-        self._check_name(name)
-        module_name, attr = self._targets[name].split(":")
-        try:
-            spec = importlib.util.find_spec(module_name)
-            source = Path(spec.origin).read_text(encoding="utf-8") if spec and spec.origin else None
-        except (ImportError, OSError, ValueError):
+        found = self._function_node(name)
+        if found is None or found[1].args.kwarg is not None:
             return None
-        for node in ast.parse(source).body if source else ():
-            if isinstance(node, ast.FunctionDef) and node.name == attr:
-                if node.args.kwarg is not None:
-                    return None
-                return {a.arg for a in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]} - {"self"}
-        return None
+        args = found[1].args
+        return {a.arg for a in [*args.posonlyargs, *args.args, *args.kwonlyargs]} - {"self"}
+
+    def declared_defaults(self, name: str) -> dict[str, Any]:
+        """The literal keyword-only defaults of a plain-function target, read from its source like
+        `declared_keys` (a module-level constant, also one imported from another module, is literal)."""
+        found = self._function_node(name)
+        if found is None:
+            return {}
+        module_name, node = found
+        out = {}
+        for arg, default in zip(node.args.kwonlyargs, node.args.kw_defaults):
+            if default is not None:
+                with contextlib.suppress(ValueError):
+                    out[arg.arg] = _literal(default, module_name)
+        return out
 
     def build(self, name: str, config: Mapping[str, Any], where: str | None = None, **runtime: Any) -> Any:
         """`target(**config, **runtime)` after checking that `config` holds only keys the target reads."""
@@ -120,6 +134,33 @@ class Registry:
         if missing:
             raise ConfigError(f"{where}: missing key(s) {', '.join(missing)} for {self.key}={name}")
         return target(**dict(config), **runtime)
+
+
+@functools.lru_cache(maxsize=None)
+def _module_tree(module_name: str) -> ast.Module | None:
+    try:
+        spec = importlib.util.find_spec(module_name)
+        source = Path(spec.origin).read_text(encoding="utf-8") if spec and spec.origin else None
+    except (ImportError, OSError, ValueError):
+        return None
+    return ast.parse(source) if source else None
+
+
+def _literal(node: ast.expr, module_name: str, depth: int = 0) -> Any:
+    """`ast.literal_eval`, where a bare name is followed to its module-level assignment or import."""
+    if not isinstance(node, ast.Name):
+        return ast.literal_eval(node)
+    tree = _module_tree(module_name)
+    if tree is None or depth > 4:
+        raise ValueError(node.id)
+    for stmt in tree.body:
+        if isinstance(stmt, ast.Assign) and any(isinstance(t, ast.Name) and t.id == node.id for t in stmt.targets):
+            return _literal(stmt.value, module_name, depth + 1)
+        if isinstance(stmt, ast.ImportFrom) and stmt.module and not stmt.level:
+            alias = next((a for a in stmt.names if (a.asname or a.name) == node.id), None)
+            if alias is not None:
+                return _literal(ast.Name(alias.name), stmt.module, depth + 1)
+    raise ValueError(node.id)
 
 
 __all__ = ["Registry", "accepted_keys", "check_keys", "required_keys"]

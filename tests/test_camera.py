@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 
 from pairedgta.conditions import build_condition_grid
 from pairedgta.errors import ConfigError
-from pairedgta.render.blender.materials import lighting
+from pairedgta.render.blender.illumination import lighting
 from pairedgta.render.camera import Camera
 from pairedgta.testing.cli import CONF, compose_cfg
 

@@ -27,7 +27,10 @@ def test_smoke_experiment_end_to_end(tmp_path):
     db = tmp_path / "mlflow.db"
     proc = run_cli(["+experiment=smoke", f"cache_dir={cache}", f"tracking.uri={mlflow_store(db)}",
                     "generate.num_scenes=3", "metric.bootstrap.resamples=50",
-                    "plot.qualitative_conditions=[Night-EXTRASUNNY]"],  # every figure; one condition's grid (6 s less)
+                    # the conditions the checks below read and one more adverse one (a third of the paper's nine:
+                    # a third of the rendering and inference); every figure; one condition's grid (6 s less)
+                    "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY,Day-RAIN]",
+                    "plot.qualitative_conditions=[Night-EXTRASUNNY]"],
                    tmp_path, subprocess_=True)  # true end to end
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "results: " in proc.stdout
@@ -270,6 +273,23 @@ BAD_CONFIG = {
     "unknown_dataset_key": (["+dataset.spilt=val"], "dataset.spilt is not a key of dataset=generated"),
     "misspelt_plot_key": (["+plot.dpii=3"], "+plot.dpii: no part of pairedgta reads this key, so it would be ignored; "
                                             "did you mean plot.dpi?"),
+    # the same keys without `+` (Hydra alone: five lines of "not in struct"), checked against the chosen option
+    "unknown_renderer_key_unprefixed": (["renderer.colour=red"],
+                                        "renderer.colour is not a key of renderer=synthetic; its keys are backend, height"),
+    "key_of_another_renderer_unprefixed": (["renderer.samples=4"], "renderer.samples is not a key of renderer=synthetic; "
+                                           "its keys are backend, height, max_distance, noise_std, road_half_width, "
+                                           "sidewalk_width, width (renderer.samples is a key of renderer=blender)"),
+    "key_of_another_model_unprefixed": (["model.path=/w"], "model.path is not a key of model=tiny_segformer; its keys are"),
+    "unknown_top_level_key": (["colour=red"], "colour is not a key of pairedgta; its top-level keys are cache, cache_dir"),
+    "unknown_nested_key_unprefixed": (["metric.bootstrap.sead=3"],
+                                      "metric.bootstrap.sead is not a key of pairedgta; did you mean metric.bootstrap.seed?"),
+    "unknown_generate_key_unprefixed": (["generate.validation.strict=1"], "generate.validation.strict is not a key of "
+                                        "pairedgta; the keys of generate.validation are enabled, structure_threshold"),
+    # camera.overrides is open (EV per condition or time name), for the names of the run's grid only
+    "camera_override_not_a_condition": (["+camera.overrides.Noon=1.0"], "camera.overrides.Noon is not a condition or "
+                                        "time of this run, so no image would use it; use one of Day-EXTRASUNNY, Day-RAIN"),
+    "camera_override_left_out_unprefixed": (["camera.overrides.Night-FOGGY=1.0"],
+                                            "camera.overrides.Night-FOGGY is not a condition or time of this run"),
 }
 
 

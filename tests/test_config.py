@@ -76,17 +76,40 @@ def test_keys_added_to_a_group_are_checked_against_the_chosen_option():
         check_added_keys(["++renderer.sample=4"], {"renderer": "blender"})
 
 
+def test_camera_overrides_take_the_condition_and_time_names_of_the_run(tmp_path):
+    """camera.overrides is an open mapping (EV per condition or time name): typed with `+`, `++` or neither it
+    composes and passes the checks for a name of the run's grid, and one line lists the names otherwise."""
+    from pairedgta.__main__ import _open_mapping_overrides, mistyped_key
+    from pairedgta.config_checks import check_added_keys, check_run_config
+
+    only = "conditions.only=[Day-EXTRASUNNY,Night-RAIN]"
+    for typed in ("camera.overrides.Night=1.0", "+camera.overrides.Night-RAIN=1.0", "++camera.overrides.Day=0.5"):
+        argv = _open_mapping_overrides([typed, only, f"cache_dir={tmp_path}"])
+        assert mistyped_key(argv) is None
+        check_added_keys(argv, None)
+        cfg = OmegaConf.to_container(compose_cfg(argv), resolve=True)
+        assert list(cfg["camera"]["overrides"]) == [typed.split("=")[0].rsplit(".", 1)[1]]
+        check_run_config(cfg)
+    for name in ("Noon", "Night-FOGGY"):  # not a name at all; a condition conditions.only leaves out
+        cfg = OmegaConf.to_container(compose_cfg([f"+camera.overrides.{name}=1.0", only, f"cache_dir={tmp_path}"]),
+                                     resolve=True)
+        with pytest.raises(ConfigError, match=rf"^camera.overrides.{name} is not a condition or time of this run, so "
+                                              r"no image would use it; use one of Day-EXTRASUNNY, Night-RAIN, Day, Night$"):
+            check_run_config(cfg)
+
+
 def test_model_keys_are_exactly_what_the_families_read():
-    from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config
+    from pairedgta.models import FAMILIES, RUNTIME_KEYS, check_model_config, with_defaults
+    from pairedgta.models.runtime import MODEL_KEYS
     from pairedgta.registry import accepted_keys
 
     by_family: dict[str, set[str]] = {}
     for name, cfg in _options("model"):
         check_model_config(cfg)  # no key a family does not read
         assert not set(cfg) & set(RUNTIME_KEYS), f"model/{name} sets a runtime key"
-        by_family.setdefault(cfg["family"], set()).update(cfg)
+        by_family.setdefault(cfg["family"], set()).update(with_defaults(cfg))  # as the stages see it
     for family, defined in by_family.items():
-        read = accepted_keys(FAMILIES.resolve(family)) - set(RUNTIME_KEYS)
+        read = (accepted_keys(FAMILIES.resolve(family)) - {"runtime"} | set(MODEL_KEYS)) - set(RUNTIME_KEYS)
         assert read == defined, f"{family}: read but never defined {sorted(read - defined)}"
 
 

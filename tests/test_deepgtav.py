@@ -15,8 +15,8 @@ from pairedgta.conditions import Condition
 from pairedgta.configs import CONFIG_DIR
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render import build_renderer
-from pairedgta.render.deepgtav import (
-    DeepGTAVRenderer,
+from pairedgta.render.deepgtav import DeepGTAVRenderer
+from pairedgta.render.deepgtav_protocol import (
     FrameSizeError,
     MessageError,
     decode_frame,

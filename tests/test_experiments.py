@@ -333,15 +333,19 @@ def test_cost_from_any_csv_says_what_it_derives(tmp_path):
 def test_perturbation_of_the_descriptor():
     from omegaconf import OmegaConf
 
-    from pairedgta.scene.placement import PlacementConfig
+    from pairedgta import schema
     from pairedgta.scene.sampling import build_region
-    from pairedgta.stages.generate import build_descriptor, pairing_config, perturb_descriptor
+    from pairedgta.stages.generate import build_descriptor, perturb_descriptor, placement
+
+    def pairing_config(gen):
+        return schema.parse({"generate": gen}).generate.pairing
 
     cfg = OmegaConf.to_container(compose_cfg([]), resolve=True)
     cfg["generate"]["objects"].update(min=3, max=3)
+    gen = schema.parse(cfg).generate
     region = build_region(cfg["region"])
-    d, _ = build_descriptor(1, cfg, region)
-    pc = PlacementConfig.from_cfg(cfg["generate"]["objects"])
+    d, _ = build_descriptor(1, gen, region)
+    pc = placement(gen)
     zero = pairing_config({})
     assert perturb_descriptor(d, "Night-EXTRASUNNY", zero, pc, region).objects == d.objects
     p = pairing_config({"pairing": {"camera_jitter_m": 0.5, "camera_jitter_deg": 2.0, "object_resample_prob": 1.0}})
@@ -359,7 +363,7 @@ def test_perturbation_of_the_descriptor():
     assert all(abs(m.forward - o.forward) <= 1.0 and abs(m.right - o.right) <= 1.0 for m, o in zip(moved.objects, d.objects))
     with pytest.raises(ConfigError, match="object_resample_prob"):
         pairing_config({"pairing": {"object_resample_prob": 1.5}})
-    with pytest.raises(ConfigError, match="unknown keys"):
+    with pytest.raises(ConfigError, match="generate.pairing.jitter is not a key of generate.pairing"):
         pairing_config({"pairing": {"jitter": 1}})
 
 

@@ -195,7 +195,7 @@ def test_model_colours_are_matplotlibs_palettes_and_the_mlflow_runs_use_them():
 
     from pairedgta.figures.common import model_color
     from pairedgta.figures.model_colors import MODEL_ORDER, MODEL_PALETTE
-    from pairedgta.tracking import model_run_color
+    from pairedgta.tracking.naming import model_run_color
 
     assert list(MODEL_PALETTE) == [to_hex(c) for c in [*colormaps["tab10"].colors, *colormaps["Dark2"].colors]]
     for name in [*MODEL_ORDER, "my_own_model"]:

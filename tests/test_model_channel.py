@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from pairedgta import schema
 from pairedgta.errors import ConfigError
 from pairedgta.stages.planning import model_group_overridden, run_models
 from pairedgta.testing.cli import base_overrides, compose_cfg, run_cli
@@ -79,12 +80,12 @@ def test_model_path_override_under_an_experiment_with_a_models_list():
     from omegaconf import OmegaConf
 
     cfg = OmegaConf.to_container(compose_cfg(["+experiment=paper_table", "model.path=/weights/b5"]), resolve=True)
-    models = run_models(cfg)
+    models = run_models(schema.parse(cfg))
     b5 = next(m for m in models.evaluated if m["name"] == "segformer_b5")
     assert b5["path"] == "/weights/b5" and models.reference["path"] == "/weights/b5"
     others = [m for m in models.evaluated if m["name"] != "segformer_b5"]
     assert len(others) == 7 and all(m.get("path") is None for m in others)
-    swept = run_models(cfg, model_chosen=True)
+    swept = run_models(schema.parse(cfg), model_chosen=True)
     assert [m["name"] for m in swept.evaluated] == ["segformer_b5"]
 
 
@@ -100,7 +101,7 @@ def test_model_overrides_must_be_mappings():
     cfg = OmegaConf.to_container(compose_cfg(["+experiment=smoke"]), resolve=True)
     cfg["model_overrides"] = {"tiny_mask2former": 3}
     with pytest.raises(ConfigError, match="model_overrides.tiny_mask2former must be a mapping"):
-        run_models(cfg)
+        run_models(schema.parse(cfg))
 
 
 def test_an_evaluation_gives_back_a_buildable_model_config(tmp_path):

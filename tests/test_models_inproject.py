@@ -378,15 +378,20 @@ def test_tiny_models_are_seeded_and_leave_global_rng_alone(family):
 
 
 def test_model_configs_have_the_shared_layout():
+    """The YAML names the model and its weights; the shared options come from their one default."""
     for family, (_, full, tiny, _) in FAMILIES.items():
         for name in (full, tiny):
             raw = yaml.safe_load((CONFIG_DIR / "model" / f"{name}.yaml").read_text())
             assert raw["name"] == name and raw["family"] == family
             assert "device" not in raw  # the run's top-level device, never a model's own key
-            assert raw["batch_size"] == 4 and raw["amp"] is None
-            assert raw["channels_last"] is False and raw["compile"] is False
+            assert not {"batch_size", "amp", "channels_last", "compile", "mean", "std"} & set(raw)
             assert "checkpoint_path" in raw and raw["checkpoint_path"] is None
-            assert raw["random_init"] is (name == tiny)
+            cfg = model_config(name)
+            assert cfg["batch_size"] == 4 and cfg["amp"] is None
+            assert cfg["channels_last"] is False and cfg["compile"] is False
+            assert cfg["random_init"] is (name == tiny)
+            pad, align = {"pidnet": (32, True), "ddrnet": (32, False), "deeplabv3plus": (1, False)}[family]
+            assert (cfg["pad_multiple"], cfg["upsample_align_corners"]) == (pad, align)
 
 
 def test_a_model_with_nan_weights_stops_naming_the_model():

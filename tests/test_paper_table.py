@@ -249,7 +249,7 @@ def test_table_from_the_csv_is_a_registered_figure_keyed_by_content(tmp_path):
         run(compose_cfg(base[:-4] + [f"plot.table_csv={csv}", "stages=[evaluate,plot]", "tracking.enabled=false"]))
     with pytest.raises(ConfigError, match=r"plot.figures: authors_table .* set plot.table_csv=PATH"):
         run(compose_cfg(base + ["plot.figures=[authors_table]"]))
-    with pytest.raises(ConfigError, match=r"plot.table_filter: unknown key\(s\) threshold; known keys: reference_model"):
+    with pytest.raises(ConfigError, match=r"plot.table_filter.threshold is not a key of plot.table_filter; did you mean plot.table_filter.conf_threshold"):
         run(compose_cfg(base + [f"plot.table_csv={csv}", "+plot.table_filter.threshold=0.6"]))
     assert not (tmp_path / "cache" / "generate").exists()
 

@@ -228,13 +228,16 @@ def test_the_generate_stage_populates_every_scene():
     from pairedgta.stages.generate import build_descriptor
     from pairedgta.testing.cli import compose_cfg
 
+    from pairedgta import schema
+
     cfg = OC.to_container(compose_cfg(["region=procedural_town"]), resolve=True)
+    gen = schema.parse(cfg).generate
     region = build_region(cfg["region"])
-    descriptors = [build_descriptor(k, cfg, region)[0] for k in range(4)]
+    descriptors = [build_descriptor(k, gen, region)[0] for k in range(4)]
     kinds = {e.category for d in descriptors for e in d.ambient}
     assert {"car", "person"} <= kinds, kinds
     assert all(len(d.ambient) >= 10 for d in descriptors)
-    again = build_descriptor(2, cfg, build_region(cfg["region"]))[0]
+    again = build_descriptor(2, gen, build_region(cfg["region"]))[0]
     assert again.ambient == descriptors[2].ambient
     cfg["region"]["population"] = None
-    assert build_descriptor(0, cfg, build_region(cfg["region"]))[0].ambient == ()
+    assert build_descriptor(0, gen, build_region(cfg["region"]))[0].ambient == ()

@@ -14,7 +14,9 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -26,7 +28,7 @@ from pairedgta.app import run
 from pairedgta.cache import MANIFEST, StageCache
 from pairedgta.conditions import build_condition_grid
 from pairedgta.errors import DataError, ModelError, PairedGTAError, RendererError
-from pairedgta.stages.common import Context, run_cached
+from pairedgta.stages.common import Context, StageResult, run_cached
 from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +67,34 @@ def leftovers(cache: Path) -> list[Path]:
     return sorted(p for p in cache.glob("*/.*") if p.is_dir())
 
 
+@dataclass
+class FnStage:
+    """The smallest Stage: a name, a config to hash and a function that writes the entry."""
+
+    name: str
+    config: dict
+    fn: Callable[[Path], None]
+    version: str = "1"
+    label: str = ""
+    resumable: bool = False
+    result_cls: type = StageResult
+
+    def hash_config(self) -> dict:
+        return self.config
+
+    def inputs(self) -> dict:
+        return {}
+
+    def build(self, out: Path, key: str) -> None:
+        self.fn(out)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> None:
+        raise AssertionError("not sharded")
+
+
 def context(root: Path, stages=("evaluate",), force=()) -> Context:
     grid = build_condition_grid(OmegaConf.to_container(compose_cfg([]).conditions))
     return Context(cfg={}, grid=grid, cache=StageCache(root), stages=list(stages), force=set(force))
@@ -81,9 +111,9 @@ def test_failed_forced_recompute_keeps_the_previous_result(tmp_path):
         (out / "xi.csv").write_text("half")
         raise RendererError("GTA server down")
 
-    first = run_cached(context(tmp_path), "evaluate", "1", {"a": 1}, {}, good)
+    first = run_cached(context(tmp_path), FnStage("evaluate", {"a": 1}, good))
     with pytest.raises(RendererError):
-        run_cached(context(tmp_path, force={"evaluate"}), "evaluate", "1", {"a": 1}, {}, failing)
+        run_cached(context(tmp_path, force={"evaluate"}), FnStage("evaluate", {"a": 1}, failing))
     assert (first.path / "xi.csv").read_text() == "v1"
     assert StageCache(tmp_path).is_hit("evaluate", first.key)
     assert leftovers(tmp_path) == []  # the failed attempt's folder is gone
@@ -91,7 +121,7 @@ def test_failed_forced_recompute_keeps_the_previous_result(tmp_path):
     def better(out: Path):
         (out / "xi.csv").write_text("v2")
 
-    again = run_cached(context(tmp_path, force={"evaluate"}), "evaluate", "1", {"a": 1}, {}, better)
+    again = run_cached(context(tmp_path, force={"evaluate"}), FnStage("evaluate", {"a": 1}, better))
     assert again.path == first.path and (again.path / "xi.csv").read_text() == "v2"
     assert leftovers(tmp_path) == [] and [p.name for p in entries(tmp_path, "evaluate")] == [first.key]
 
@@ -119,9 +149,9 @@ def test_forced_recompute_waits_for_a_job_still_reading_the_old_result(tmp_path)
     def old(out: Path):
         (out / "a.png").write_text("old")
 
-    run_cached(context(tmp_path, stages=("generate",)), "generate", "1", {}, {}, old)
+    run_cached(context(tmp_path, stages=("generate",)), FnStage("generate", {}, old))
     reader = context(tmp_path, stages=("evaluate",))  # another job, evaluating the cached dataset
-    used = run_cached(reader, "generate", "1", {}, {}, lambda out: None)
+    used = run_cached(reader, FnStage("generate", {}, lambda out: None))
     assert used.hit
     built = threading.Event()
     errors: list[BaseException] = []
@@ -132,7 +162,7 @@ def test_forced_recompute_waits_for_a_job_still_reading_the_old_result(tmp_path)
 
     def forced_job():
         try:
-            run_cached(context(tmp_path, stages=("generate",), force={"generate"}), "generate", "1", {}, {}, rebuild)
+            run_cached(context(tmp_path, stages=("generate",), force={"generate"}), FnStage("generate", {}, rebuild))
         except BaseException as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
@@ -357,7 +387,8 @@ def test_refused_checkpoint_shows_its_whole_reason(tmp_path):
 
 
 def test_deeply_nested_frame_json_is_a_renderer_error(tmp_path):
-    from pairedgta.render.deepgtav import DeepGTAVRenderer, frame_nbytes
+    from pairedgta.render.deepgtav import DeepGTAVRenderer
+    from pairedgta.render.deepgtav_protocol import frame_nbytes
     from pairedgta.scene.descriptor import Location, SceneDescriptor
 
     listener = socket.socket()
@@ -543,12 +574,13 @@ def test_concurrent_runs_get_distinct_run_folders(tmp_path):
 
 
 def test_execution_only_keys_stay_out_of_the_dataset_hash():
+    from pairedgta import schema
     from pairedgta.stages.generate import hash_config
 
     def key(extra):
         cfg = OmegaConf.to_container(compose_cfg(["renderer=deepgtav", "region=los_santos", *extra]), resolve=True)
         grid = build_condition_grid(cfg["conditions"])
-        return json.dumps(hash_config(cfg, grid), sort_keys=True)
+        return json.dumps(hash_config(schema.parse(cfg), grid), sort_keys=True)
 
     base = key([])
     for extra in (["renderer.backoff_s=7"], ["renderer.retries=9"], ["renderer.timeout_s=99"],

@@ -478,11 +478,12 @@ def test_cycles_cuda_probe_stays_quiet_on_the_cpu_and_other_output_passes():
     """Choosing the denoiser makes Cycles probe CUDA; on a CPU machine its 'CUEW initialization failed'
     line must not reach the user, while everything else the block prints still does (fresh process:
     the probe runs once per process)."""
-    code = ("from pairedgta.render.blender.renderer import BlenderRenderer, _quiet_cuda_probe\n"
+    code = ("from pairedgta.render.blender.renderer import BlenderRenderer\n"
+            "from pairedgta.render.blender.cycles import quiet_cuda_probe\n"
             "import os\n"
             "r = BlenderRenderer(width=32, height=16, samples=1, denoise=True)\n"
             "r.open(); r.close()\n"
-            "with _quiet_cuda_probe(True):\n"
+            "with quiet_cuda_probe(True):\n"
             "    os.write(1, b'kept line\\nCUEW initialization failed\\n')\n"
             "print('done')\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

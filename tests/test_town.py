@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from pairedgta.errors import ConfigError
-from pairedgta.scene.town import SHAPES, ProceduralTownRegion, town_palette
+from pairedgta.scene.town import ProceduralTownRegion
+from pairedgta.scene.town_primitives import SHAPES, town_palette
 
 
 @pytest.fixture(scope="module")

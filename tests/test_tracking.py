@@ -4,6 +4,7 @@ uploading the same files again. Disabled tracking touches nothing."""
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import logging
 import os
@@ -19,7 +20,8 @@ import yaml
 
 from pairedgta.app import run
 from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
-from pairedgta.tracking import artifact_location, bundle, dataset_label, run_name
+from pairedgta.tracking import bundle, dataset_label, run_name
+from pairedgta.tracking.store import artifact_location
 
 SEP = " \u00b7 "
 
@@ -141,7 +143,7 @@ def test_runs_tables_figures_datasets_and_cache_hit_reruns(tmp_path, monkeypatch
 
 def test_disabled_tracking_imports_and_writes_nothing(tmp_path):
     code = (
-        "import sys; from pathlib import Path; from pairedgta.tracking import Tracker\n"
+        "import sys; from pathlib import Path; from pairedgta.tracking.mlflow_tracker import Tracker\n"
         "t = Tracker('sqlite:///' + sys.argv[1] + '/db/mlflow.db', 'x', enabled=False)\n"
         "with t.run('r'):\n"
         "    t.params({'a': 1}); t.metrics({'m': 1.0}); t.config({'a': 1}); t.hydra_config()\n"
@@ -164,12 +166,59 @@ def test_names_locations_and_bundles():
     assert bundle("plot", "abc", "night vs/acdc", "segformer_b5") == "plot.abc.night_vs_acdc.segformer_b5"
 
 
+
+def _signature(fn) -> list[tuple]:
+    return [(p.name, p.kind, p.default, p.annotation) for p in inspect.signature(fn).parameters.values()]
+
+
+def test_both_recorders_have_every_member_of_the_interface_with_its_signature():
+    """`Recorder` is what the app and the stages may call; the in-process Tracker and the BackgroundTracker
+    proxy each define every member with the same parameters (names, kinds, defaults, annotations), so a
+    method added to one cannot be forgotten on the other."""
+    from pairedgta.tracking import Recorder
+    from pairedgta.tracking.background import BackgroundTracker
+    from pairedgta.tracking.mlflow_tracker import Tracker
+
+    methods = {n: f for n, f in vars(Recorder).items() if inspect.isfunction(f) and not n.startswith("_")}
+    assert {"run", "run_id", "rename", "params", "metrics", "tags", "stage_files", "dataset", "config",
+            "hydra_config", "ui_link", "close"} == set(methods)
+    assert set(Recorder.__annotations__) == {"experiment"}
+    for cls in (Tracker, BackgroundTracker):
+        for name, declared in methods.items():
+            assert name in vars(cls), f"{cls.__name__}.{name} is missing (not inherited, not forwarded)"
+            assert _signature(getattr(cls, name)) == _signature(declared), f"{cls.__name__}.{name}"
+    assert isinstance(Tracker("sqlite:///never/written.db", "x", enabled=False), Recorder)  # data members too
+
+
+def test_the_child_replays_every_call_the_proxy_sends():
+    """Each Recorder method of the proxy is one message, and the child's table of calls (FORWARDED) is
+    exactly those messages, each a method of the Tracker it replays them on."""
+    from pairedgta.tracking import Recorder
+    from pairedgta.tracking.background import BackgroundTracker
+    from pairedgta.tracking.child import FORWARDED
+    from pairedgta.tracking.mlflow_tracker import Tracker
+
+    sent: list[str] = []
+    proxy = object.__new__(BackgroundTracker)  # no child process: only what it would send
+    proxy._stack, proxy._handles, proxy._summary = [], 0, None
+    proxy._send = lambda method, *args, **kwargs: sent.append(method)
+    local = {"run", "run_id", "ui_link", "close"}  # run: begin/finish below; the others answer in this process
+    for name, declared in vars(Recorder).items():
+        if inspect.isfunction(declared) and not name.startswith("_") and name not in local:
+            required = [p for p in list(inspect.signature(declared).parameters.values())[1:] if p.default is p.empty]
+            getattr(proxy, name)(*[None] * len(required))
+    with proxy.run("r"):
+        assert proxy.run_id() == "run1"
+    assert sent[-2:] == ["begin", "finish"] and len(sent) == len(set(sent))
+    assert set(sent[:-2]) == FORWARDED
+    assert all(callable(getattr(Tracker, m, None)) for m in FORWARDED)
+
 @pytest.mark.slow
 @pytest.mark.parametrize("uri", ["sqlite:///{tmp}/a/mlflow.db", "sqlite:///{tmp}/b/other.db"])
 def test_a_user_given_store_gets_the_artifacts_next_to_it(tmp_path, monkeypatch, uri):
     import mlflow
 
-    from pairedgta.tracking import Tracker
+    from pairedgta.tracking.mlflow_tracker import Tracker
 
     monkeypatch.chdir(tmp_path)
     uri = uri.format(tmp=tmp_path)
@@ -249,9 +298,9 @@ def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, ca
 
     import mlflow
 
-    from pairedgta import tracking
+    from pairedgta.tracking import mlflow_tracker
 
-    monkeypatch.setattr(tracking, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
+    monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
     calls = []
 
     log_batch = mlflow.MlflowClient.log_batch
@@ -371,10 +420,10 @@ def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks
 def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypatch):
     """Through the CLI: a store that cannot even be created still lets the stages finish, exit 0, the
     results line printed, and MLflow's failure said once."""
-    from pairedgta import tracking
+    from pairedgta.tracking import mlflow_tracker
     from pairedgta.testing.cli import run_cli
 
-    monkeypatch.setattr(tracking, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
+    monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0, 0.0, 0.0))
     (tmp_path / "not_a_folder").write_text("")
     db = tmp_path / "not_a_folder" / "mlflow.db"
     proc = run_cli(_tracked(tmp_path, db, ["stages=[generate]"]), tmp_path)
@@ -385,7 +434,7 @@ def test_an_unwritable_store_folder_is_one_warning_and_exit_0(tmp_path, monkeypa
     assert "results: " in proc.stdout and "error:" not in proc.stderr
 
 
-# --------------------------------------------------------------------------- the tracking child (pairedgta.tracking_worker)
+# --------------------------------------------------------------------------- the tracking child (pairedgta.tracking.background, .child)
 
 
 @pytest.mark.slow
@@ -396,12 +445,14 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path,
     file and a `file:` folder store alike (an HTTP server: tests/test_mlflow_server.py)."""
     import mlflow
 
-    from pairedgta.tracking import RUN_COLOR_TAG, model_run_color
-    from pairedgta.tracking_worker import BackgroundTracker
+    from pairedgta.tracking import Recorder
+    from pairedgta.tracking.background import BackgroundTracker
+    from pairedgta.tracking.naming import RUN_COLOR_TAG, model_run_color
 
     uri = mlflow_store(tmp_path / "mlflow.db") if store == "sqlite" else (tmp_path / "mlruns").as_uri()
     monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE", raising=False)  # the child's Tracker allows a store the user chose
     t = BackgroundTracker(uri, "bg", results=tmp_path)
+    assert isinstance(t, Recorder)  # every member the app may use, data members included
     with t.run("parent"):
         t.params({"a": {"b": 1}})
         with t.run("child", nested=True):
@@ -435,7 +486,7 @@ def test_the_tracking_child_logs_what_the_run_sends_under_the_runs_pid(tmp_path,
 
 @pytest.mark.slow
 def test_a_failing_store_is_one_warning_in_the_runs_own_log(tmp_path, caplog):
-    from pairedgta.tracking_worker import BackgroundTracker
+    from pairedgta.tracking.background import BackgroundTracker
 
     (tmp_path / "file").write_text("a file where the store's folder should be")
     t = BackgroundTracker(f"sqlite:///{tmp_path / 'file' / 'mlflow.db'}", "bg", results=tmp_path / "cache")
@@ -457,8 +508,8 @@ def test_the_child_ends_the_runs_killed_when_the_run_dies_and_the_next_run_ends_
 
     import mlflow
 
-    from pairedgta.tracking import Tracker
-    from pairedgta.tracking_worker import serve
+    from pairedgta.tracking.mlflow_tracker import Tracker
+    from pairedgta.tracking.child import serve
 
     uri = mlflow_store(tmp_path / "mlflow.db")
     messages = [("open", (uri, "bg"), {"owner": os.getpid()}), ("begin", ("run1", "parent", False, None), {}),
@@ -477,7 +528,7 @@ def test_the_child_ends_the_runs_killed_when_the_run_dies_and_the_next_run_ends_
 
 
 def test_the_child_is_started_before_hydra_only_where_a_run_will_log():
-    from pairedgta.tracking_worker import wants_prestart
+    from pairedgta.tracking.background import wants_prestart
 
     assert wants_prestart(["+experiment=paper_table"], mlflow_imported=False)
     assert not wants_prestart([], mlflow_imported=True)  # logs in-process: nothing to overlap
@@ -489,7 +540,7 @@ def test_nothing_a_library_prints_reaches_the_summary_channel(tmp_path):
     """The child's summary travels on a pipe of its own: prints from Python and from C (MLflow's "View run"
     lines against a server, a library's printf) land on stderr, never inside the pickled summary."""
     code = ("import os, pickle, sys\n"
-            "from pairedgta.tracking_worker import private_stdout\n"
+            "from pairedgta.tracking.child import private_stdout\n"
             "channel = private_stdout()\n"
             "print('a library talks')\n"
             "sys.stdout.flush()\n"
@@ -512,7 +563,7 @@ def test_a_job_that_loses_the_race_to_tag_the_experiment_keeps_its_record(tmp_pa
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
-    from pairedgta.tracking import EXPERIMENT_KIND, Tracker
+    from pairedgta.tracking.mlflow_tracker import EXPERIMENT_KIND, Tracker
 
     uri = mlflow_store(tmp_path / "mlflow.db")
     MlflowClient(uri).create_experiment("old", artifact_location=str(tmp_path / "art"))  # an untagged experiment
@@ -524,7 +575,7 @@ def test_a_job_that_loses_the_race_to_tag_the_experiment_keeps_its_record(tmp_pa
 
     monkeypatch.setattr(MlflowClient, "set_experiment_tag", raced)
     # no retry: under load the first try of a job's open can spend the whole retry budget (RETRY_BUDGET_S)
-    monkeypatch.setattr("pairedgta.tracking.RETRY_DELAYS_S", ())
+    monkeypatch.setattr("pairedgta.tracking.mlflow_tracker.RETRY_DELAYS_S", ())
     tracker = Tracker(uri, "old")
     assert tracker.enabled and tracker.failed is None
     assert mlflow.MlflowClient(uri).get_experiment_by_name("old").tags[EXPERIMENT_KIND[0]] == EXPERIMENT_KIND[1]

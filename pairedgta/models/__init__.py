@@ -1,8 +1,11 @@
 """Model zoo: one registry of families, configs in the `model` config group.
 
 `build_segmenter(name_or_config, device=..., **overrides)` reads the model's YAML through the config
-search path (or takes an already composed config), applies overrides and calls the family's builder
-with the config's keys as keyword arguments; architecture modules know nothing about Hydra.
+search path (or takes an already composed config), applies overrides, parses the options every family
+shares once (`RuntimeOptions`: device, batch_size, amp, channels_last, compile) and calls the family's
+builder with the remaining keys as keyword arguments plus `runtime`; as in timm, a family declares only
+its own arguments, with their defaults in its builder's signature. Architecture modules know nothing
+about Hydra.
 
 Inside `run_models()` (one run of the app) `shared_segmenter` builds each distinct model config once:
 pseudo-labelling, evaluation and the qualitative figure use the same loaded model."""
@@ -16,14 +19,19 @@ from typing import Any, Iterator, Mapping
 from pairedgta.configs import group_option, group_options
 from pairedgta.errors import ConfigError
 from pairedgta.models.base import Segmenter, resolve_device
-from pairedgta.registry import Registry
+from pairedgta.models.runtime import MODEL_KEYS as RUNTIME_OPTION_KEYS
+from pairedgta.models.runtime import RuntimeOptions, runtime_defaults, split_runtime
+from pairedgta.registry import Registry, accepted_keys
 
+# The input options of the in-project families (pairedgta/models/checkpoint.py: build_inproject); like the
+# runtime options, every config of such a family has them (its YAML only where it differs from the default).
+IN_PROJECT_OPTIONS = ("random_init", "init_seed", "mean", "std", "pad_multiple", "upsample_align_corners")
 FAMILIES = Registry("model family", "model.family")
 FAMILIES.register("segformer", "pairedgta.models.segformer:build")
 FAMILIES.register("mask2former", "pairedgta.models.mask2former:build")
-FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:build")
-FAMILIES.register("pidnet", "pairedgta.models.pidnet:build")
-FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:build")
+FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:build", filled=IN_PROJECT_OPTIONS)
+FAMILIES.register("pidnet", "pairedgta.models.pidnet:build", filled=IN_PROJECT_OPTIONS)
+FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:build", filled=IN_PROJECT_OPTIONS)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")
 _RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
@@ -34,10 +42,33 @@ def available_models() -> list[str]:
 
 
 def model_config(name: str, **overrides: Any) -> dict[str, Any]:
-    """pairedgta/conf/model/<name>.yaml (through the config search path) with `overrides` applied."""
+    """pairedgta/conf/model/<name>.yaml (through the config search path) with `overrides` applied and the
+    shared options' defaults filled in (`with_defaults`)."""
     cfg = group_option("model", name)
     cfg.update(overrides)
-    return cfg
+    return with_defaults(cfg)
+
+
+def with_defaults(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The model config as the stages hash it: a runtime option, or an input option of an in-project family,
+    that the config leaves out takes its one default (RuntimeOptions; the family builder's signature, read
+    without importing torch). So a YAML that omits a default hashes exactly as one that spells it out."""
+    out = dict(cfg)
+    defaults = runtime_defaults()
+    family = out.get("family")
+    if isinstance(family, str) and family in FAMILIES:  # an unknown one: check_model_config says so
+        declared = FAMILIES.declared_defaults(family)
+        defaults.update({k: declared[k] for k in FAMILIES.meta(family).get("filled", ())})
+    for key, value in defaults.items():
+        out.setdefault(key, list(value) if isinstance(value, tuple) else value)
+    return out
+
+
+def family_keys(family: str) -> set[str]:
+    """The keys a model config of `family` may set: its builder's arguments and the runtime options."""
+    keys = FAMILIES.declared_keys(family)  # from the source: no torch/transformers import for a check
+    keys = keys if keys is not None else accepted_keys(FAMILIES.resolve(family)) or set()
+    return (keys - {"runtime"}) | set(RUNTIME_OPTION_KEYS)
 
 
 def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
@@ -55,10 +86,20 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
             need = "3 numbers > 0" if key == "std" else "3 numbers"
             raise ConfigError(f"{where} ({cfg.get('name')}): {key}={list(value) if isinstance(value, (list, tuple)) else value!r} "
                               f"must be {need}, one per RGB channel, e.g. {key}={example}")
-    family = cfg.get("family")
-    keys = FAMILIES.declared_keys(family)  # from the source: no torch/transformers import for a check
-    check_keys(keys if keys is not None else FAMILIES.resolve(family), cfg, f"{where} ({cfg.get('name')})",
-               runtime=RUNTIME_KEYS)
+    check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
+    pad = cfg.get("pad_multiple", 1)
+    if isinstance(pad, bool) or not isinstance(pad, int) or pad < 1:
+        raise ConfigError(f"{where} ({cfg.get('name')}): pad_multiple={pad!r} must be a whole number >= 1, "
+                          "e.g. pad_multiple=32")
+    if not isinstance(cfg.get("upsample_align_corners", False), bool):
+        raise ConfigError(f"{where} ({cfg.get('name')}): upsample_align_corners={cfg['upsample_align_corners']!r} "
+                          "must be true or false")
+    RuntimeOptions.from_config(cfg)  # a bad model.batch_size / amp is the same one-line error before any stage
+
+
+def model_keys() -> set[str]:
+    """Every key some family's model config may set (the command line's `model.<key>=`)."""
+    return set().union(*(family_keys(f) for f in FAMILIES.names()))
 
 
 def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Segmenter:
@@ -66,7 +107,9 @@ def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, *
     cfg = dict(model) if isinstance(model, Mapping) else model_config(str(model))
     cfg.update(overrides)
     device = device or cfg.pop("device", None) or "cpu"
-    return FAMILIES.build(cfg.get("family"), cfg, where=f"model ({cfg.get('name')})", device=device)
+    check_model_config(cfg)
+    own, runtime = split_runtime(cfg, device)
+    return FAMILIES.build(cfg.get("family"), own, where=f"model ({cfg.get('name')})", runtime=runtime)
 
 
 def _cache_key(cfg: Mapping[str, Any], device: str | None) -> str:
@@ -100,5 +143,5 @@ def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Seg
     return _RUN_CACHE[key]
 
 
-__all__ = ["Segmenter", "build_segmenter", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
+__all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
            "resolve_device", "FAMILIES", "RUNTIME_KEYS"]

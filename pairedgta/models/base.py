@@ -15,6 +15,7 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import DataError, ModelError
 
 from pairedgta.lazy import lazy_module
+from pairedgta.models.runtime import RuntimeOptions
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 F = lazy_module("torch.nn.functional")
@@ -32,25 +33,17 @@ class Segmenter(abc.ABC):
     num_classes: int = NUM_CLASSES
     class_names: Sequence[str] = CLASS_NAMES
 
-    def __init__(
-        self,
-        name: str,
-        module: torch.nn.Module,
-        device: str | torch.device | None = "cpu",
-        batch_size: int = 4,
-        amp: str | None = None,
-        channels_last: bool = False,
-        compile: bool = False,
-    ) -> None:
+    def __init__(self, name: str, module: torch.nn.Module, runtime: RuntimeOptions | None = None) -> None:
+        runtime = runtime or RuntimeOptions()
         self.name = name
-        self.device = resolve_device(device)
-        self.batch_size = max(1, int(batch_size))
-        self.amp = amp if self.device.type == "cuda" else None
+        self.device = resolve_device(runtime.device)
+        self.batch_size = runtime.batch_size
+        self.amp = runtime.amp if self.device.type == "cuda" else None
         module = module.eval().to(self.device)
-        if channels_last and self.device.type == "cuda":
+        self.channels_last = runtime.channels_last and self.device.type == "cuda"
+        if self.channels_last:
             module = module.to(memory_format=torch.channels_last)
-        self.channels_last = channels_last and self.device.type == "cuda"
-        self.module = torch.compile(module) if compile else module
+        self.module = torch.compile(module) if runtime.compile else module
 
     # -- to implement -------------------------------------------------------------------------
     @abc.abstractmethod

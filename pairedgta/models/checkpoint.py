@@ -15,11 +15,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pairedgta.errors import ConfigError, ModelError, reason
+from pairedgta.errors import ModelError, reason
 from pairedgta.models.base import Segmenter
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+from pairedgta.models.runtime import RuntimeOptions
 
 log = logging.getLogger(__name__)
 
@@ -172,9 +170,9 @@ class NormalizedSegmenter(Segmenter):
         std: Sequence[float],
         pad_multiple: int = 1,
         align_corners: bool = False,
-        **runtime: Any,
+        runtime: RuntimeOptions | None = None,
     ) -> None:
-        super().__init__(name, module, **runtime)
+        super().__init__(name, module, runtime)
         self.pad_multiple = max(1, int(pad_multiple))
         self.align_corners = bool(align_corners)
         self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
@@ -199,33 +197,19 @@ class NormalizedSegmenter(Segmenter):
         return self._logits(images).softmax(dim=1)
 
 
-def _check_triplet(cfg: Mapping[str, Any], key: str) -> list[float]:
-    value = cfg.get(key)
-    if isinstance(value, str) or not isinstance(value, Sequence) or len(value) != 3:
-        raise ConfigError(f"model '{cfg.get('name')}': {key} must be a list of 3 floats (RGB), got {value!r}")
-    return [float(v) for v in value]
-
-
 def build_inproject(
     cfg: Mapping[str, Any],
     make_module: Callable[[], torch.nn.Module],
+    runtime: RuntimeOptions,
     *,
     training_only_prefixes: Iterable[str] = (),
     checkpoint_file: str,
     checkpoint_source: str,
-    default_align_corners: bool = False,
-    default_pad_multiple: int = 1,
 ) -> NormalizedSegmenter:
-    """Common `build(cfg)` body: validate runtime keys, seed, construct, load weights, wrap."""
+    """Common `build` body of the in-project families (cfg: the builder's keyword arguments, defaults filled
+    in by its signature, checked by pairedgta/models/__init__.py: check_model_config): seed, construct, load
+    weights, wrap."""
     name = str(cfg.get("name") or cfg.get("family"))
-    amp = cfg.get("amp")
-    if amp not in (None, "bf16", "fp16"):
-        raise ConfigError(f"model '{name}': amp must be null, bf16 or fp16, got {amp!r}")
-    mean = _check_triplet(cfg, "mean") if cfg.get("mean") is not None else list(IMAGENET_MEAN)
-    std = _check_triplet(cfg, "std") if cfg.get("std") is not None else list(IMAGENET_STD)
-    pad_multiple = int(cfg.get("pad_multiple") or default_pad_multiple)
-    if pad_multiple < 1:
-        raise ConfigError(f"model '{name}': pad_multiple must be >= 1, got {pad_multiple}")
 
     checkpoint_path = cfg.get("checkpoint_path")
     if not checkpoint_path and not cfg.get("random_init", False):
@@ -243,21 +227,9 @@ def build_inproject(
         module = make_module()
     if checkpoint_path:
         load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=training_only_prefixes, model_name=name)
-
-    align = cfg.get("upsample_align_corners")
-    return NormalizedSegmenter(
-        name,
-        module,
-        mean=mean,
-        std=std,
-        pad_multiple=pad_multiple,
-        align_corners=default_align_corners if align is None else bool(align),
-        device=cfg.get("device", "cpu"),
-        batch_size=int(cfg.get("batch_size", 4)),
-        amp=amp,
-        channels_last=bool(cfg.get("channels_last", False)),
-        compile=bool(cfg.get("compile", False)),
-    )
+    return NormalizedSegmenter(name, module, mean=[float(v) for v in cfg["mean"]], std=[float(v) for v in cfg["std"]],
+                               pad_multiple=cfg["pad_multiple"], align_corners=cfg["upsample_align_corners"],
+                               runtime=runtime)
 
 
 __all__ = ["load_checkpoint_strict", "read_state_dict", "NormalizedSegmenter", "build_inproject"]

@@ -15,6 +15,7 @@ from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.models.base import Segmenter
 from pairedgta.models.checkpoint import build_inproject
+from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
 TRAINING_ONLY_PREFIXES = ("seghead_extra.",)
 CHECKPOINT_FILE = "the DDRNet_23 Cityscapes weights, val mIoU 79.5"
@@ -230,19 +231,19 @@ def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> DDRNet:
 def build(
     *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
     checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
-    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
-    mean: list | None = None, std: list | None = None, pad_multiple: int | None = None,
-    upsample_align_corners: bool | None = None, device: str = "cpu",
+    mean: list = IMAGENET_MEAN, std: list = IMAGENET_STD, pad_multiple: int = 32, upsample_align_corners: bool = False,
     layers: list = (2, 2, 2, 2), planes: int = 64, spp_planes: int = 128, head_planes: int = 128,
+    runtime: RuntimeOptions,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family, with their one default (the
+    input options first, then the architecture); how it runs comes parsed in `runtime` (pairedgta/models/runtime.py)."""
+    # upsample_align_corners: the authors keep align_corners=False everywhere for their weights
     cfg = dict(locals())
     return build_inproject(
         cfg,
         lambda: build_module(cfg),
+        runtime,
         training_only_prefixes=TRAINING_ONLY_PREFIXES,
         checkpoint_file=CHECKPOINT_FILE,
         checkpoint_source=CHECKPOINT_SOURCE,
-        default_align_corners=False,
-        default_pad_multiple=32,
     )

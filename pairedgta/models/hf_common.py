@@ -8,15 +8,12 @@ from typing import Any
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ModelError, reason
 from pairedgta.lazy import lazy_module
+from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD
 
 torch = lazy_module("torch")  # the weights fingerprint of a cached run reads paths here, not tensors
 F = lazy_module("torch.nn.functional")
 
 log = logging.getLogger(__name__)
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 

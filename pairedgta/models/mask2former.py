@@ -14,11 +14,12 @@ import torch.nn.functional as F
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.models.base import Segmenter
 from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params
+from pairedgta.models.runtime import RuntimeOptions
 
 
 class Mask2FormerSegmenter(Segmenter):
-    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], **runtime: Any) -> None:
-        super().__init__(name, model, **runtime)
+    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], runtime: RuntimeOptions) -> None:
+        super().__init__(name, model, runtime)
         self.pre = Preprocessor(params)
 
     def _logits(self, images: torch.Tensor) -> torch.Tensor:  # pragma: no cover - not used
@@ -40,10 +41,10 @@ def build(
     *, name: str, family: str, hub_id: str | None = None, path: str | None = None,
     preprocess: str = "processor", random_init: bool = False, init_seed: int = 0, arch: dict | None = None,
     mean: list | None = None, std: list | None = None, resize: Any = None, size_divisor: int | None = None,
-    batch_size: int = 1, amp: str | None = None, channels_last: bool = False, compile: bool = False,
-    device: str = "cpu",
+    runtime: RuntimeOptions,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the architecture keys of a pairedgta/conf/model YAML of this family; how it runs
+    (device, batch_size, amp, ...) comes parsed in `runtime` (pairedgta/models/runtime.py)."""
     cfg = dict(locals())
     from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
 
@@ -67,7 +68,4 @@ def build(
     if not params.get("size_divisor"):
         params["size_divisor"] = 32
     return Mask2FormerSegmenter(
-        cfg["name"], model, params,
-        device=cfg.get("device") or "cpu", batch_size=cfg.get("batch_size", 1), amp=cfg.get("amp"),
-        channels_last=bool(cfg.get("channels_last")), compile=bool(cfg.get("compile")),
-    )
+        cfg["name"], model, params, runtime)

@@ -8,11 +8,12 @@ import torch
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.models.base import Segmenter
 from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params
+from pairedgta.models.runtime import RuntimeOptions
 
 
 class SegFormerSegmenter(Segmenter):
-    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], **runtime: Any) -> None:
-        super().__init__(name, model, **runtime)
+    def __init__(self, name: str, model: torch.nn.Module, params: dict[str, Any], runtime: RuntimeOptions) -> None:
+        super().__init__(name, model, runtime)
         self.pre = Preprocessor(params)
 
     def _logits(self, images: torch.Tensor) -> torch.Tensor:
@@ -23,10 +24,10 @@ def build(
     *, name: str, family: str, hub_id: str | None = None, path: str | None = None,
     preprocess: str = "processor", random_init: bool = False, init_seed: int = 0, arch: dict | None = None,
     mean: list | None = None, std: list | None = None, resize: Any = None, size_divisor: int | None = None,
-    batch_size: int = 4, amp: str | None = None, channels_last: bool = False, compile: bool = False,
-    device: str = "cpu",
+    runtime: RuntimeOptions,
 ) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family (plus the runtime device)."""
+    """Keyword arguments = the architecture keys of a pairedgta/conf/model YAML of this family; how it runs
+    (device, batch_size, amp, ...) comes parsed in `runtime` (pairedgta/models/runtime.py)."""
     cfg = dict(locals())
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 
@@ -42,7 +43,4 @@ def build(
     else:
         model = load_pretrained(SegformerForSemanticSegmentation, cfg)
     return SegFormerSegmenter(
-        cfg["name"], model, preprocess_params(cfg),
-        device=cfg.get("device") or "cpu", batch_size=cfg.get("batch_size", 4), amp=cfg.get("amp"),
-        channels_last=bool(cfg.get("channels_last")), compile=bool(cfg.get("compile")),
-    )
+        cfg["name"], model, preprocess_params(cfg), runtime)

@@ -10,8 +10,8 @@ Two independent checks on a group of images rendered from one SceneDescriptor S_
   ignores global darkening, tinting and loss of contrast from fog). Identical geometry scores
   close to 1, an unrelated picture close to 0.
 
-Entity-state format (the DeepGTAV frame JSON; wire facts in the docstrings of pairedgta/render/deepgtav.py
-and pairedgta/testing/deepgtav_server.py):
+Entity-state format (the DeepGTAV frame JSON; wire facts in the docstrings of
+pairedgta/render/deepgtav_protocol.py and pairedgta/testing/deepgtav_server.py):
 ``{"location": [x, y, z], "vehicles": [entity, ...], "peds": [entity, ...]}`` where an entity has
 ``"position": [x, y, z]`` in world metres (or the classic DeepGTAV ``"FUR"``/``"BLL"`` box corners,
 whose midpoint is used), optionally ``"model"`` (vehicle name, or ped model name / ``0x`` hash),

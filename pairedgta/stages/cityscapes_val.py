@@ -30,7 +30,7 @@ from pairedgta.metrics import ConfusionMatrix
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
-from pairedgta.tracking import Tracker, bundle, dataset_label, run_name
+from pairedgta.tracking import Recorder, bundle, dataset_label, run_name
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -96,17 +96,45 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, devi
     return {"miou": miou}
 
 
+@dataclasses.dataclass
+class CityscapesVal:
+    """The model check (pairedgta.stages.common.Stage): one model on the Cityscapes val split, against the
+    published mIoU. Outside the paired graph."""
+
+    ctx: Context
+    dataset: CityscapesSplit
+    dataset_key: str
+    model_cfg: dict[str, Any]
+    name: str = STAGE
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[StageResult] = StageResult
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"model": model_hash_config(self.model_cfg),
+                "dataset": {"split": self.dataset.split, "n_images": len(self.dataset), "scale": self.dataset.scale}}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return compute(self.dataset, self.model_cfg, out, self.ctx.run.device)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise NotImplementedError("the model check is not sharded")
+
+
 def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_cfg: dict[str, Any]) -> StageResult:
-    config = {
-        "model": model_hash_config(model_cfg),
-        "dataset": {"split": dataset.split, "n_images": len(dataset), "scale": dataset.scale},
-    }
     # a check outside the paired graph: it always may compute when this experiment runs
     own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
-    result = run_cached(
-        own, STAGE, VERSION, config, {"dataset": dataset_key},
-        lambda out: compute(dataset, model_cfg, out, ctx.cfg.get("device", "cpu")), label=f"[{model_cfg['name']}]",
-    )
+    result = run_cached(own, CityscapesVal(own, dataset, dataset_key, model_cfg))
     if result.hit:
         log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
     return result
@@ -122,7 +150,7 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
     return metrics
 
 
-def run(ctx: Context, models: list[dict[str, Any]], tracker: Tracker) -> dict[str, Any]:
+def run(ctx: Context, models: list[dict[str, Any]], tracker: Recorder) -> dict[str, Any]:
     dataset = open_dataset(ctx.cfg["dataset"])
     if not isinstance(dataset, CityscapesSplit):
         raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")

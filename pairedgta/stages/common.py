@@ -5,14 +5,14 @@ import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator, Protocol
 
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")
-STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
 # model keys that change speed, not numbers: left out of cache hashes
 RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
@@ -45,6 +45,7 @@ class StageResult:
     path: Path
     hit: bool
     extra: dict[str, Any] = field(default_factory=dict)
+    complete: bool = True  # False: a shard job's part, while other shards' parts are missing
 
     def manifest(self) -> dict[str, Any]:
         import json
@@ -56,12 +57,19 @@ class StageResult:
 
 @dataclass
 class Context:
-    cfg: dict[str, Any]
+    cfg: dict[str, Any]  # the pass's composed config: the chosen group options (renderer, region, dataset ...)
     grid: ConditionGrid
     cache: StageCache
     stages: list[str]
     force: set[str]
     results: dict[str, Any] = field(default_factory=dict)
+    run: RunConfig = None  # type: ignore[assignment]  # the same config, typed (pairedgta/schema.py); parsed if not given
+
+    def __post_init__(self) -> None:
+        if self.run is None:
+            from pairedgta import schema
+
+            self.run = schema.parse(self.cfg)
 
 
 def whole_number(node: dict[str, Any], key: str, default: int, where: str) -> int:
@@ -127,6 +135,34 @@ def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
+class Stage(Protocol):
+    """One cacheable unit of a stage's work (the dataset, the pseudo-labels, one model's evaluation, the figures):
+    what `run_cached` needs to hash it, find it, shard it and build it. Every stage module implements it, so the
+    runner below is the only place that hashes, shards and reads the cache."""
+
+    name: str                       # the stage, also its folder in the cache
+    version: str                    # bumped when the stage's outputs change for the same config
+    label: str                      # the unit in log lines, e.g. "[demo_segformer]"
+    resumable: bool                 # builds in a work folder that survives a crash (and the shards' work)
+    result_cls: type[StageResult]   # the typed reader of its entry
+
+    def hash_config(self) -> dict[str, Any]:
+        """What of the config decides the outputs (never what decides only speed or where it runs)."""
+
+    def inputs(self) -> dict[str, str]:
+        """The upstream entries it reads: name -> key."""
+
+    def build(self, out: Path, key: str) -> dict[str, Any] | None:
+        """Write the entry `key` into `out` (a temporary folder the runner swaps in when complete)."""
+
+    def shards(self) -> tuple[int, int]:
+        """(num_shards, shard): shard i of N does items i, i+N, ...; (1, 0) when not split over jobs."""
+
+    def build_shard(self, key: str) -> Path | None:
+        """This shard's part of the work, stored where the unsharded build finds it; the folder that holds the
+        parts while other shards' are missing, None when every part is there (then the runner builds)."""
+
+
 def _hit(ctx: Context, stage: str, key: str, label: str, what: str, result_cls: type[StageResult]) -> StageResult:
     log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
     ctx.cache.use(stage, key)
@@ -134,55 +170,63 @@ def _hit(ctx: Context, stage: str, key: str, label: str, what: str, result_cls: 
     return result_cls(stage, key, ctx.cache.path(stage, key), hit=True)
 
 
-def run_cached(
-    ctx: Context,
-    stage: str,
-    version: str,
-    config: Any,
-    inputs: dict[str, str],
-    build: Callable[[Path], dict[str, Any] | None],
-    label: str = "",
-    resumable: bool = False,
-    result_cls: type[StageResult] = StageResult,
-) -> StageResult:
+def _not_cached(ctx: Context, stage: str, what: str, key: str, problem: str | None) -> PairedGTAError:
+    again = f"e.g. stages=[{stage},{','.join(ctx.stages)}]"
+    if problem not in (None, "missing"):
+        return PairedGTAError(f"{what}: the cached output {ctx.cache.path(stage, key)} is damaged ({problem}); "
+                              f"recompute it, {again}")
+    return PairedGTAError(f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
+                          f"run it first, {again}")
+
+
+def stage_key(stage: Stage) -> str:
+    return stage_hash(stage.name, stage.version, stage.hash_config(), stage.inputs())
+
+
+def run_cached(ctx: Context, stage: Stage) -> StageResult:
     """Hit -> skip and say so; miss, damaged entry or force -> build beside it and swap it in on success
     (a failed recompute leaves the previous result). A stage not listed in `stages` must already be
-    cached: then the error names the stage to run."""
-    key = stage_hash(stage, version, config, inputs)
-    what = f"{stage}{' ' + label if label else ''}"
+    cached: then the error names the stage to run. A shard job (stage.shards() = (N > 1, i)) does its part
+    and returns an incomplete result until every shard's part is there; then the entry is built from them."""
+    name, label = stage.name, stage.label
+    config, inputs = stage.hash_config(), stage.inputs()
+    key = stage_hash(name, stage.version, config, inputs)
+    what = f"{name}{' ' + label if label else ''}"
+    num, _ = stage.shards()
+    if num > 1 and not ctx.cache.is_hit(name, key):
+        if name in ctx.force:
+            raise ConfigError(f"force=[{name}] with {name}.shard set would discard other shards' work; "
+                              f"force the unsharded run (no {name}.shard/num_shards) instead")
+        if name not in ctx.stages:
+            raise _not_cached(ctx, name, what, key, None)
+        work = stage.build_shard(key)
+        if work is not None:
+            return stage.result_cls(name, key, work, hit=False, complete=False)
     # force= recomputes once per run: a later pass reaching the same hash reuses this run's result
-    forced = stage in ctx.force and (stage, key) not in ctx.cache.built
+    forced = name in ctx.force and (name, key) not in ctx.cache.built
     ctx.cache.sweep_once()
-    problem = None if forced else ctx.cache.problem(stage, key)
+    problem = None if forced else ctx.cache.problem(name, key)
     if not forced and problem is None:
-        return _hit(ctx, stage, key, label, what, result_cls)
-    if stage not in ctx.stages:
-        if problem not in (None, "missing"):
-            raise PairedGTAError(
-                f"{what}: the cached output {ctx.cache.path(stage, key)} is damaged ({problem}); "
-                f"recompute it, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
-            )
-        raise PairedGTAError(
-            f"{what}: no cached output for this configuration ({ctx.cache.path(stage, key)}); "
-            f"run it first, e.g. stages=[{stage},{','.join(s for s in ctx.stages)}]"
-        )
-    with ctx.cache.lock(stage, key):
+        return _hit(ctx, name, key, label, what, stage.result_cls)
+    if name not in ctx.stages:
+        raise _not_cached(ctx, name, what, key, problem)
+    with ctx.cache.lock(name, key):
         if not forced:
-            problem = ctx.cache.problem(stage, key)
+            problem = ctx.cache.problem(name, key)
             if problem is None:  # another job finished it while we waited
-                return _hit(ctx, stage, key, label, what, result_cls)
+                return _hit(ctx, name, key, label, what, stage.result_cls)
             if problem != "missing":
-                log.warning("%s: cached output %s is damaged (%s); rebuilding it", what, ctx.cache.path(stage, key), problem)
-        elif resumable:
+                log.warning("%s: cached output %s is damaged (%s); rebuilding it", what, ctx.cache.path(name, key), problem)
+        elif stage.resumable:
             import shutil
 
-            shutil.rmtree(ctx.cache.partial_path(stage, key), ignore_errors=True)  # forced: start afresh
-        log.info("%s: computing -> %s%s", what, ctx.cache.path(stage, key),
+            shutil.rmtree(ctx.cache.partial_path(name, key), ignore_errors=True)  # forced: start afresh
+        log.info("%s: computing -> %s%s", what, ctx.cache.path(name, key),
                  " (the previous result stays until this one is complete)" if forced else "")
-        manifest = {"version": version, "config": config, "inputs": inputs}
-        work_dir = ctx.cache.partial_path(stage, key) if resumable else None
-        with ctx.cache.build(stage, key, manifest, work_dir=work_dir, replace=forced) as tmp:
-            extra = build(tmp) or {}
-    ctx.cache.use(stage, key)
-    ctx.results.setdefault("stages", []).append({"stage": stage, "label": label, "key": key, "hit": False})
-    return result_cls(stage, key, ctx.cache.path(stage, key), hit=False, extra=extra)
+        manifest = {"version": stage.version, "config": config, "inputs": inputs}
+        work_dir = ctx.cache.partial_path(name, key) if stage.resumable else None
+        with ctx.cache.build(name, key, manifest, work_dir=work_dir, replace=forced) as tmp:
+            extra = stage.build(tmp, key) or {}
+    ctx.cache.use(name, key)
+    ctx.results.setdefault("stages", []).append({"stage": name, "label": label, "key": key, "hit": False})
+    return stage.result_cls(name, key, ctx.cache.path(name, key), hit=False, extra=extra)

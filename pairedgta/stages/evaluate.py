@@ -15,15 +15,16 @@ import json
 import logging
 import math
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from pairedgta.cache import canonical_json, stage_hash
+from pairedgta.cache import canonical_json
 from pairedgta.datasets import PairedDataset
-from pairedgta.errors import PairedGTAError
+from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation import counting, shards, tables
 from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.inputs import decode_workers
@@ -36,7 +37,6 @@ from pairedgta.stages.common import (
     model_config_from_hash,
     model_hash_config,
     run_cached,
-    shard_keys,
     torch_threads,
 )
 from pairedgta.stages.pseudolabel import PseudoLabels
@@ -195,60 +195,124 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
     return tables.write_outputs(out, evaluation)
 
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLabels,
-        model_cfg: dict[str, Any]) -> EvaluateResult:
-    grid = dataset.grid or ctx.grid
-    conditions = conditions_for(ctx.cfg, grid)
-    settings = metric_settings(ctx.cfg, grid.names, dataset.reference)
-    config = {"model": model_hash_config(model_cfg), "metric": settings, "conditions": conditions,
-              "threads": inference_threads(ctx.cfg)}
-    inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
-    reference_model = pseudo.reference_model()
-    key = stage_hash("evaluate", VERSION, config, inputs)
-    parts = parts_dir(ctx, key)
-    partial = run_shard(ctx, dataset, pseudo, model_cfg, conditions, key, parts)
-    if partial is not None:
-        return partial
-    result = run_cached(
-        ctx, "evaluate", VERSION, config, inputs,
-        lambda out: compute(ctx, dataset, pseudo, model_cfg, conditions, reference_model, out, parts=parts),
-        label=f"[{model_cfg['name']}]", result_cls=EvaluateResult,
-    )
-    assert isinstance(result, EvaluateResult)
-    result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
-    shutil.rmtree(parts, ignore_errors=True)  # merged into the entry
-    return result
-
-
 def parts_dir(ctx: Context, key: str) -> Path:
     """Where shard jobs of the entry `key` leave their partial sums until the unsharded run merges them."""
     return ctx.cache.root / "evaluate" / f".parts-{key}"
 
 
-def run_shard(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any],
-              conditions: list[str], key: str, parts: Path) -> EvaluateResult | None:
-    """Shard i of N evaluates groups i, i+N, ... and stores their partial sums; None when there is
-    nothing left to shard (unsharded run, cached entry, or every group now covered: then the caller
-    merges them into the entry)."""
-    num, shard = shard_keys(ctx.cfg.get("evaluate") or {}, "evaluate")
-    if num == 1 or ctx.cache.is_hit("evaluate", key):
-        return None
-    if "evaluate" not in ctx.stages:
-        raise PairedGTAError(f"evaluate [{model_cfg['name']}]: no cached output for this configuration; run it first, "
-                             "e.g. stages=[evaluate]")
-    mine = dataset.groups[shard::num]
-    done = shards.read_parts(parts)
-    todo = [g for g in mine if g.group_id not in done]
-    log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", model_cfg["name"], shard, num,
-             len(mine), len(dataset.groups), len(mine) - len(todo))
-    if todo:
-        results = count_groups(ctx, dataset, pseudo, model_cfg, conditions, todo)
-        shards.write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + results)
-    covered = shards.read_parts(parts)
-    if all(g.group_id in covered for g in dataset.groups):
-        return None
-    log.info("evaluate [%s]: %d of %d groups evaluated by shards so far; run the remaining shards, then without "
-             "evaluate.shard to merge", model_cfg["name"], len(covered), len(dataset.groups))
-    result = EvaluateResult("evaluate", key, parts, hit=False)
-    result.complete = False
+@dataclass
+class Evaluate:
+    """The evaluate stage (pairedgta.stages.common.Stage) of one model on one dataset's pseudo-labels."""
+
+    ctx: Context
+    dataset: PairedDataset
+    dataset_key: str
+    pseudo: PseudoLabels
+    model_cfg: dict[str, Any]
+    name: str = "evaluate"
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[EvaluateResult] = EvaluateResult
+
+    def __post_init__(self) -> None:
+        grid = self.dataset.grid or self.ctx.grid
+        self.conditions = conditions_for(self.ctx.cfg, grid)
+        self.settings = metric_settings(self.ctx.cfg, grid.names, self.dataset.reference)
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"model": model_hash_config(self.model_cfg), "metric": self.settings, "conditions": self.conditions,
+                "threads": self.ctx.run.threads}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key, "pseudolabel": self.pseudo.key}
+
+    def parts(self, key: str) -> Path:
+        return parts_dir(self.ctx, key)
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions,
+                       self.pseudo.reference_model(), out, parts=self.parts(key))
+
+    def shards(self) -> tuple[int, int]:
+        return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
+
+    def build_shard(self, key: str) -> Path | None:
+        """Shard i of N evaluates groups i, i+N, ... and stores their partial sums, which the unsharded build
+        merges; None when every group is covered."""
+        num, shard = self.shards()
+        parts, name, groups = self.parts(key), self.model_cfg["name"], self.dataset.groups
+        mine = groups[shard::num]
+        done = shards.read_parts(parts)
+        todo = [g for g in mine if g.group_id not in done]
+        log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", name, shard, num,
+                 len(mine), len(groups), len(mine) - len(todo))
+        if todo:
+            results = count_groups(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, todo)
+            shards.write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + results)
+        covered = shards.read_parts(parts)
+        if all(g.group_id in covered for g in groups):
+            return None
+        log.info("evaluate [%s]: %d of %d groups evaluated by shards so far; run the remaining shards, then without "
+                 "evaluate.shard to merge", name, len(covered), len(groups))
+        return parts
+
+
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLabels,
+        model_cfg: dict[str, Any]) -> EvaluateResult:
+    stage = Evaluate(ctx, dataset, dataset_key, pseudo, model_cfg)
+    result = run_cached(ctx, stage)
+    assert isinstance(result, EvaluateResult)
+    if result.complete:
+        result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
+        shutil.rmtree(stage.parts(result.key), ignore_errors=True)  # merged into the entry
     return result
+
+
+def step(ctx: Context, p: Any, state: Any) -> None:
+    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): every model's evaluation,
+    each in a nested MLflow run; with plot.collect_cached, the cached evaluations of other models too."""
+    from pairedgta.tracking import bundle, dataset_label, run_name, xi_table
+
+    plan, recorder = state.plan, state.recorder
+    if not plan.run_eval:
+        return
+    collect = plan.plotting and ctx.run.plot.collect_cached
+    for model_cfg in state.models.evaluated:
+        name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]
+        try:
+            result = run(ctx, p.dataset, p.dataset_key, p.pseudo, model_cfg)
+        except PairedGTAError as exc:
+            if collect and "evaluate" not in plan.stages and "no cached output" in str(exc):
+                log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
+                continue
+            raise
+        if not result.complete:  # a shard job: its partial sums wait for the other shards
+            if plan.plotting:
+                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
+                                  "shards, then plot without evaluate.shard/num_shards")
+            continue
+        p.evaluations.append(result)
+        label = dataset_label(p.dataset.name, p.dataset_key)
+        with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
+            recorder.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": state.models.reference["name"]})
+            recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
+                           "pass": p.label, "model": model_cfg["name"]})
+            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
+            p.record_dataset(recorder)
+            recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
+            recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
+                                 tables={"xi_table.json": xi_table(result.xi())})
+            state.model_runs.append((recorder.run_id(), model_cfg["name"], p.label))
+        state.summary["evaluate"][name] = str(result.path)
+    if collect:
+        extra = find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
+        if extra:
+            log.info("plot: collected %d cached evaluation(s) of this dataset: %s", len(extra),
+                     ", ".join(e.model for e in extra))
+            p.evaluations.extend(extra)
+    if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
+        raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")

@@ -19,7 +19,7 @@ import os
 import shutil
 import time
 import zlib
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +35,9 @@ from pairedgta.render import Renderer, build_renderer
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region, region_for_scene
-from pairedgta.cache import SHARED_WORK, stage_hash
-from pairedgta.stages.common import Context, StageResult, run_cached, shard_keys, whole_number
+from pairedgta.cache import SHARED_WORK
+from pairedgta.schema import GenerateConfig, PairingConfig, RunConfig, ValidationConfig, as_dict
+from pairedgta.stages.common import Context, StageResult, run_cached, stage_key
 
 log = logging.getLogger("pairedgta.generate")
 VERSION = "7"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
@@ -57,8 +58,6 @@ class GeneratedData(StageResult):
     """The generate stage's entry: the dataset (read through pairedgta.datasets) plus its run records.
     `complete` is False for a shard job that left scenes to other shards (nothing to read yet)."""
 
-    complete: bool = True
-
     @property
     def timings_csv(self) -> Path:
         return self.path / "timings.csv"
@@ -70,35 +69,23 @@ class GeneratedData(StageResult):
         return pd.read_csv(path, dtype={"scene_id": str}) if path.is_file() else None
 
 
-PAIRING_DEFAULTS = {"camera_jitter_m": 0.0, "camera_jitter_deg": 0.0, "object_resample_prob": 0.0, "object_move_m": 0.0}
+def is_perfect(pairing: PairingConfig) -> bool:
+    return all(v == 0 for v in as_dict(pairing).values())
 
 
-def pairing_config(gen: dict[str, Any]) -> dict[str, float]:
-    """`generate.pairing` with defaults (0 = perfect pairing), validated."""
-    raw = dict(gen.get("pairing") or {})
-    unknown = sorted(set(raw) - set(PAIRING_DEFAULTS))
-    if unknown:
-        raise ConfigError(f"generate.pairing: unknown keys {unknown}; known: {sorted(PAIRING_DEFAULTS)}")
-    values = {k: float(raw[k]) if raw.get(k) is not None else d for k, d in PAIRING_DEFAULTS.items()}
-    for k, v in values.items():
-        if v < 0 or (k == "object_resample_prob" and v > 1):
-            raise ConfigError(f"generate.pairing.{k}={v}; use {'0..1' if k == 'object_resample_prob' else '>= 0'}")
-    return values
-
-
-def is_perfect(pairing: dict[str, float]) -> bool:
-    return all(v == 0 for v in pairing.values())
+def placement(gen: GenerateConfig) -> PlacementConfig:
+    return PlacementConfig.from_cfg(as_dict(gen.objects))
 
 
 def perturb_descriptor(
-    descriptor: SceneDescriptor, condition: str, pairing: dict[str, float], placement: PlacementConfig, region: Any
+    descriptor: SceneDescriptor, condition: str, pairing: PairingConfig, placement: PlacementConfig, region: Any
 ) -> SceneDescriptor:
     """The scene as a coarse pair would show it under `condition`: the camera offset by up to
     camera_jitter_m per axis and rotated by up to camera_jitter_deg per axis (uniform), each object
     re-drawn in R_k with probability object_resample_prob (dropped if R_k has no room within d_min),
     else moved by up to object_move_m. Static geometry (seed, scene id, location) is kept."""
     rng = np.random.default_rng(np.random.SeedSequence([descriptor.seed, zlib.crc32(condition.encode())]))
-    jm, jd = pairing["camera_jitter_m"], pairing["camera_jitter_deg"]
+    jm, jd = pairing.camera_jitter_m, pairing.camera_jitter_deg
     cam = descriptor.camera
     dx, dy, dz = rng.uniform(-jm, jm, size=3) if jm > 0 else (0.0, 0.0, 0.0)
     rx, ry, rz = rng.uniform(-jd, jd, size=3) if jd > 0 else (0.0, 0.0, 0.0)
@@ -109,10 +96,10 @@ def perturb_descriptor(
     kept: list[DynamicObject] = []
     redraw: list[int] = []
     for i, obj in enumerate(descriptor.objects):
-        if pairing["object_resample_prob"] > 0 and rng.random() < pairing["object_resample_prob"]:
+        if pairing.object_resample_prob > 0 and rng.random() < pairing.object_resample_prob:
             redraw.append(i)
             continue
-        m = pairing["object_move_m"]
+        m = pairing.object_move_m
         if m > 0:
             df, dr = rng.uniform(-m, m, size=2)
             obj = replace(obj, forward=round(obj.forward + df, 3), right=round(obj.right + dr, 3))
@@ -125,19 +112,18 @@ def perturb_descriptor(
                 kept.append(new[0])
                 break
     extra = dict(descriptor.extra)
-    extra["pairing"] = {"condition": condition, **pairing}
+    extra["pairing"] = {"condition": condition, **as_dict(pairing)}
     return replace(descriptor, camera=camera, objects=tuple(kept), extra=tuple(sorted(extra.items())))
 
 
-def hash_config(cfg: dict[str, Any], grid: ConditionGrid) -> dict[str, Any]:
-    gen = {k: v for k, v in cfg["generate"].items() if k not in EXECUTION_KEYS}
-    pairing = pairing_config(gen)
-    gen.pop("pairing", None)
-    if not is_perfect(pairing):  # perfect pairing hashes as before the hook existed
+def hash_config(run: RunConfig, grid: ConditionGrid) -> dict[str, Any]:
+    gen = {k: v for k, v in as_dict(run.generate).items() if k not in EXECUTION_KEYS}
+    pairing = gen.pop("pairing")
+    if not is_perfect(run.generate.pairing):  # perfect pairing hashes as before the hook existed
         gen["pairing"] = pairing
-    renderer = {k: v for k, v in cfg["renderer"].items() if k not in RENDERER_EXECUTION_KEYS}
+    renderer = {k: v for k, v in run.renderer.items() if k not in RENDERER_EXECUTION_KEYS}
     return {
-        "generate": gen, "renderer": renderer, "region": cfg["region"],
+        "generate": gen, "renderer": renderer, "region": run.region,
         "conditions": [c.to_dict() for c in grid], "reference": grid.reference,
     }
 
@@ -147,16 +133,15 @@ def scene_seed(base_seed: int, k: int) -> int:
     return int(np.random.SeedSequence([int(base_seed), int(k)]).generate_state(1)[0])
 
 
-def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDescriptor, dict[str, float]]:
+def build_descriptor(k: int, gen: GenerateConfig, region: Any) -> tuple[SceneDescriptor, dict[str, float]]:
     region = region_for_scene(region, k)
-    gen = cfg["generate"]
-    seed = scene_seed(gen["seed"], k)
+    seed = scene_seed(gen.seed, k)
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     location = region.sample_location(rng)
     t1 = time.perf_counter()
-    objects, requested = place_objects(rng, location, region, PlacementConfig.from_cfg(gen["objects"]))
-    camera = CameraPose(**dict(gen.get("camera") or {}))
+    objects, requested = place_objects(rng, location, region, placement(gen))
+    camera = CameraPose(**as_dict(gen.camera))
     descriptor = SceneDescriptor(
         scene_id=f"{k:05d}", seed=seed, location=location, camera=camera, objects=objects,
         region=getattr(region, "name", ""), requested_objects=requested,
@@ -171,10 +156,10 @@ def build_descriptor(k: int, cfg: dict[str, Any], region: Any) -> tuple[SceneDes
 
 
 def render_scene(
-    k: int, cfg: dict[str, Any], grid: ConditionGrid, renderer: Renderer, region: Any, scenes_dir: Path
+    k: int, gen: GenerateConfig, grid: ConditionGrid, renderer: Renderer, region: Any, scenes_dir: Path
 ) -> dict[str, Any]:
     """Render scene k into scenes_dir/<id> atomically; returns its timing row."""
-    descriptor, t = build_descriptor(k, cfg, region)
+    descriptor, t = build_descriptor(k, gen, region)
     region = region_for_scene(region, k)
     final = scenes_dir / descriptor.scene_id
     tmp = scenes_dir / f".tmp-{descriptor.scene_id}-{os.getpid()}"
@@ -187,14 +172,12 @@ def render_scene(
         t1 = time.perf_counter()
         states: dict[str, dict] = {}
         images: dict[str, np.ndarray] = {}
-        pairing = pairing_config(cfg["generate"])
+        pairing = gen.pairing
         perturbed: dict[str, SceneDescriptor] = {}
         for condition in grid:
             shown = descriptor
             if condition.name != grid.reference and not is_perfect(pairing):
-                shown = perturb_descriptor(
-                    descriptor, condition.name, pairing, PlacementConfig.from_cfg(cfg["generate"]["objects"]), region
-                )
+                shown = perturb_descriptor(descriptor, condition.name, pairing, placement(gen), region)
                 perturbed[condition.name] = shown
                 shown.save(tmp / f"{condition.name}_descriptor.json")
             result = renderer.render(shown, condition)
@@ -215,7 +198,7 @@ def render_scene(
             states[condition.name] = result.state
             images[condition.name] = result.image
         rendering = time.perf_counter() - t1
-        validation = validate(images, grid, descriptor, states, cfg, perturbed)
+        validation = validate(images, grid, descriptor, states, gen.validation, perturbed)
         descriptor.save(tmp / "descriptor.json")
         # the backend's overhead (reconnects, retries, waiting) happens inside the phases; the paper
         # reports it apart from the pipeline time, so it is moved out of the phases here
@@ -238,10 +221,6 @@ def render_scene(
         raise
 
 
-def validation_enabled(cfg: dict[str, Any]) -> bool:
-    return bool((cfg["generate"].get("validation") or {}).get("enabled", True))
-
-
 def validators() -> tuple[Any, Any]:
     """(validate_group, entity_mismatches) of pairedgta.scene.validation. A module that fails to import
     is a broken install: one line naming what is missing and the fix, never a scene passed unchecked."""
@@ -257,9 +236,8 @@ def validators() -> tuple[Any, Any]:
     return validate_group, entity_mismatches
 
 
-def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str, Any]:
-    vcfg = cfg["generate"].get("validation") or {}
-    if not validation_enabled(cfg):
+def validate(images, grid, descriptor, states, vcfg: ValidationConfig, perturbed=None) -> dict[str, Any]:
+    if not vcfg.enabled:
         return {"ok": True, "reasons": [], "structure": {}}
     validate_group, entity_mismatches = validators()  # a broken install fails, never passes
 
@@ -267,7 +245,7 @@ def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str,
     res = validate_group(
         images, grid.reference, descriptor=descriptor,
         states={c: s for c, s in states.items() if c not in perturbed},
-        threshold=float(vcfg["structure_threshold"]),  # one default: pairedgta/conf/config.yaml
+        threshold=vcfg.structure_threshold,
     )
     reasons = list(res.reasons)
     # a deliberately perturbed condition is checked against the descriptor it was rendered from
@@ -280,31 +258,20 @@ def validate(images, grid, descriptor, states, cfg, perturbed=None) -> dict[str,
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(cfg: dict[str, Any], endpoints: Any) -> None:
-    renderer_cfg = dict(cfg["renderer"])
+def _init_worker(run: RunConfig, endpoints: Any) -> None:
+    renderer_cfg = dict(run.renderer)
     if endpoints is not None:
         endpoint = endpoints.get()
         renderer_cfg.update(endpoint)
-    grid = build_condition_grid(cfg["conditions"])
+    grid = build_condition_grid(run.conditions)
     renderer = build_renderer(renderer_cfg)
     renderer.open()
-    _WORKER.update(cfg=cfg, grid=grid, renderer=renderer, region=build_region(cfg["region"]))
+    _WORKER.update(gen=run.generate, grid=grid, renderer=renderer, region=build_region(run.region))
 
 
 def _work(k: int, scenes_dir: str) -> dict[str, Any]:
     w = _WORKER
-    return render_scene(k, w["cfg"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
-
-
-def shard_of(gen: dict[str, Any]) -> tuple[int, int]:
-    return shard_keys(gen, "generate")
-
-
-def scene_count(gen: dict[str, Any]) -> int:
-    n = whole_number(gen, "num_scenes", 1, "generate")
-    if n < 1:
-        raise ConfigError(f"generate.num_scenes={n}; set it to at least 1")
-    return n
+    return render_scene(k, w["gen"], w["grid"], w["renderer"], w["region"], Path(scenes_dir))
 
 
 def finished_scenes(scenes_dir: Path) -> set[int]:
@@ -330,14 +297,12 @@ def _writer_alive(tmp: Path) -> bool:
     return True
 
 
-def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: list[int]) -> float:
+def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[int]) -> float:
     """Render the scenes `indices` that are not yet in out/scenes; returns the backend's connect time."""
-    gen = cfg["generate"]
+    gen = run.generate
     n = len(indices)
-    workers = int(gen.get("workers", 1))
-    if workers < 1:
-        raise ConfigError(f"generate.workers={workers}; set it to at least 1")
-    if validation_enabled(cfg):
+    workers = gen.workers
+    if gen.validation.enabled:
         validators()  # a broken install says so before the first scene is rendered, not after it
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
@@ -348,21 +313,21 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
     todo = [k for k in indices if k not in done]
     if len(todo) < n:
         log.info("generate: resuming, %d of %d scenes already rendered", n - len(todo), n)
-    region = build_region(cfg["region"])
+    region = build_region(run.region)
     if hasattr(region, "order"):
         todo = region.order(todo)
     t_open = time.perf_counter()
     if workers == 1:
-        renderer = build_renderer(dict(cfg["renderer"]))
+        renderer = build_renderer(dict(run.renderer))
         renderer.open()
         connect = time.perf_counter() - t_open
         try:
             for k in tqdm(todo, desc="generate", unit="scene"):
-                render_scene(k, cfg, grid, renderer, region, scenes_dir)
+                render_scene(k, gen, grid, renderer, region, scenes_dir)
         finally:
             renderer.close()
     else:
-        endpoints = list(gen.get("endpoints") or [])
+        endpoints = gen.endpoints
         ctx = mp.get_context("spawn")
         queue = None
         if endpoints:
@@ -372,8 +337,8 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
                 )
             queue = ctx.Manager().Queue()
             for e in endpoints[:workers]:
-                queue.put(dict(e))
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(cfg, queue)) as pool:
+                queue.put(as_dict(e))
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(run, queue)) as pool:
             futures = [pool.submit(_work, k, str(scenes_dir)) for k in todo]
             for fut in tqdm(cf.as_completed(futures), total=len(futures), desc="generate", unit="scene"):
                 fut.result()
@@ -381,17 +346,17 @@ def render_scenes(cfg: dict[str, Any], grid: ConditionGrid, out: Path, indices: 
     return connect
 
 
-def generate_dataset(cfg: dict[str, Any], grid: ConditionGrid, out: Path) -> dict[str, Any]:
-    n = scene_count(cfg["generate"])
-    connect = render_scenes(cfg, grid, out, list(range(n)))
+def generate_dataset(run: RunConfig, grid: ConditionGrid, out: Path) -> dict[str, Any]:
+    n = run.generate.num_scenes
+    connect = render_scenes(run, grid, out, list(range(n)))
     (out / SHARED_WORK).unlink(missing_ok=True)  # complete: no shard writes here any more
-    return write_index(out, cfg, grid, n, connect)
+    return write_index(out, run, grid, n, connect)
 
 
-def write_index(out: Path, cfg: dict[str, Any], grid: ConditionGrid, n: int, connect: float) -> dict[str, Any]:
+def write_index(out: Path, run: RunConfig, grid: ConditionGrid, n: int, connect: float) -> dict[str, Any]:
     scenes_dir = out / "scenes"
     rows, valid_rows, scenes = [], [], []
-    drop_invalid = bool(cfg["generate"].get("drop_invalid", True))
+    drop_invalid = run.generate.drop_invalid
     for k in range(n):
         sdir = scenes_dir / f"{k:05d}"
         row = json.loads((sdir / "timings.json").read_text())
@@ -415,8 +380,8 @@ def write_index(out: Path, cfg: dict[str, Any], grid: ConditionGrid, n: int, con
             "inspect it or set generate.drop_invalid=false"
         )
     index = {
-        "conditions": grid.names, "reference": grid.reference, "renderer": cfg["renderer"].get("backend"),
-        "width": cfg["renderer"].get("width"), "height": cfg["renderer"].get("height"),
+        "conditions": grid.names, "reference": grid.reference, "renderer": run.renderer.get("backend"),
+        "width": run.renderer.get("width"), "height": run.renderer.get("height"),
         "scenes": scenes, "dropped_invalid": dropped,
     }
     write_json(out / INDEX, index)
@@ -432,53 +397,54 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     os.replace(tmp, path)
 
 
-def run_shard(ctx: Context, config: dict[str, Any]) -> GeneratedData | None:
-    """A shard job renders its scenes straight into the entry's resumable work directory (no stage lock:
-    shards write disjoint per-scene directories, each renamed into place when complete). When every
-    scene is there, None: the caller finalises the entry as an unsharded run would."""
-    num, shard = shard_of(ctx.cfg["generate"])
-    key = stage_hash("generate", VERSION, config, {})
-    final = ctx.cache.path("generate", key)
-    if num == 1 or ctx.cache.is_hit("generate", key):
-        return None
-    if "generate" in ctx.force:
-        raise ConfigError("force=[generate] with generate.shard set would discard other shards' scenes; "
-                          "force the unsharded run (no generate.shard/num_shards) instead")
-    if "generate" not in ctx.stages:
-        raise PairedGTAError(f"generate: no cached output for this configuration ({final}); run it first, "
-                             f"e.g. stages=[generate]")
-    n = scene_count(ctx.cfg["generate"])
-    work = ctx.cache.partial_path("generate", key)
-    mine = list(range(shard, n, num))
-    work.mkdir(parents=True, exist_ok=True)
-    (work / SHARED_WORK).touch()
-    log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
-    render_scenes(ctx.cfg, ctx.grid, work, mine)
-    have = len(finished_scenes(work / "scenes"))
-    if have == n:
-        return None
-    log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
-             "(then run without generate.shard to go on)", have, n)
-    result = GeneratedData("generate", key, work, hit=False)
-    result.complete = False
-    return result
+@dataclass
+class Generate:
+    """The generate stage (pairedgta.stages.common.Stage): the run's dataset, rendered under every condition."""
+
+    ctx: Context
+    name: str = "generate"
+    version: str = VERSION
+    label: str = ""
+    resumable: bool = True  # scenes land one by one in the work folder: a crash resumes where it stopped
+    result_cls: type[GeneratedData] = GeneratedData
+
+    def hash_config(self) -> dict[str, Any]:
+        return hash_config(self.ctx.run, self.ctx.grid)
+
+    def inputs(self) -> dict[str, str]:
+        return {}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return generate_dataset(self.ctx.run, self.ctx.grid, out)
+
+    def shards(self) -> tuple[int, int]:
+        return self.ctx.run.generate.num_shards, self.ctx.run.generate.shard
+
+    def build_shard(self, key: str) -> Path | None:
+        """Shards render straight into the entry's resumable work folder (no stage lock: they write disjoint
+        per-scene folders, each renamed into place when complete), where the unsharded build resumes."""
+        num, shard = self.shards()
+        n = self.ctx.run.generate.num_scenes
+        work = self.ctx.cache.partial_path(self.name, key)
+        mine = list(range(shard, n, num))
+        work.mkdir(parents=True, exist_ok=True)
+        (work / SHARED_WORK).touch()
+        log.info("generate shard %d of %d: %d of %d scenes -> %s", shard, num, len(mine), n, work)
+        render_scenes(self.ctx.run, self.ctx.grid, work, mine)
+        have = len(finished_scenes(work / "scenes"))
+        if have == n:
+            return None
+        log.info("generate: %d of %d scenes rendered so far; the dataset is complete when every shard has run "
+                 "(then run without generate.shard to go on)", have, n)
+        return work
 
 
 def will_compute(ctx: Context) -> bool:
     """Whether `run` would render (no intact cached dataset for this config, or generate is forced)."""
-    key = stage_hash("generate", VERSION, hash_config(ctx.cfg, ctx.grid), {})
-    return "generate" in ctx.force or ctx.cache.problem("generate", key) is not None
+    return "generate" in ctx.force or ctx.cache.problem("generate", stage_key(Generate(ctx))) is not None
 
 
 def run(ctx: Context) -> GeneratedData:
-    cfg = ctx.cfg
-    config = hash_config(cfg, ctx.grid)
-    partial = run_shard(ctx, config)
-    if partial is not None:
-        return partial
-    result = run_cached(
-        ctx, "generate", VERSION, config, {},
-        lambda out: generate_dataset(cfg, ctx.grid, out), resumable=True, result_cls=GeneratedData,
-    )
+    result = run_cached(ctx, Generate(ctx))
     assert isinstance(result, GeneratedData)
     return result

@@ -21,12 +21,14 @@ from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
-from pairedgta.models import check_model_config, model_config
+from pairedgta.models import check_model_config, model_config, with_defaults
 from pairedgta.stages import evaluate, generate
-from pairedgta.stages.common import STAGES, Context, StageResult
+from pairedgta import schema
+from pairedgta.schema import MISSING
+from pairedgta.stages.common import Context
+from pairedgta.tracking.recorder import Recorder
 
 log = logging.getLogger("pairedgta")
-MISSING = "???"
 CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
 
 
@@ -45,7 +47,13 @@ class PassResult:
 
     @property
     def pairing(self) -> dict[str, float]:
-        return generate.pairing_config(self.cfg.get("generate") or {})
+        return schema.as_dict(schema.parse(self.cfg).generate.pairing)
+
+    def record_dataset(self, recorder: Recorder) -> None:
+        """The pass's dataset as an MLflow dataset input of the active run."""
+        assert self.dataset is not None
+        recorder.dataset(self.dataset.name, self.dataset.root, str(self.dataset_key).split(":", 1)[-1],
+                         {"pass": self.label, "dataset_key": str(self.dataset_key), "reference": self.dataset.reference})
 
     def reading(self) -> Any:
         """A context for the stages that read this pass's images: a blank image, or one converted on reading,
@@ -83,27 +91,27 @@ class RunModels:
     reference: dict[str, Any]
 
 
-def _as_list(value: Any) -> list[str]:
-    if value is None:
-        return []
-    if isinstance(value, str):
-        return [value]
-    return [str(v) for v in value]
+@dataclass
+class RunState:
+    """What the stages of a run share beyond their context: the plan, the models, the MLflow recorder, the
+    summary the run returns and the nested runs of the models (which the plot stage gives their own figures)."""
+
+    plan: Plan
+    models: RunModels
+    recorder: Recorder     # in-process or background (pairedgta/tracking/recorder.py)
+    experiment: str
+    multi: bool            # several passes: names carry the pass label
+    summary: dict[str, Any]
+    model_runs: list[tuple[str | None, str, str]] = field(default_factory=list)  # (nested run, model, pass)
 
 
-def make_plan(cfg: dict[str, Any]) -> Plan:
+def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
     from pairedgta.stages import plot
 
-    stages, force = _as_list(cfg.get("stages")), set(_as_list(cfg.get("force")))
-    for key, values in (("stages", stages), ("force", force)):
-        bad = [s for s in values if s not in STAGES]
-        if bad:
-            raise ConfigError(f"{key}={bad} names unknown stage(s); stages are {', '.join(STAGES)}")
-    if CHECK_STAGE in stages and len(stages) > 1:
-        raise ConfigError(f"stages={stages}: {CHECK_STAGE} is a model check of its own; run it alone (stages=[{CHECK_STAGE}])")
-    device = str(cfg.get("device"))
+    stages, force = list(run.stages), set(run.force)
+    device = run.device
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
-        raise ConfigError(f"device={cfg.get('device')!r}; use cpu, cuda or auto")
+        raise ConfigError(f"device={device!r}; use cpu, cuda or auto")
     check_cuda(device)
     sourced = plot.sourced(cfg)
     if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
@@ -145,20 +153,20 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_models(cfg: dict[str, Any], model_chosen: bool = False) -> RunModels:
+def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
     """The composed config of every model the run evaluates and of its reference model.
 
     `models=[...]` lists the evaluated models; when the user chose `model=` on the command line (e.g. a
     sweep `-m model=a,b`), the chosen model replaces that list for this job."""
-    primary = dict(cfg["model"])
-    names = _as_list(cfg.get("models"))
+    primary = dict(run.model)
+    names = list(run.models or [])
     if names and model_chosen and names != [primary["name"]]:
         log.info("model=%s replaces the experiment's models=%s for this job", primary["name"], names)
         names = [primary["name"]]
     names = names or [primary["name"]]
-    reference = str(cfg.get("reference_model") or primary["name"])
+    reference = run.reference_model or primary["name"]
     used = list(dict.fromkeys(names + [reference]))
-    overrides = dict(cfg.get("model_overrides") or {})
+    overrides = dict(run.model_overrides)
     unused = [n for n in overrides if n not in used]
     if unused:
         raise ConfigError(
@@ -171,7 +179,7 @@ def run_models(cfg: dict[str, Any], model_chosen: bool = False) -> RunModels:
         extra = overrides.get(name) or {}
         if not isinstance(extra, dict):
             raise ConfigError(f"model_overrides.{name} must be a mapping of model keys, got {extra!r}")
-        merged = _merge(base, extra)
+        merged = with_defaults(_merge(base, extra))  # the hashed config names every shared option
         check_model_config(merged, "model" if name == primary["name"] and not extra else f"model_overrides.{name}")
         resolved[name] = merged
     return RunModels([resolved[n] for n in names], resolved[reference])
@@ -264,15 +272,9 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
 
 
 def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any]) -> Context:
-    return Context(cfg=cfg, grid=build_condition_grid(cfg["conditions"]), cache=cache, stages=plan.stages,
-                   force=plan.force, results=results)
+    return Context(cfg=cfg, run=schema.parse(cfg), grid=build_condition_grid(cfg["conditions"]), cache=cache,
+                   stages=plan.stages, force=plan.force, results=results)
 
 
-def collect_cached(ctx: Context, p: PassResult) -> list[StageResult]:
-    """Cached evaluations of this pass's dataset by models this run did not evaluate (multirun aggregate)."""
-    assert p.dataset is not None and p.pseudo is not None and p.dataset_key is not None
-    return evaluate.find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
-
-
-__all__ = ["PassResult", "Plan", "RunModels", "make_plan", "run_models", "model_group_overridden", "pass_configs",
-           "check_roots", "open_pass", "pass_context", "collect_cached"]
+__all__ = ["PassResult", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",
+           "check_roots", "open_pass", "pass_context"]

@@ -16,6 +16,7 @@ import inspect
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,10 +110,40 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 
-def run(ctx: Context, passes: list[Any]) -> Figures:
+@dataclass
+class Plot:
+    """The plot stage (pairedgta.stages.common.Stage): the requested figures of every pass of the run."""
+
+    ctx: Context
+    passes: list[Any]
+    name: str = "plot"
+    version: str = VERSION
+    label: str = ""
+    resumable: bool = False
+    result_cls: type[Figures] = Figures
+
+    def __post_init__(self) -> None:
+        self._config, self._inputs = plot_key(self.ctx, self.passes)
+
+    def hash_config(self) -> dict[str, Any]:
+        return self._config
+
+    def inputs(self) -> dict[str, str]:
+        return self._inputs
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return make_plots(self.ctx, self.passes, out)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise NotImplementedError("the plot stage is not sharded")
+
+
+def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str, str]]:
+    """What the figures are drawn from: the plot keys, each pass's stage entries and the files figures read."""
     figures = figures_of(ctx.cfg)
-    for e in (e for p in passes for e in p.evaluations):
-        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
     # a figure's own input file enters the key by its content (its cache_key), not by its path
     paths = {key.split(".", 1)[1] for key in sourced(ctx.cfg).values() if key.startswith("plot.")}
     config: dict[str, Any] = {"plot": {k: v for k, v in ctx.cfg["plot"].items() if k not in paths},
@@ -132,7 +163,28 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
             cache_key = getattr(inspect.getmodule(FIGURES.resolve(name)), "cache_key")
             config[name], extra_inputs = cache_key(passes, options(ctx.cfg, passes))
             inputs.update(extra_inputs)
-    result = run_cached(ctx, "plot", VERSION, config, inputs, lambda out: make_plots(ctx, passes, out),
-                        result_cls=Figures)
+    return config, inputs
+
+
+def run(ctx: Context, passes: list[Any]) -> Figures:
+    for e in (e for p in passes for e in p.evaluations):
+        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
+    result = run_cached(ctx, Plot(ctx, passes))
     assert isinstance(result, Figures)
     return result
+
+
+def step(ctx: Context, passes: list[Any], state: Any) -> None:
+    """The app's step over all passes (RunState in pairedgta.stages.planning): the figures, in the run's MLflow
+    record, and each model's own figures in that model's nested run."""
+    from pairedgta.tracking import bundle
+
+    figures, recorder = run(ctx, passes), state.recorder
+    state.summary["plot"] = str(figures.path)
+    own_runs = {(model, label) for _, model, label in state.model_runs}
+    recorder.stage_files(bundle("plot", figures.key), figures.hit, figures.files_except(own_runs), "figures")
+    recorder.metrics(figures.metrics())
+    for run_id, model, label in state.model_runs:
+        with recorder.run(run_id=run_id, nested=True):
+            recorder.stage_files(bundle("plot", figures.key, label, model), figures.hit, figures.files_of(model, label),
+                                 "figures")

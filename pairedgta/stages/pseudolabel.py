@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -14,10 +15,9 @@ from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 import pandas as pd
 
 from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
-from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, inference_threads, model_hash_config, run_cached, torch_threads
+from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached, torch_threads
 
 from pairedgta.lazy import lazy_module
 
@@ -57,13 +57,13 @@ def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
-    segmenter = shared_segmenter(model_cfg, device=ctx.cfg.get("device", "cpu"))
+    segmenter = shared_segmenter(model_cfg, device=ctx.run.device)
     maps = LabelMaps(out)
     hist = np.zeros(NUM_CLASSES, dtype=np.int64)
     total = 0
     gt_cm = ConfusionMatrix(NUM_CLASSES)
     gt_kept = gt_pixels = 0
-    batch_size = int(ctx.cfg["pseudolabel"].get("batch_size", 4))
+    batch_size = ctx.run.pseudolabel.batch_size
     rows = []
     pending: list[tuple[str, np.ndarray]] = []
 
@@ -121,25 +121,53 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
     return extra
 
 
-def check_tau(cfg: dict[str, Any]) -> float:
-    tau = float(cfg["pseudolabel"]["tau"])
-    if not 0.0 <= tau <= 1.0:
-        raise ConfigError(f"pseudolabel.tau={tau} must be in [0, 1]")
-    return tau
+@dataclass
+class Pseudolabel:
+    """The pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference model."""
+
+    ctx: Context
+    dataset: PairedDataset
+    dataset_key: str
+    model_cfg: dict[str, Any]  # the reference model's composed config (the run's `reference_model`)
+    name: str = "pseudolabel"
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[PseudoLabels] = PseudoLabels
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"reference_model": model_hash_config(self.model_cfg), "tau": self.ctx.run.pseudolabel.tau,
+                "reference": self.dataset.reference, "threads": self.ctx.run.threads}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        with torch_threads(self.ctx.run.threads):
+            return compute(self.ctx, self.dataset, out, self.model_cfg, self.ctx.run.pseudolabel.tau)
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise NotImplementedError("the pseudo-label stage is not sharded")
 
 
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
-    """`model_cfg`: the reference model's composed config (the run's `reference_model`)."""
-    tau = check_tau(ctx.cfg)
-    threads = inference_threads(ctx.cfg)
-    config = {"reference_model": model_hash_config(model_cfg), "tau": tau, "reference": dataset.reference,
-              "threads": threads}
-
-    def build(out: Path) -> dict[str, Any]:
-        with torch_threads(threads):
-            return compute(ctx, dataset, out, model_cfg, tau)
-
-    result = run_cached(ctx, "pseudolabel", VERSION, config, {"dataset": dataset_key}, build,
-                        label=f"[{model_cfg['name']}]", result_cls=PseudoLabels)
+    result = run_cached(ctx, Pseudolabel(ctx, dataset, dataset_key, model_cfg))
     assert isinstance(result, PseudoLabels)
     return result
+
+
+def step(ctx: Context, p: Any, state: Any) -> None:
+    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): the reference model's
+    pseudo-labels, their files in the run's MLflow record."""
+    from pairedgta.tracking import bundle
+
+    p.pseudo = run(ctx, p.dataset, p.dataset_key, state.models.reference)
+    state.summary.setdefault("pseudolabel", str(p.pseudo.path))
+    state.recorder.stage_files(bundle("pseudolabel", p.pseudo.key), p.pseudo.hit, p.pseudo.artifacts(),
+                               f"pseudolabel/{p.label}" if state.multi else "pseudolabel")

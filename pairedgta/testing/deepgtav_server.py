@@ -6,7 +6,8 @@ after ``start``: padded BGR bytes of a deterministic synthetic street view plus 
 reporting the state. The picture depends on the scene (ego pose, camera, entities) and its
 brightness/tint/haze on clock and weather, so conditions differ and repeats are identical.
 
-Plugin behaviour it reproduces (the client side is described in pairedgta/render/deepgtav.py):
+Plugin behaviour it reproduces (the client side is described in pairedgta/render/deepgtav.py; the
+constants both sides share are pairedgta/render/deepgtav_protocol.py's):
 * transports: ``zmq`` (PAIR socket bound by the server; a frame is two messages, raw bytes then
   JSON) and ``tcp`` (4-byte little-endian length prefix on every message and frame part);
 * one top-level key per message, checked in the plugin's order; fields are read with typed
@@ -51,14 +52,11 @@ from typing import Any, Self
 
 import numpy as np
 
+from pairedgta.render.deepgtav_protocol import INT32, WEATHERS, row_stride
+
 log = logging.getLogger(__name__)
 
-WEATHERS = (
-    "CLEAR", "EXTRASUNNY", "CLOUDS", "OVERCAST", "RAIN", "CLEARING", "THUNDER",
-    "SMOG", "FOGGY", "XMAS", "SNOWLIGHT", "BLIZZARD", "NEUTRAL", "SNOW",
-)
 FAULTS = ("silent", "close_mid_frame", "garbage", "wrong_size")
-_INT32 = (-(2**31), 2**31 - 1)
 _MAX_TCP_MESSAGE = 1 << 20  # the plugin reads messages into a fixed buffer
 REPORT_RADIUS_M = 150.0  # classic DeepGTAV lists vehicles/peds within 150 m of the ego
 
@@ -67,11 +65,6 @@ _BICYCLES = frozenset(["bmx", "cruiser", "fixter", "scorcher", "tribike", "tribi
 _MOTORCYCLES = frozenset(
     ["akuma", "avarus", "bagger", "bati", "bati2", "bf400", "carbonrs", "chimera", "cliffhanger", "daemon", "daemon2", "defiler", "diablous", "double", "enduro", "esskey", "faggio", "faggio2", "faggio3", "fcr", "gargoyle", "hakuchou", "hexer", "innovation", "lectro", "manchez", "nemesis", "nightblade", "pcj", "policeb", "ratbike", "ruffian", "sanchez", "sanchez2", "sovereign", "thrust", "vader", "vindicator", "vortex", "wolfsbane", "zombiea", "zombieb"]
 )
-
-
-def row_stride(width: int) -> int:
-    """Bytes per row of a Windows bitmap: width*3 rounded up to a multiple of 4."""
-    return ((width * 3 + 3) // 4) * 4
 
 
 def encode_bgr_padded(rgb: np.ndarray) -> bytes:
@@ -161,7 +154,7 @@ def get_float(obj: Any, key: str) -> float:
 
 def get_int(obj: Any, key: str) -> int:
     v = _field(obj, key)
-    if isinstance(v, bool) or not isinstance(v, int) or not _INT32[0] <= v <= _INT32[1]:
+    if isinstance(v, bool) or not isinstance(v, int) or not INT32[0] <= v <= INT32[1]:
         raise BadMessage(f"'{key}' is {json.dumps(v)}, GetInt needs a JSON integer")
     return v
 
@@ -192,7 +185,7 @@ def _num(v: Any, what: str) -> float:
 
 
 def _int(v: Any, what: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or not _INT32[0] <= v <= _INT32[1]:
+    if isinstance(v, bool) or not isinstance(v, int) or not INT32[0] <= v <= INT32[1]:
         raise BadMessage(f"{what} is {json.dumps(v)}, GetInt needs a JSON integer")
     return v
 

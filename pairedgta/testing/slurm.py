@@ -183,7 +183,7 @@ def _read_pid(path: Path) -> int | None:
 
 
 def _alive(pid: int) -> bool:
-    from pairedgta.tracking import process_alive
+    from pairedgta.tracking.store import process_alive
 
     if not process_alive(pid, ""):
         return False

@@ -1,7 +1,7 @@
 """Mesh templates and the numpy -> bpy mesh conversion shared by the town and the scene objects.
 
 Templates live in a local frame (x right, y forward, z up; base centre at the origin). A primitive
-row is (cx, cy, cz, sx, sy, sz, yaw, r, g, b, a) as in pairedgta.scene.town.COLUMNS; the renderer
+row is (cx, cy, cz, sx, sy, sz, yaw, r, g, b, a) as in pairedgta.scene.town_primitives.COLUMNS; the renderer
 turns groups of rows into one mesh per (label, instance), so every surface's label is fixed by data.
 """
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-# town material name (pairedgta.scene.town) -> Blender material
+# town material name (pairedgta.scene.town_geometry, town_primitives) -> Blender material
 TOWN_MATERIAL = {
     "asphalt": "pavement", "marking": "pavement", "sidewalk": "pavement", "kerb": "pavement",
     "grass": "matte", "lot": "matte", "facade": "matte", "roof": "matte", "wall": "matte",

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX
+from pairedgta.render.blender.nodes import Knobs
 
 LABEL_CODE_VOID = 31  # class code for surfaces that are not one of the 19 classes
 MAX_INSTANCES = 32767 // 32
@@ -29,7 +29,7 @@ def label_code(label: str, instance: int = 0) -> int:
     return instance * 32 + cls
 
 
-def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None],
+def render_label_pass(bpy, knobs: Knobs, render_to: Callable[[str], None],
                       tmp_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render the index pass of the current scene and return (train ids, instance ids, distance in m;
     inf for the sky).
@@ -41,10 +41,10 @@ def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None],
     cy = sc.cycles
     saved = (cy.samples, cy.filter_width, cy.use_denoising)
     compositing = sc.render.use_compositing  # analytic fog must not tint the codes
-    fog = shading.get("fog_on")
+    fog = knobs.get("fog_on")
     img = sc.render.image_settings
-    shading.set("label_mode", 1.0)
-    shading.set("fog_on", 0.0)
+    knobs.set("label_mode", 1.0)
+    knobs.set("fog_on", 0.0)
     vl.use_sky = False
     sc.render.use_compositing = False
     cy.samples, cy.filter_width, cy.use_denoising = 1, 0.01, False  # one centred sample per pixel
@@ -55,8 +55,8 @@ def render_label_pass(bpy, shading: Any, render_to: Callable[[str], None],
     try:
         render_to(path)
     finally:
-        shading.set("label_mode", 0.0)
-        shading.set("fog_on", fog)
+        knobs.set("label_mode", 0.0)
+        knobs.set("fog_on", fog)
         vl.use_sky = True
         sc.render.use_compositing = compositing
         cy.samples, cy.filter_width, cy.use_denoising = saved

@@ -1,21 +1,18 @@
-"""MLflow: one parent run per invocation, a nested run per evaluated model.
+"""The Recorder that talks to MLflow in this process: one parent run per invocation, a nested run per
+evaluated model. By default the app's calls reach it through a child process (pairedgta.tracking.child),
+which imports MLflow while the run works; it is used directly where MLflow is imported already or with
+`tracking.background=false`. Nothing here imports mlflow when tracking is disabled.
 
-Runs are named `<experiment> · <model(s)> · <dataset>@<hash>`. A stage's files are uploaded once per
-stage hash: a cache-hit rerun whose files an earlier run already holds tags itself with that run (and
-links it in its description) instead of uploading them again. With a sqlite store the artifacts live
-next to the database (`<db dir>/mlartifacts`), not in the working directory's ./mlruns. Nothing here
-imports mlflow when tracking is disabled. By default the calls are made in a child process that imports
-MLflow while the run works (pairedgta.tracking_worker); this module is what that child runs.
-
-Every run records the process that owns it (tags pairedgta.pid, pairedgta.host, pairedgta.started):
-a run ends FINISHED, FAILED on an error, KILLED on Ctrl-C/SIGTERM, and a run left RUNNING by a process
-that died without unwinding (kill -9, power loss) is ended as KILLED by the next tracker that starts.
+A stage's files are uploaded once per stage hash: a cache-hit rerun whose files an earlier run already
+holds tags itself with that run (and links it in its description) instead of uploading them again. With a
+sqlite store the artifacts live next to the database (store.artifact_location). Every run records the
+process that owns it (store.owner_tags): a run ends FINISHED, FAILED on an error, KILLED on
+Ctrl-C/SIGTERM, and a run left RUNNING by a process that died without unwinding is ended as KILLED by the
+next tracker that opens the store (store.end_orphans).
 
 MLflow is a record, not the source of truth: the stage results live in the cache. A store that fails
-(locked, read-only, corrupt, full, unreachable) is retried for a few seconds; then the run goes on without
-MLflow after one warning that names the store, where the results are and the fix, and its results are the
-same. A local sqlite store is probed before MLflow opens it (MLflow would wait 20 s on a lock per statement
-and retry creating its engine for minutes), and MLflow's own waits on it are shortened to BUSY_TIMEOUT_MS.
+(locked, read-only, corrupt, full, unreachable) is retried for a few seconds (`guarded`); then the run
+goes on without MLflow after one warning that names the store, where the results are and the fix.
 """
 from __future__ import annotations
 
@@ -24,8 +21,6 @@ import functools
 import logging
 import math
 import os
-import re
-import socket
 import sys
 import time
 import urllib.parse
@@ -34,81 +29,12 @@ from typing import Any, Callable, Iterator, TypeVar
 
 from pairedgta.errors import ConfigError, Terminated
 from pairedgta.jsonio import dumps
+from pairedgta.tracking.naming import RUN_COLOR_TAG, TAG, model_run_color
+from pairedgta.tracking.recorder import hydra_record
+from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, owner_tags, probe_sqlite,
+                                      shorten_sqlite_waits, store_lock)
 
 log = logging.getLogger("pairedgta.tracking")
-TAG = "pairedgta."
-SWEEP_TAG = f"{TAG}sweep"  # search: tags.`pairedgta.sweep` = '<sweep folder name>' (parent and model runs)
-RUN_COLOR_TAG = "mlflow.runColor"  # the MLflow UI draws a run in this colour instead of one hashed from its id
-
-
-def artifact_location(uri: str, experiment: str) -> str | None:
-    """Where a new experiment stores artifacts: `<dir of the sqlite db>/mlartifacts/<experiment>`; other
-    stores (a tracking server, a file store) keep their own default."""
-    if not uri.startswith("sqlite:///"):
-        return None
-    folder = re.sub(r"[^A-Za-z0-9_.\-]+", "_", experiment).strip("._") or "experiment"
-    return (Path(uri[len("sqlite:///"):]).resolve().parent / "mlartifacts" / folder).as_uri()
-
-
-def run_name(experiment: str, models: list[str], datasets: list[str]) -> str:
-    """`smoke · tiny_segformer, tiny_mask2former · generated@1a2b3c4d`: what ran, with what, on what."""
-    return " \u00b7 ".join([experiment, ", ".join(models) or "-", ", ".join(datasets) or "-"])[:240]
-
-
-def bundle(stage: str, key: str, *parts: str) -> str:
-    """The name of one upload of a stage's files (`evaluate.<hash>`, `plot.<hash>.<pass>.<model>`), as
-    MLflow tag keys allow it."""
-    return ".".join([stage, key, *(re.sub(r"[^A-Za-z0-9_\-]+", "_", str(x)) for x in parts)])
-
-
-def xi_table(xi: Any) -> Any:
-    """An evaluation's xi.csv as the MLflow table the UI lines up across runs: model, reference, condition
-    (the grid's name), class, xi and its bootstrap interval."""
-    if xi.empty:
-        return xi
-    cols = {"model": "model", "reference_model": "reference", "condition": "condition", "class_name": "class",
-            "xi": "xi", "ci_low": "ci_low", "ci_high": "ci_high"}
-    return xi[list(cols)].rename(columns=cols).reset_index(drop=True)
-
-
-def dataset_label(name: str, key: str | None) -> str:
-    """A dataset as runs name it: its name and the first 8 characters of its hash (generate or content)."""
-    return f"{name}@{str(key).split(':', 1)[-1][:8]}" if key else name
-PID_TAG, HOST_TAG, START_TAG = "pairedgta.pid", "pairedgta.host", "pairedgta.started"
-
-
-def process_start(pid: int) -> str:
-    """Start time of process `pid` in clock ticks since boot (tells a reused pid apart), '' if unknown."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return ""
-
-
-def process_alive(pid: int, started: str) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        pass
-    return not started or process_start(pid) in ("", started)
-
-
-def model_run_color(model: str) -> str:
-    """The colour every figure gives `model` (`figures.common.model_color`), as the hex the MLflow UI reads
-    from a run's RUN_COLOR_TAG. Without it the UI hashes each run id into 29 colours, so 4 model runs
-    share one about one time in five."""
-    from pairedgta.figures.model_colors import model_color_hex
-
-    return model_color_hex(model)
-
-
-def owner_tags(pid: int | None = None) -> dict[str, str]:
-    """The process a run belongs to: this one, or (`pid`) the run's process when a tracking child logs for it."""
-    pid = os.getpid() if pid is None else pid
-    return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -127,75 +53,11 @@ def _clean_metric_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "_-./ " else "_" for ch in name)
 
 
-@contextlib.contextmanager
-def _store_lock(uri: str) -> Iterator[None]:
-    if not uri.startswith("sqlite:///"):
-        yield
-        return
-    db = Path(uri[len("sqlite:///"):])
-    db.parent.mkdir(parents=True, exist_ok=True)
-    with open(db.with_name(db.name + ".lock"), "a") as handle:
-        try:
-            import fcntl
-
-            fcntl.flock(handle, fcntl.LOCK_EX)
-        except (ImportError, OSError):  # pragma: no cover
-            pass
-        yield
-
-
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
-
-
-URI_SCHEMES = ("", "file", "sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks")
-
-
-def check_uri(uri: str) -> None:
-    """An MLflow store URI this project can use; anything else is one line before any stage runs."""
-    from urllib.parse import urlparse
-
-    scheme = urlparse(str(uri)).scheme.split("+", 1)[0].lower()
-    if scheme not in URI_SCHEMES:
-        raise ConfigError(f"tracking.uri={uri}: unknown scheme '{scheme}'; use sqlite:///PATH (the default "
-                          "sqlite:///outputs/mlflow.db), a folder, http(s)://SERVER, or tracking.enabled=false")
-
-
-def settings(cfg: dict[str, Any]) -> tuple[str, str, bool]:
-    """`tracking.{uri,experiment_name,enabled}` of a run's config (the experiment defaults to `name`)."""
-    tracking = cfg.get("tracking") or {}
-    experiment = str(tracking.get("experiment_name") or cfg.get("name", "default"))
-    return tracking.get("uri", "sqlite:///outputs/mlflow.db"), experiment, flag(tracking, "enabled")
-
-
-def flag(tracking: dict[str, Any], key: str, default: bool = True) -> bool:
-    """`tracking.<key>` as a boolean; `maybe` or `1` is a one-line error, not a truthy string."""
-    value = tracking.get(key, default)
-    if not isinstance(value, bool):
-        raise ConfigError(f"tracking.{key}={value!r} must be true or false")
-    return value
-
-
-def class_metrics(cfg: dict[str, Any]) -> bool:
-    """`tracking.class_metrics` (default false): per-class xi and rho_valid as MLflow metrics too."""
-    return flag(cfg.get("tracking") or {}, "class_metrics", default=False)
-
 
 RETRY_DELAYS_S = (0.2, 0.5, 1.0)  # a locked sqlite store usually frees within a second
 RETRY_BUDGET_S = 3.0  # no new try once a call has spent this long: the run does not wait on its record
-SQLITE_WAIT_S = 1.0  # how long the probe waits for a lock on a sqlite store
-BUSY_TIMEOUT_MS = 2000  # MLflow's own wait on a locked sqlite store per statement (its default is 20000)
 T = TypeVar("T")
-
-
-class _Reported(logging.Filter):
-    """Drops MLflow's own warnings and errors (tracebacks included) about its store: `guarded` retries
-    those calls and, if they keep failing, says so in one line."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return record.levelno < logging.WARNING
-
-
-_REPORTED = _Reported()
 
 
 def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
@@ -223,59 +85,15 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
     return wrap
 
 
-def sqlite_path(uri: str) -> Path | None:
-    """The database file of a `sqlite:///PATH` store, None for any other store."""
-    if not uri.startswith("sqlite:///"):
-        return None
-    return Path(uri[len("sqlite:///"):].split("?", 1)[0])
-
-
-def probe_sqlite(uri: str) -> None:
-    """Raise what MLflow's first write to a sqlite store would (locked, read-only, a folder that cannot be
-    made, not a database) within SQLITE_WAIT_S: a write in a transaction that is rolled back."""
-    import sqlite3
-
-    db = sqlite_path(uri)
-    if db is None:
-        return
-    db.parent.mkdir(parents=True, exist_ok=True)
-    conn = sqlite3.connect(db, timeout=SQLITE_WAIT_S, isolation_level=None)
-    try:
-        conn.execute("BEGIN IMMEDIATE")
-        conn.execute("CREATE TABLE IF NOT EXISTS pairedgta_probe (x)")
-        conn.execute("ROLLBACK")
-    finally:
-        conn.close()
-
-
-_short_waits_installed = False
-
-
-def _shorten_sqlite_waits() -> None:
-    """MLflow sets `PRAGMA busy_timeout = 20000` on every session of a sqlite store, and a retry would
-    wait that long again; rewrite it to BUSY_TIMEOUT_MS (only that pragma, only on sqlite engines)."""
-    global _short_waits_installed
-    if _short_waits_installed:
-        return
-    from sqlalchemy import event
-    from sqlalchemy.engine import Engine
-
-    def shorten(conn: Any, cursor: Any, statement: str, parameters: Any, context: Any, executemany: bool) -> Any:
-        if conn.dialect.name == "sqlite" and statement.lstrip().upper().startswith("PRAGMA BUSY_TIMEOUT"):
-            statement = f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_MS)};"
-        return statement, parameters
-
-    event.listen(Engine, "before_cursor_execute", shorten, retval=True)
-    logging.getLogger("mlflow.store.db.utils").addFilter(_REPORTED)
-    _short_waits_installed = True
-
-
 class Tracker:
+    """The Recorder that logs to MLflow itself (the tracking child's, or the run's with
+    tracking.background=false); `begin`/`finish`/`log_hydra` are the child's halves of `run`/`hydra_config`."""
+
     def __init__(self, uri: str, experiment: str, enabled: bool = True,
                  results: str | os.PathLike | None = None, owner: int | None = None, source: str | None = None) -> None:
         """`results`: where the run's results are whatever becomes of MLflow (the cache), for the warning;
         `owner`, `source`: the pid and entry point (its sys.argv[0]) of the run's process, when that is not
-        this one (pairedgta.tracking_worker): runs name the run's script and its git commit, not the child's."""
+        this one (pairedgta.tracking.child): runs name the run's script and its git commit, not the child's."""
         self.owner = owner
         self.source = source
         self._context: dict[str, str] | None = None
@@ -295,13 +113,6 @@ class Tracker:
         if enabled:
             check_uri(uri)
             self._open()
-
-    @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "Tracker":
-        """The run's tracker in this process: `tracking.{uri,experiment_name,enabled}` (the experiment
-        defaults to `name`). The app asks pairedgta.tracking_worker.open_tracker, which may log from a child."""
-        uri, experiment, enabled = settings(cfg)
-        return cls(uri, experiment, enabled, results=cfg.get("cache_dir"))
 
     def close(self) -> None:
         """Nothing to wait for: in-process calls are done when they return (a BackgroundTracker waits here)."""
@@ -340,14 +151,14 @@ class Tracker:
         os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         if urllib.parse.urlparse(self.uri).scheme in ("", "file"):  # a folder store, chosen by the user:
             os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow 3.17 refuses it unless told
-        _shorten_sqlite_waits()
-        with _store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
+        shorten_sqlite_waits()
+        with store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)
         import mlflow
 
         mlflow.set_tracking_uri(self.uri)
         experiment, uri = self.experiment, self.uri
-        with _store_lock(uri):
+        with store_lock(uri):
             # parallel jobs would race on creating the sqlite schema and the experiment
             if mlflow.get_experiment_by_name(experiment) is None:
                 try:
@@ -368,7 +179,7 @@ class Tracker:
                 except mlflow.exceptions.MlflowException:  # a concurrent job set it first (a server's unique key)
                     if EXPERIMENT_KIND[0] not in (self.client.get_experiment(self.experiment_id).tags or {}):
                         raise
-            self.end_orphans()
+            end_orphans(self.client)
 
     def _context_tags(self) -> dict[str, str]:
         """What MLflow's start_run records about where a run comes from (user, source, git commit), read
@@ -442,29 +253,6 @@ class Tracker:
         """The parent run is opened before generation (so a run that stops there is recorded); it gets
         its dataset's name once that is known."""
         self.client.set_tag(self._active(), "mlflow.runName", name)
-
-    def end_orphans(self) -> list[str]:
-        """End as KILLED every RUNNING run of this store whose owning process on this host is gone."""
-        client = self.client
-        host = socket.gethostname()
-        ended = []
-        try:
-            experiments = [e.experiment_id for e in client.search_experiments()]
-            runs = client.search_runs(experiments, filter_string="attributes.status = 'RUNNING'", max_results=5000) if experiments else []
-        except Exception as exc:  # pragma: no cover - an unreadable store is reported by the run itself
-            log.warning("MLflow: cannot look for orphaned runs (%s)", exc)
-            return ended
-        for r in runs:
-            tags = r.data.tags
-            if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
-                continue
-            if process_alive(int(tags[PID_TAG]), tags.get(START_TAG, "")):
-                continue
-            client.set_terminated(r.info.run_id, status="KILLED")
-            ended.append(r.info.run_id)
-        if ended:
-            log.warning("MLflow: %d run(s) of a process that died were still RUNNING; marked KILLED", len(ended))
-        return ended
 
     @guarded("logging parameters")
     def params(self, params: dict[str, Any]) -> None:
@@ -611,24 +399,3 @@ class Tracker:
         files, tags, self.nested_tags = record
         self.artifacts(files, "hydra")
         self.tags(tags)
-
-
-def hydra_record() -> tuple[list[Path], dict[str, str], dict[str, str]] | None:
-    """This Hydra job's files, its override tags, and the tags every nested run of a sweep's job carries;
-    None outside a Hydra job (or under Hydra's compose API: no job, no output folder)."""
-    from hydra.core.hydra_config import HydraConfig
-    from omegaconf import OmegaConf
-
-    if not HydraConfig.initialized():
-        return None
-    hc = HydraConfig.get()
-    if OmegaConf.is_missing(hc.runtime, "output_dir"):
-        return None
-    files = sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")) if hc.output_subdir is not None else []
-    tags = {f"{TAG}overrides": " ".join(hc.overrides.task)[:5000], f"{TAG}hydra_job": str(hc.job.name)}
-    nested: dict[str, str] = {}
-    if str(getattr(hc, "mode", "")).endswith("MULTIRUN"):  # the jobs of one -m sweep share this tag
-        # the model runs too: a search by the tag finds them, and one chart of theirs compares the models
-        nested = {SWEEP_TAG: Path(str(hc.sweep.dir)).name, f"{TAG}sweep_job": str(hc.job.num)}
-        tags.update(nested)
-    return files, tags, nested

@@ -1,0 +1,63 @@
+"""How a model runs, as opposed to what it is: the options every family shares, with one default each.
+
+A model's config (pairedgta/conf/model/<name>.yaml, `model.<key>=` overrides) may set any of these; the family
+builders never see them as keys: `build_segmenter` parses them once into `RuntimeOptions` and hands that to the
+family, which passes it to `Segmenter`. Torch-free, so a cached run can check and fill a config without torch.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Mapping
+
+from pairedgta.errors import ConfigError
+
+AMP_CHOICES = (None, "bf16", "fp16")
+# the input normalisation of ImageNet-pretrained backbones: every family's default model.mean / model.std
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass(frozen=True)
+class RuntimeOptions:
+    """`device` comes from the run's top-level `device`; the others from the model config. `amp` changes the
+    numbers, so it enters the stage hashes; batch_size, channels_last and compile do not (RUNTIME_MODEL_KEYS)."""
+
+    device: str = "cpu"
+    batch_size: int = 4
+    amp: str | None = None
+    channels_last: bool = False
+    compile: bool = False
+
+    def __post_init__(self) -> None:
+        size = self.batch_size
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ConfigError(f"model.batch_size={size!r} must be a whole number >= 1, e.g. model.batch_size=4")
+        if self.amp not in AMP_CHOICES:
+            raise ConfigError(f"model.amp={self.amp!r} is not one of null, bf16, fp16; e.g. model.amp=bf16 (CUDA only)")
+        for key in ("channels_last", "compile"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"model.{key}={getattr(self, key)!r} must be true or false")
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], device: str | None = None) -> "RuntimeOptions":
+        """The runtime options a model config sets (missing ones take the defaults above)."""
+        given = {k: cfg[k] for k in MODEL_KEYS if k in cfg}
+        return cls(device=str(device or "cpu"), **given)
+
+
+# the options a model config may set (device is the run's, never a model's own key)
+MODEL_KEYS = tuple(f.name for f in fields(RuntimeOptions) if f.name != "device")
+
+
+def split_runtime(cfg: Mapping[str, Any], device: str | None = None) -> tuple[dict[str, Any], RuntimeOptions]:
+    """(the family's own keys, the parsed runtime options) of one model config."""
+    family_keys = {k: v for k, v in cfg.items() if k not in MODEL_KEYS}
+    return family_keys, RuntimeOptions.from_config(cfg, device)
+
+
+def runtime_defaults() -> dict[str, Any]:
+    """The default of every option a model config may set, as the config would spell it."""
+    return {k: v for k, v in asdict(RuntimeOptions()).items() if k in MODEL_KEYS}
+
+
+__all__ = ["RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]

@@ -1,0 +1,97 @@
+"""Illumination: what a condition's sun, sky, clouds, rain and fog mean as render parameters.
+
+`lighting(cond)` is pure numpy, continuous in every physical field, and shared with the camera's
+exposure (render/camera.py) and the tests; shading.py turns its output into knob values and light
+energies.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from pairedgta.conditions import Condition
+
+FOG_ALBEDO = 0.92
+# weights of the in-scattered light of the analytic fog, matched to the volume model's far field
+FOG_SKY, FOG_SUN = 0.7, 0.2
+# Artificial light, relative to the sun (strength 4.5): a street-lit road is thousands of times darker than
+# a sunlit one (10-30 lx against 50,000 lx and more), and a camera undoes only part of that
+# (render/camera.py). The light sources themselves (lamp heads, head-lights) stay bright: they are what a
+# night image shows and what fog glows around. Lit windows glow as dimly as interiors do from outside.
+LAMP_POWER = 40.0        # W per street-lamp spot light
+HEADLIGHT_POWER = 30.0   # W per head-light spot light
+WINDOW_EMISSION = 0.08   # emission strength of a lit window
+
+
+def _smoothstep(a: float, b: float, x: float) -> float:
+    t = min(max((x - a) / (b - a), 0.0), 1.0)
+    return t * t * (3 - 2 * t)
+
+
+def sun_vector(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Unit vector towards the sun; azimuth clockwise from north (+y), east is +x."""
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    return np.array([math.sin(a) * math.cos(e), math.cos(a) * math.cos(e), math.sin(e)])
+
+
+def sun_transmittance(elevation_deg: float) -> np.ndarray:
+    """RGB transmittance through the atmosphere (Kasten-Young air mass, Rayleigh-like optical
+    depths): white at noon, orange near the horizon."""
+    e = max(elevation_deg, -1.0)
+    airmass = 1.0 / (math.sin(math.radians(max(e, 0.0))) + 0.50572 * (e + 6.07995) ** -1.6364)
+    return np.exp(-np.array([0.06, 0.11, 0.24]) * airmass)
+
+
+def lighting(cond: Condition) -> dict[str, Any]:
+    """All condition-dependent render parameters; continuous in every physical field. The extinction
+    is the condition's own (visibility and rain rate, conditions.py), so the image and the
+    transmittance map written beside it attenuate alike. `light_level` is what the camera meters
+    (render/camera.py): the light falling on the scene from the sun, the sky and, at night, the lamps."""
+    el = float(cond.sun_elevation_deg)
+    rain = cond.rain_level
+    cloud = max(float(cond.cloud_cover), rain)
+    wet = max(float(cond.wetness), rain)
+    fog = cond.fog_level
+    trans = sun_transmittance(el)
+    sun_vis = _smoothstep(-1.0, 2.0, el)
+    sun_strength = 4.5 * sun_vis * float(trans.max()) * (1.0 - 0.92 * cloud)
+    sun_color = trans / trans.max()
+    sky = min(max((el + 6.0) / 36.0, 0.0), 1.0) ** 1.3  # daylight sky brightness
+    warm = (1.0 - _smoothstep(0.0, 22.0, el)) * _smoothstep(-7.0, -1.0, el)
+    night = 1.0 - _smoothstep(-8.0, 2.0, el)
+    zenith = sky * ((1 - warm) * np.array([0.10, 0.24, 0.62]) + warm * np.array([0.08, 0.13, 0.34]))
+    horizon = sky * ((1 - warm) * np.array([0.55, 0.64, 0.78]) + warm * np.array([1.1, 0.55, 0.28]))
+    city_glow = np.array([0.012, 0.008, 0.005]) * night
+    zenith = zenith + np.array([0.0015, 0.0025, 0.006]) * night
+    horizon = horizon + city_glow
+    glow = (0.9 * warm + 0.15) * sky * sun_color * (1 - cloud)
+    # rain clouds are dark, and heavy rain's haze hides the city's glow from their base
+    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) + city_glow * (1.0 - 0.8 * rain)
+    moon = 0.05 * night * (1.0 - 0.9 * cloud)  # a moonlit clear night is brighter than an overcast one
+    lamps = 1.0 - _smoothstep(-3.0, 6.0, el)
+    vehicle_lights = max(lamps, _smoothstep(0.2, 0.6, max(rain, fog)))
+    sky_light = 2.6 * float(np.mean(zenith + horizon) / 2 * (1 - cloud) + np.mean(grey) * cloud)
+    extinction = cond.extinction_per_m  # 1/m
+    # radiance that fog and rain haze scatter toward the camera everywhere (renderer.fog_model=analytic):
+    # albedo times the light arriving from the sky (cloud-grey as cover grows) and the sun (isotropic
+    # share). Lamp and head-light light is scattered where it is: the compositor's glare gives each its
+    # halo, so the night's fog stays dark away from the lights instead of glowing uniformly.
+    ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud
+    fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi))
+    light_level = sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
+    return {
+        "sun_dir": sun_vector(el, cond.sun_azimuth_deg), "sun_strength": sun_strength, "sun_color": sun_color,
+        "sun_angle_deg": 0.53 + 25.0 * cloud,
+        "moon_dir": sun_vector(38.0, (cond.sun_azimuth_deg + 180.0) % 360.0), "moon_strength": moon,
+        "zenith": zenith, "horizon": horizon, "glow": glow, "cloud_color": grey,
+        "cloud_cover": cloud, "overcast": _smoothstep(0.55, 0.95, cloud),
+        "wetness": wet, "puddle_threshold": 1.0 - 0.42 * wet,
+        "fog": fog, "rain": rain, "extinction": extinction, "fog_color": fog_color,
+        "lamps": lamps, "vehicle_lights": vehicle_lights,
+        "window_lit": lamps, "light_level": light_level,
+    }
+
+
+__all__ = ["HEADLIGHT_POWER", "LAMP_POWER", "WINDOW_EMISSION", "lighting", "sun_transmittance", "sun_vector"]
