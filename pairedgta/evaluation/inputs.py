@@ -3,20 +3,16 @@ their images, label maps and visibility masks, decoded in DataLoader workers so 
 not PNG decoding, bounds evaluation."""
 from __future__ import annotations
 
-import os
 import zlib
 from typing import Any
 
 import numpy as np
 
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images, load_label, load_transmittance
-from pairedgta.errors import ConfigError, DataError, PairedGTAError
+from pairedgta.errors import DataError, PairedGTAError
 from pairedgta.lazy import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
-
-SAMPLINGS = ("all", "random_one")
-
 
 def sampled_conditions(group_id: str, present: list[str], clean: str, sampling: str, seed: int) -> list[str]:
     """The conditions of one group to evaluate: all, or the clean one plus one adverse condition drawn
@@ -95,20 +91,6 @@ class GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __ge
                 raise DataError(f"{group.transmittance[c]}: transmittance map size differs from its image")
             seen[c] = t >= self.min_transmittance
         return {c: seen[c] & seen[self.clean] for c in present}
-
-
-def decode_workers(value: Any, device: str) -> int:
-    """`evaluate.num_workers`: a count, or auto = none on the CPU (the forward already uses every core;
-    measured in experiments/bench_evaluate.py) and up to 4 beside a GPU."""
-    if value in (None, "auto"):
-        return 0 if device == "cpu" else min(4, os.cpu_count() or 1)
-    try:
-        n = int(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"evaluate.num_workers={value!r}; use a whole number >= 0 or auto") from None
-    if n < 0:
-        raise ConfigError(f"evaluate.num_workers={n}; use a whole number >= 0 or auto")
-    return n
 
 
 def _identity(item: Any) -> Any:

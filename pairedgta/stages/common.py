@@ -17,12 +17,6 @@ log = logging.getLogger("pairedgta")
 RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
 
-def inference_threads(cfg: dict[str, Any]) -> int:
-    """`threads`: CPU threads for model inference. It enters the pseudolabel/evaluate hashes because
-    float reductions are split by thread count, so logits (and argmax near-ties) depend on it."""
-    return int(cfg.get("threads") or 1)
-
-
 @contextlib.contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     import torch
@@ -70,26 +64,6 @@ class Context:
             from pairedgta import schema
 
             self.run = schema.parse(self.cfg)
-
-
-def whole_number(node: dict[str, Any], key: str, default: int, where: str) -> int:
-    value = node.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int):
-        try:
-            value = int(str(value))
-        except ValueError:
-            raise ConfigError(f"{where}.{key}={value!r} is not a whole number") from None
-    return value
-
-
-def shard_keys(node: dict[str, Any], where: str) -> tuple[int, int]:
-    """(num_shards, shard) of a stage split over jobs, validated: shard i of N takes items i, i+N, ..."""
-    num, shard = whole_number(node, "num_shards", 1, where), whole_number(node, "shard", 0, where)
-    if num < 1:
-        raise ConfigError(f"{where}.num_shards={num}; set it to at least 1")
-    if not 0 <= shard < num:
-        raise ConfigError(f"{where}.shard={shard} is outside 0..{num - 1} ({where}.num_shards={num})")
-    return num, shard
 
 
 def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:

@@ -27,13 +27,12 @@ from pairedgta.datasets import PairedDataset
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation import counting, shards, tables
 from pairedgta.evaluation.counting import GT
-from pairedgta.evaluation.inputs import decode_workers
 from pairedgta.evaluation.settings import conditions_for, metric_settings
+from pairedgta.schema import as_dict
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import (
     Context,
     StageResult,
-    inference_threads,
     model_config_from_hash,
     model_hash_config,
     run_cached,
@@ -138,8 +137,8 @@ def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: 
     models in `exclude`."""
     want_inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}
     grid = dataset.grid or ctx.grid
-    settings = json.loads(canonical_json(metric_settings(ctx.cfg, grid.names, dataset.reference)))
-    conditions = conditions_for(ctx.cfg, grid)
+    settings = json.loads(canonical_json(metric_settings(ctx.run, grid.names, dataset.reference)))
+    conditions = conditions_for(ctx.run.evaluate, grid)
     found: dict[str, tuple[float, EvaluateResult]] = {}
     for entry in ctx.cache.entries("evaluate"):
         m = entry.manifest
@@ -161,14 +160,12 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
     if not groups:
         return []
     grid = dataset.grid or ctx.grid
-    s = metric_settings(ctx.cfg, grid.names, dataset.reference)
-    device = str(ctx.cfg.get("device", "cpu"))
+    s = metric_settings(ctx.run, grid.names, dataset.reference)
+    device, ev = ctx.run.device, ctx.run.evaluate
     segmenter = shared_segmenter(model_cfg, device=device)
-    ecfg = ctx.cfg.get("evaluate") or {}
-    batch = int(ecfg.get("batch_size", 4))
-    workers = decode_workers(ecfg.get("num_workers", "auto"), device)
-    with torch_threads(inference_threads(ctx.cfg)):
-        return counting.count_groups(dataset, pseudo.labels, segmenter, s, conditions, groups, batch, workers)
+    with torch_threads(ctx.run.threads):
+        return counting.count_groups(dataset, pseudo.labels, segmenter, s, conditions, groups, ev.batch_size,
+                                      ev.decode_workers(device))
 
 
 def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
@@ -176,7 +173,7 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
     """Evaluate every group, or merge the partial sums that shard jobs left in `parts` and compute only
     the groups no shard covered; the outputs are the same either way (groups in dataset order)."""
     grid = dataset.grid or ctx.grid
-    s = metric_settings(ctx.cfg, grid.names, dataset.reference)
+    s = metric_settings(ctx.run, grid.names, dataset.reference)
     conv = s["convention"]
     log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
              "sampling %s", conv["name"], conv["absent"], list(conv["mean_exclude"]) or "none", conv["agreement"],
@@ -216,8 +213,8 @@ class Evaluate:
 
     def __post_init__(self) -> None:
         grid = self.dataset.grid or self.ctx.grid
-        self.conditions = conditions_for(self.ctx.cfg, grid)
-        self.settings = metric_settings(self.ctx.cfg, grid.names, self.dataset.reference)
+        self.conditions = conditions_for(self.ctx.run.evaluate, grid)
+        self.settings = metric_settings(self.ctx.run, grid.names, self.dataset.reference)
 
     @property
     def label(self) -> str:
@@ -298,7 +295,7 @@ def step(ctx: Context, p: Any, state: Any) -> None:
         p.evaluations.append(result)
         label = dataset_label(p.dataset.name, p.dataset_key)
         with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
-            recorder.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": state.models.reference["name"]})
+            recorder.params({"model": model_cfg, "metric": as_dict(ctx.run.metric), "reference_model": state.models.reference["name"]})
             recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
                            "pass": p.label, "model": model_cfg["name"]})
             recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
