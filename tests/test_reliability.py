@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -74,6 +74,7 @@ class FnStage:
     name: str
     config: dict
     fn: Callable[[Path], None]
+    upstream: dict = field(default_factory=dict)
     version: str = "1"
     label: str = ""
     resumable: bool = False
@@ -83,7 +84,7 @@ class FnStage:
         return self.config
 
     def inputs(self) -> dict:
-        return {}
+        return self.upstream
 
     def build(self, out: Path, key: str) -> None:
         self.fn(out)
@@ -129,8 +130,8 @@ def test_failed_forced_recompute_keeps_the_previous_result(tmp_path):
 def test_stage_cache_lists_finished_entries_with_their_manifests(tmp_path):
     """What evaluate's search for other models' evaluations reads: finished entries only, unreadable skipped."""
     ctx = context(tmp_path)
-    a = run_cached(ctx, "evaluate", "1", {"a": 1}, {"in": "x"}, lambda out: (out / "xi.csv").write_text("a"))
-    b = run_cached(ctx, "evaluate", "1", {"a": 2}, {"in": "x"}, lambda out: (out / "xi.csv").write_text("b"))
+    a = run_cached(ctx, FnStage("evaluate", {"a": 1}, lambda out: (out / "xi.csv").write_text("a"), {"in": "x"}))
+    b = run_cached(ctx, FnStage("evaluate", {"a": 2}, lambda out: (out / "xi.csv").write_text("b"), {"in": "x"}))
     crashed = tmp_path / "evaluate" / f".tmp-{a.key}-1-0000abcd"  # a crashed build, manifest already written
     crashed.mkdir()
     (crashed / MANIFEST).write_text((a.path / MANIFEST).read_text())
