@@ -132,7 +132,7 @@ def _data_stages(ctx: Any, p: planning.PassResult, plan: planning.Plan, models: 
             tracker.params({"model": model_cfg, "metric": ctx.cfg["metric"], "reference_model": models.reference["name"]})
             tracker.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name, "pass": p.label,
                           "model": model_cfg["name"]})
-            tracker.metrics(result.metrics(per_class=class_metrics(ctx.cfg)))
+            tracker.metrics(result.metrics(per_class=class_metrics(ctx.cfg), cfg=ctx.cfg))
             _log_dataset(tracker, p)
             tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             tracker.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
+from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     TEXT_WIDTH,
     concat_tables,
@@ -109,7 +110,7 @@ def ablation_table(frame: pd.DataFrame, classes: list[str], selection: str, out:
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Mean xi, rho_valid and structure agreement per pairing level (one evaluated pass per level)."""
     evaluated = [p for p in passes if p.evaluations]
     if not evaluated:

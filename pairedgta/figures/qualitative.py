@@ -22,6 +22,7 @@ from PIL import Image
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
 from pairedgta.figures import FigureOptions
+from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     TEXT_WIDTH,
     class_legend_handles,
@@ -169,7 +170,7 @@ def clean_condition(p: Any) -> str:
     return clean if clean in p.grid.names else p.grid.reference
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Worst/best groups per adverse condition for every evaluated model of every pass."""
     n = int(opts.plot.get("qualitative_groups", 2))
     wanted = opts.plot.get("qualitative_conditions")

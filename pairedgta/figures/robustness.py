@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
+from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (TEXT_WIDTH, markdown_table, model_color, model_display, paper_style, save)
 
 GT = "ground_truth"
@@ -95,7 +96,7 @@ def _legend(fig, ax) -> None:
                bbox_to_anchor=(0.5, 1.0 - 0.25 / fig.get_figheight()))
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     metrics: dict[str, float] = {}
     cfg = dict(opts.plot.get("robustness") or {})

@@ -16,7 +16,7 @@ import os
 import shutil
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
@@ -41,7 +41,7 @@ from pairedgta.metrics import (
 from pairedgta.metrics.ranking import rho_rows as rho_valid_rows
 from pairedgta.models import shared_segmenter
 from pairedgta.cache import MANIFEST, canonical_json, stage_hash
-from pairedgta.conditions import ConditionGrid
+from pairedgta.conditions import ConditionGrid, headline_condition
 from pairedgta.jsonio import write_json
 from pairedgta.stages.common import (
     Context,
@@ -120,10 +120,11 @@ class EvaluateResult(StageResult):
     def artifacts(self) -> list[Path]:
         return [self.path / f for f in self.FILES if (self.path / f).is_file()]
 
-    def metrics(self, per_class: bool = False) -> dict[str, float]:
+    def metrics(self, per_class: bool = False, cfg: Mapping[str, Any] | None = None) -> dict[str, float]:
         """The MLflow view: xi_mean/<cond>, xi_gt_mean/<cond>, gt_miou/<cond>, agreement/<cond> and the
-        headline condition's rho_valid/<sel>/<class>; with `per_class` (tracking.class_metrics) also
-        xi/<cond>/<class>, xi_gt/<cond>/<class> and rho_valid/<cond>/<sel>/<class>, ten times as many
+        headline condition's rho_valid/<sel>/<class> (`conditions.headline_condition`: plot.ranking.condition
+        of the run's `cfg` when set, as the ranking figure shows); with `per_class` (tracking.class_metrics)
+        also xi/<cond>/<class>, xi_gt/<cond>/<class> and rho_valid/<cond>/<sel>/<class>, ten times as many
         metrics (the xi table and xi.csv/rho_valid.csv hold them either way)."""
         metrics: dict[str, float] = {}
         for row in self.xi().itertuples():
@@ -134,7 +135,7 @@ class EvaluateResult(StageResult):
                 metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
         rho = self.rho()
         conds = list(dict.fromkeys(rho["condition"])) if not rho.empty else []
-        main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
+        main = headline_condition(conds, cfg or {})
         for row in rho.itertuples():
             if per_class:
                 metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho

@@ -12,20 +12,22 @@ to MLflow (so a cache hit logs them too) and `owners.json` which figures show on
 go to that model's MLflow run)."""
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
 from pairedgta.cache import require_intact
 from pairedgta.errors import ConfigError
-from pairedgta.figures import FIGURES, FigureOptions, lookup
+from pairedgta.figures import FIGURES, FigureOptions, figure, lookup
 from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
+
+if TYPE_CHECKING:  # planning imports this module when it plans
+    from pairedgta.stages.planning import PassResult
 
 log = logging.getLogger("pairedgta.plot")
 VERSION = "10"  # 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
@@ -59,8 +61,8 @@ class Figures(StageResult):
 
 def sourced(cfg: dict[str, Any]) -> dict[str, str]:
     """figure -> the config key of the file it is drawn from, for the figures whose key is set."""
-    keys = {name: FIGURES.meta(name).get("source") for name in FIGURES.names()}
-    return {name: key for name, key in keys.items() if key and lookup(cfg, key)}
+    specs = sorted(FIGURES, key=lambda spec: spec.name)  # by name: the order they are drawn in
+    return {spec.name: spec.source for spec in specs if spec.source and lookup(cfg, spec.source)}
 
 
 def figures_of(cfg: dict[str, Any]) -> list[str]:
@@ -70,7 +72,7 @@ def figures_of(cfg: dict[str, Any]) -> list[str]:
     # the default list has one owner, pairedgta/conf/config.yaml; an empty list draws nothing
     figures = list((cfg.get("plot") or {}).get("figures") or [])
     for f in figures:
-        source = FIGURES.meta(f).get("source")  # an unknown name: one line listing the known ones
+        source = figure(f).source  # an unknown name: one line listing the known ones
         if source:
             raise ConfigError(f"plot.figures: {f} is drawn from a file of yours; set {source}=PATH (with stages=[plot])")
     return figures
@@ -80,19 +82,18 @@ def needed_stages(cfg: dict[str, Any]) -> set[str]:
     """Which upstream stages the requested figures read (a figure given its own input file needs none)."""
     needs = set()
     for f in figures_of(cfg):
-        meta = FIGURES.meta(f)
-        if not meta.get("needs") or (meta.get("unless") and lookup(cfg, meta["unless"])):
-            continue
-        needs.add(meta["needs"])
+        spec = figure(f)
+        if spec.needs and not (spec.unless and lookup(cfg, spec.unless)):
+            needs.add(spec.needs)
     return needs
 
 
-def options(cfg: dict[str, Any], passes: list[Any]) -> FigureOptions:
+def options(cfg: dict[str, Any], passes: list[PassResult]) -> FigureOptions:
     pcfg = cfg.get("plot") or {}
     return FigureOptions(list(pcfg.get("formats", ["png"])), int(pcfg.get("dpi", 150)), cfg, multi=len(passes) > 1)
 
 
-def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
+def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, Any]:
     opts = options(ctx.cfg, passes)
     files: list[Path] = []
     metrics: dict[str, float] = {}
@@ -100,7 +101,7 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
     bar = tqdm(names, desc="plot", unit="figure")
     for name in bar:
         bar.set_postfix_str(name)
-        drawn, numbers = FIGURES.resolve(name)(passes, out, opts)
+        drawn, numbers = figure(name).drawer()(passes, out, opts)
         files += drawn
         metrics.update(numbers)
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
@@ -109,7 +110,7 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 
-def run(ctx: Context, passes: list[Any]) -> Figures:
+def run(ctx: Context, passes: list[PassResult]) -> Figures:
     figures = figures_of(ctx.cfg)
     for e in (e for p in passes for e in p.evaluations):
         require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
@@ -128,8 +129,8 @@ def run(ctx: Context, passes: list[Any]) -> Figures:
             inputs[f"{tag}/evaluate/{j}"] = e.key
     for name in figures:
         # a figure that reads files of its own (cost.csv, the paper's timings) puts their hashes in the key
-        if FIGURES.meta(name).get("keyed"):
-            cache_key = getattr(inspect.getmodule(FIGURES.resolve(name)), "cache_key")
+        cache_key = figure(name).keyer()
+        if cache_key is not None:
             config[name], extra_inputs = cache_key(passes, options(ctx.cfg, passes))
             inputs.update(extra_inputs)
     result = run_cached(ctx, "plot", VERSION, config, inputs, lambda out: make_plots(ctx, passes, out),
