@@ -12,7 +12,6 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     TEXT_WIDTH,
     concat_tables,
@@ -23,6 +22,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 PAIRING_COLUMNS = ("camera_jitter_m", "camera_jitter_deg", "object_resample_prob", "object_move_m")
 

@@ -16,8 +16,8 @@ import pandas as pd
 
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import read_checked_csv
+from pairedgta.figures.inputs import Passes
 from pairedgta.figures.ranking import RankingInput, ranking_figure, rho_table
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import convention_from_config

@@ -11,8 +11,8 @@ import pandas as pd
 import seaborn as sns
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 

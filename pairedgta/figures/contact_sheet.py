@@ -14,8 +14,8 @@ from pairedgta.cityscapes import colorize  # noqa: E402
 from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import class_legend_handles, save  # noqa: E402
+from pairedgta.figures.inputs import Passes
 
 
 def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, formats: list[str], dpi: int,

@@ -16,8 +16,8 @@ import seaborn as sns
 
 from pairedgta.errors import DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import TEXT_WIDTH, markdown_table, paper_style, save, slug
+from pairedgta.figures.inputs import Passes
 
 log = logging.getLogger("pairedgta.plot")
 

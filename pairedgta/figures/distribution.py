@@ -14,7 +14,6 @@ from pairedgta.cityscapes import colorize
 from pairedgta.datasets import PairedDataset, load_image
 from pairedgta.errors import DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     CLASS_COLORS,
     COLUMN_WIDTH,
@@ -24,6 +23,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 
 def pixel_mass(pseudo: Any) -> pd.DataFrame:

@@ -22,13 +22,13 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_table, paper_style, save
+from pairedgta.figures.inputs import Passes
+from pairedgta.figures.validity import FIX, evaluated_on_every_pass, references
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, TARGETS, USES_CLEAN_LABELS,
                                           EstimatorCounts, compare, concat_counts, pairwise_agreement, ranked_models)
 from pairedgta.metrics.validity import GroupCounts, concat_groups
-from pairedgta.figures.inputs import Passes
-from pairedgta.figures.validity import FIX, evaluated_on_every_pass, references
 
 NAMES = {"xi": "ξ (label-free)", "ac": "AC", "doc": "DoC", "atc": "ATC", "entropy": "1 − entropy", "gde": "GDE",
          "self_agreement": "self-agreement", "clean_miou": "clean GT mIoU"}

@@ -23,8 +23,8 @@ import pandas as pd
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import MODEL_DISPLAY, read_checked_csv, slug
+from pairedgta.figures.inputs import Passes
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics.reference_consistency import class_mean

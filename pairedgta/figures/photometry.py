@@ -19,8 +19,8 @@ from pairedgta.cityscapes import CLASS_NAMES  # noqa: E402
 from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import markdown_table, paper_style, save  # noqa: E402
+from pairedgta.figures.inputs import Passes
 from pairedgta.metrics.photometry import band_checks, group_rows, ladder_checks, physics_checks, summarise  # noqa: E402
 
 DEFAULTS = {"bands": {}, "night_max_luma_ratio": 0.35, "night_sky_max_luma": 0.15, "ladder_max_rise": 0.02}

@@ -22,7 +22,6 @@ from PIL import Image
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     TEXT_WIDTH,
     class_legend_handles,
@@ -32,6 +31,7 @@ from pairedgta.figures.common import (
     save,
     slug,
 )
+from pairedgta.figures.inputs import Passes
 
 log = logging.getLogger("pairedgta.plot")
 COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",

@@ -14,7 +14,6 @@ import seaborn as sns
 
 from pairedgta.conditions import headline_condition
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     concat_tables,
     condition_display,
@@ -24,6 +23,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 SELECTION_LABEL = {"top_m": "top-M", "nonzero": "non-zero"}
 

@@ -15,8 +15,8 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (TEXT_WIDTH, markdown_table, model_color, model_display, paper_style, save)
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 

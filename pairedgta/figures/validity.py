@@ -18,16 +18,14 @@ import pandas as pd
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_color, model_display, paper_style, save
+from pairedgta.figures.inputs import Passes
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics.validity import GroupCounts, concat_groups, validity
 
 MARKERS = "os^Dv<>Pp*Xh"
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "GT mIoU", "xi_gt_mean": "ξ vs GT"}
-
-
 FIX = "rerun with force=[evaluate]"
 
 

@@ -10,7 +10,6 @@ import pandas as pd
 import seaborn as sns
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.inputs import Passes
 from pairedgta.figures.common import (
     TEXT_WIDTH,
     concat_tables,
@@ -24,6 +23,7 @@ from pairedgta.figures.common import (
     save,
     slug,
 )
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 
