@@ -195,6 +195,22 @@ def test_figures_that_key_the_plot_by_their_own_files_say_so_in_their_spec():
         assert spec.needs in ("generate", "pseudolabel", "evaluate") if spec.source is None else spec.needs is None
 
 
+def test_the_plan_reads_what_figures_need_from_their_specs():
+    """needs, unless and source decide which stages run; an unknown name is one line listing the known ones."""
+    from pairedgta.errors import ConfigError
+    from pairedgta.stages.plot import figures_of, needed_stages
+
+    assert needed_stages({"plot": {"figures": ["xi_table", "distribution", "cost"]}}) == {"evaluate", "pseudolabel",
+                                                                                         "generate"}
+    assert needed_stages({"plot": {"figures": ["cost"]}, "cost": {"csv": "timings.csv"}}) == set()
+    given = {"plot": {"figures": ["xi_table"], "table_csv": "t.csv", "frame_counts_csv": "f.csv"}}
+    assert figures_of(given) == ["authors_ranking", "authors_table"] and needed_stages(given) == set()
+    with pytest.raises(ConfigError, match=r"^plot.figures='nope' is unknown; choose one of: ablation, authors_ranking"):
+        needed_stages({"plot": {"figures": ["nope"]}})
+    with pytest.raises(ConfigError, match=r"authors_table is drawn from a file of yours; set plot.table_csv=PATH"):
+        figures_of({"plot": {"figures": ["authors_table"]}})
+
+
 def test_the_stage_results_provide_what_figures_read():
     """Figures read a pass through the Protocols of pairedgta/figures/inputs.py (they import no stage); the
     plot stage hands them the stages' own classes, which must provide every member."""

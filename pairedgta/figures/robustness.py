@@ -103,7 +103,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     below = float(cfg.get("break_below", 0.5))
     classes = list(cfg.get("classes") or [])
     for p in passes:
-        ladder = getattr(p.grid, "ladder", None)
+        ladder = p.grid.ladder
         if ladder is None or not p.evaluations:
             continue
         curves = curve_table(p)

@@ -1,9 +1,9 @@
 """Plot stage: the paper's figures and tables from the cached stage outputs of one or more passes (a pass
 = one dataset variant: the generated dataset, ACDC, a pairing level ...). `plot.figures` picks the
-families registered in pairedgta.figures (xi_table, ranking, qualitative, ablation, distribution,
+families declared in pairedgta.figures.FIGURES (xi_table, ranking, qualitative, ablation, distribution,
 contact_sheet, cost); each draws itself from the passes.
 
-A figure registered with a `source` key (authors_table: Table 1 from the authors' released per-class
+A figure declared with a `source` key (authors_table: Table 1 from the authors' released per-class
 results, plot.table_csv=PATH) is drawn from that file alone: when the key is set it is the only figure
 and no stage runs before the plot (stages=[plot]).
 
