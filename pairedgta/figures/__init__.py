@@ -5,8 +5,8 @@ Every family is a function `draw(passes, out, opts) -> (files, metrics)` declare
 replaces that stage (`unless`), or of the only file it is drawn from (`source`, e.g. Table 1 from the
 authors' per-class CSV at plot.table_csv: when that key is set it is the run's only figure and reads no
 stage), and `key`, the function that puts the figure's own input files into the plot stage's cache key.
-The spec is all the plot stage reads before drawing, so a cached run imports no figure module (seaborn
-alone costs ~0.5 s). A pass gives the figures its dataset, grid and the results of its stages
+The spec is all the plot stage reads before drawing, so a cached run imports no figure module but those
+with a `key` (seaborn alone costs ~0.5 s). A pass gives the figures its dataset, grid and the results of its stages
 (`pairedgta.figures.inputs.FigurePass`), whose readers belong to the stages (`p.evaluations[i].xi()`,
 `p.pseudo.labels.load(group)`, ...): figures never name a stage's files and import no stage.
 
@@ -39,15 +39,20 @@ class FigureSpec:
     key: str | None = None  # "module:function", (passes, opts) -> (config, inputs): its own files in the key
 
     def drawer(self) -> Callable[[Passes, Path, FigureOptions], Drawn]:
-        return _load(self.draw)
+        return self._load(self.draw)
 
     def keyer(self) -> Callable[[Passes, FigureOptions], Keyed] | None:
-        return _load(self.key) if self.key else None
+        return self._load(self.key) if self.key else None
 
-
-def _load(target: str) -> Any:
-    module, attr = target.split(":")
-    return getattr(importlib.import_module(module), attr)
+    def _load(self, target: str) -> Any:
+        module, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except ModuleNotFoundError as exc:  # a plotting dependency missing: the fix, not a traceback
+            if exc.name and exc.name.split(".")[0] == "pairedgta":
+                raise
+            raise ConfigError(f"plot.figures={self.name} needs the Python package '{exc.name}', which is not "
+                              "installed; install the project as the README says (pip install -e .)") from None
 
 
 FIGURES: tuple[FigureSpec, ...] = (
