@@ -163,6 +163,22 @@ class ConditionGrid:
         return ConditionGrid(picked, self.reference, self.ladder)
 
 
+# The paper's headline adverse condition: the one whose rho_valid is logged without a condition in its
+# name, and the one the ranking figure shows, unless plot.ranking.condition names another.
+HEADLINE = "Night-EXTRASUNNY"
+
+
+def headline_condition(conditions: Iterable[str], wanted: str | None, reference: str | None = None) -> str | None:
+    """`wanted` (plot.ranking.condition) when it is among the adverse `conditions`, else HEADLINE, else the first
+    adverse one (None when there is none)."""
+    adverse = [c for c in conditions if c != reference]
+    if wanted and wanted in adverse:
+        return str(wanted)
+    if HEADLINE in adverse:
+        return HEADLINE
+    return adverse[0] if adverse else None
+
+
 def condition_name(time: str, weather: str) -> str:
     return f"{time}-{weather}"
 

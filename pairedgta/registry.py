@@ -1,11 +1,11 @@
-"""One construction style for every configurable object: renderers, regions, datasets, model families,
-figures.
+"""One construction style for every configurable object: renderers, regions, datasets, model families
+(figures declare a `FigureSpec` of their own in pairedgta/figures/__init__.py).
 
-A `Registry` maps a choice (`renderer.backend`, `region.type`, `dataset.kind`, `model.family`, an entry of
-`plot.figures`) to a lazily imported `"module:attr"` target, so optional dependencies (bpy, pyzmq,
-transformers) load only when used. Every target is called as `target(**config, **runtime)` and declares
-the keys it accepts in its keyword signature; `check_keys` rejects an unknown key the same way for all
-of them, naming the config key and the keys that exist.
+A `Registry` maps a choice (`renderer.backend`, `region.type`, `dataset.kind`, `model.family`) to a lazily
+imported `"module:attr"` target, so optional dependencies (bpy, pyzmq, transformers) load only when used.
+Every target is called as `target(**config, **runtime)` and declares the keys it accepts in its keyword
+signature; `check_keys` rejects an unknown key the same way for all of them, naming the config key and
+the keys that exist.
 """
 from __future__ import annotations
 

@@ -128,11 +128,11 @@ def test_the_package_parts_import_each_other_one_way():
 def test_declared_keys_read_from_source_match_the_signatures():
     """Config checks read a target's keyword names from its source (no import of torch or transformers
     for a check); they must be exactly what the imported signature says."""
-    from pairedgta.figures import FIGURES
+    from pairedgta.datasets import DATASETS
     from pairedgta.models import FAMILIES
     from pairedgta.registry import accepted_keys
 
-    for registry in (FAMILIES, FIGURES):
+    for registry in (FAMILIES, DATASETS):
         for name in registry.names():
             declared = registry.declared_keys(name)
             if declared is not None:

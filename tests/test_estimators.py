@@ -314,6 +314,35 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
         draw([p3], out, FigureOptions(["png"], 40, cfg))
 
 
+def test_one_reader_of_the_group_counts_serves_both_figures_and_xi_needs_no_estimator_sums(tmp_path):
+    """metric_validity and estimators read the entries through one reader (the same checks, the same
+    models); entries written without the est_* arrays still draw metric_validity, and estimators names
+    the arrays it lacks."""
+    from pairedgta.figures import FigureOptions
+    from pairedgta.figures import estimators as estimators_figure
+    from pairedgta.figures import validity as validity_figure
+
+    names = ["demo_ddrnet", "demo_pidnet", "demo_segformer", "demo_segformer_noaug", "m4"]
+    p = _fake_pass(tmp_path / "eval", names, "demo_segformer")
+    groups, _, _ = estimators_figure.load([p])
+    assert [g.model for g in groups] == [g.model for g in validity_figure.group_counts([p])] == sorted(names)
+    for e in p.evaluations:
+        e.group_counts = lambda a={k: v for k, v in e.group_counts().items() if not k.startswith("est_")}: a
+    out = tmp_path / "plot"
+    out.mkdir()
+    cfg = {"reference_model": "demo_segformer", "metric": {"convention": "strict", "absent": "nan",
+           "bootstrap": {"resamples": 20, "confidence": 0.9, "seed": 0}}}
+    files, metrics = validity_figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+    cells = pd.read_csv(out / "metric_validity_cells.csv")
+    assert "demo_segformer" not in set(cells["model"]) and cells["model"].nunique() == 4 and metrics
+    with pytest.raises(ConfigError, match=r"estimators needs est_pixels, .*group_counts.npz.*force=\[evaluate\]"):
+        estimators_figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+    p.evaluations[0].group_counts = lambda: {}  # an entry from before the group counts: both say so alike
+    for name, figure in (("metric_validity", validity_figure), ("estimators", estimators_figure)):
+        with pytest.raises(ConfigError, match=rf"{name} needs evaluate's group_counts.npz.*force=\[evaluate\]"):
+            figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+
+
 def test_the_difference_to_xi_is_paired_on_the_same_resamples():
     """Each estimator's within-condition mean Spearman minus xi's, with an interval from the same scene
     resamples; xi minus itself is 0 and gets no interval (a zero-width interval is no certainty)."""

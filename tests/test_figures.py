@@ -178,15 +178,56 @@ def test_contact_sheet_has_a_class_colour_key_for_its_label_tile(tmp_path, monke
     assert len(classes) >= 3 and classes == [c for c in CLASS_NAMES if c in classes]  # road, sky, ... in order
 
 
-def test_figures_that_key_the_plot_by_their_own_files_say_so_at_registration():
-    """plot reads `keyed` from the registry instead of importing every figure module on a cached run."""
-    import inspect
+def test_figures_that_key_the_plot_by_their_own_files_say_so_in_their_spec():
+    """The plot stage reads each figure's FigureSpec instead of importing every figure module on a cached
+    run: every declared function exists, and a module with a `cache_key` declares it (else its own files
+    would not enter the plot stage's key)."""
+    import importlib
 
     from pairedgta.figures import FIGURES
 
-    for name in FIGURES.names():
-        module = inspect.getmodule(FIGURES.resolve(name))
-        assert hasattr(module, "cache_key") == bool(FIGURES.meta(name).get("keyed")), name
+    assert len({spec.name for spec in FIGURES}) == len(FIGURES)
+    for spec in FIGURES:
+        module = importlib.import_module(spec.draw.split(":")[0])
+        assert spec.drawer() is module.draw, spec.name
+        assert hasattr(module, "cache_key") == (spec.key is not None), spec.name
+        assert spec.keyer() is getattr(module, "cache_key", None), spec.name
+        assert spec.needs in ("generate", "pseudolabel", "evaluate") if spec.source is None else spec.needs is None
+
+
+def test_the_plan_reads_what_figures_need_from_their_specs():
+    """needs, unless and source decide which stages run; an unknown name is one line listing the known ones."""
+    from pairedgta.errors import ConfigError
+    from pairedgta.stages.plot import figures_of, needed_stages
+
+    assert needed_stages({"plot": {"figures": ["xi_table", "distribution", "cost"]}}) == {"evaluate", "pseudolabel",
+                                                                                         "generate"}
+    assert needed_stages({"plot": {"figures": ["cost"]}, "cost": {"csv": "timings.csv"}}) == set()
+    given = {"plot": {"figures": ["xi_table"], "table_csv": "t.csv", "frame_counts_csv": "f.csv"}}
+    assert figures_of(given) == ["authors_ranking", "authors_table"] and needed_stages(given) == set()
+    with pytest.raises(ConfigError, match=r"^plot.figures='nope' is unknown; choose one of: ablation, authors_ranking"):
+        needed_stages({"plot": {"figures": ["nope"]}})
+    with pytest.raises(ConfigError, match=r"authors_table is drawn from a file of yours; set plot.table_csv=PATH"):
+        figures_of({"plot": {"figures": ["authors_table"]}})
+
+
+def test_the_stage_results_provide_what_figures_read():
+    """Figures read a pass through the Protocols of pairedgta/figures/inputs.py (they import no stage); the
+    plot stage hands them the stages' own classes, which must provide every member."""
+    from dataclasses import fields
+
+    from pairedgta.figures import inputs
+    from pairedgta.stages.evaluate import EvaluateResult
+    from pairedgta.stages.generate import GeneratedData
+    from pairedgta.stages.planning import PassResult
+    from pairedgta.stages.pseudolabel import PseudoLabels
+
+    for protocol, cls in ((inputs.FigurePass, PassResult), (inputs.Evaluation, EvaluateResult),
+                          (inputs.PseudoLabels, PseudoLabels), (inputs.GeneratedData, GeneratedData)):
+        members = {name for name in vars(protocol) if not name.startswith("_")}
+        assert len(members) >= 2, protocol
+        missing = members - set(dir(cls)) - {f.name for f in fields(cls)}
+        assert not missing, (protocol.__name__, cls.__name__, missing)
 
 
 def test_model_colours_are_matplotlibs_palettes_and_the_mlflow_runs_use_them():

@@ -41,6 +41,32 @@ def test_a_class_without_rho_valid_gets_words_instead_of_a_heatmap(monkeypatch, 
     assert "too few frames" in words and "1 of 6 clean" in words and "0 of 6 adverse" in words, titles
 
 
+def test_one_headline_condition_for_the_ranking_figure_and_the_logged_rho(tmp_path):
+    """plot.ranking.condition picks the condition the ranking figure shows and the one whose rho_valid is
+    logged without a condition in its name (the run's headline); absent from a dataset, Night-EXTRASUNNY,
+    else the first adverse condition."""
+    import json
+
+    from pairedgta.conditions import HEADLINE, headline_condition
+    from pairedgta.stages.evaluate import EvaluateResult
+
+    conds, ref = ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"], "Day-EXTRASUNNY"
+    rain = "Day-RAIN"  # plot.ranking.condition
+    assert headline_condition(conds, None, ref) == HEADLINE == "Night-EXTRASUNNY"
+    assert headline_condition(conds, rain, ref) == "Day-RAIN"
+    assert headline_condition(["ACDC-reference", "ACDC-night"], rain, "ACDC-reference") == "ACDC-night"
+    assert headline_condition([ref], rain, ref) is None
+
+    rows = [{"model": "m", "class_name": "car", "condition": c, "selection": "top_m", "rho": v}
+            for c, v in (("Day-RAIN", 0.2), ("Night-EXTRASUNNY", 0.7))]
+    pd.DataFrame(rows).to_csv(tmp_path / "rho_valid.csv", index=False)
+    pd.DataFrame(columns=["model", "reference_model", "condition", "class_name", "xi"]).to_csv(tmp_path / "xi.csv")
+    (tmp_path / "summary.json").write_text(json.dumps({}))
+    e = EvaluateResult("evaluate", "k", tmp_path, True)
+    assert e.metrics()["rho_valid/top_m/car"] == 0.7
+    assert e.metrics(headline=rain)["rho_valid/top_m/car"] == 0.2
+
+
 # -- rho_valid from the authors' per-frame counts (plot.frame_counts_csv) ---------------------------------
 def _authors_counts(path):
     """Two datasets x one model x two classes in the authors' format. our_dataset/car: clean counts 0..29
@@ -71,10 +97,12 @@ def test_rho_valid_from_the_authors_frame_counts_through_the_cli(tmp_path):
     import pytest
     from scipy.stats import spearmanr
 
-    from pairedgta.figures import FIGURES
+    from pairedgta.figures import FigureSpec, figure
     from pairedgta.testing.cli import run_cli
 
-    assert FIGURES.meta("authors_ranking") == {"needs": None, "source": "plot.frame_counts_csv", "keyed": True}
+    assert figure("authors_ranking") == FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw",
+                                                   source="plot.frame_counts_csv",
+                                                   key="pairedgta.figures.authors_ranking:cache_key")
     csv, df = _authors_counts(tmp_path / "framewise_target_class_counts.csv")
     cache = tmp_path / "cache"
     args = ["+experiment=night_vs_acdc", "stages=[plot]", f"plot.frame_counts_csv={csv}", f"cache_dir={cache}",

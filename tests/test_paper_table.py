@@ -225,10 +225,11 @@ def test_table_from_the_csv_is_a_registered_figure_keyed_by_content(tmp_path):
     drawn alone when plot.table_csv is set, and asking for it without the file or with data stages is one
     line before anything runs."""
     from pairedgta.app import run
-    from pairedgta.figures import FIGURES
+    from pairedgta.figures import FigureSpec, figure
     from pairedgta.testing.cli import base_overrides, compose_cfg
 
-    assert FIGURES.meta("authors_table") == {"needs": None, "source": "plot.table_csv", "keyed": True}
+    assert figure("authors_table") == FigureSpec("authors_table", "pairedgta.figures.paper_table:draw",
+                                                 source="plot.table_csv", key="pairedgta.figures.paper_table:cache_key")
     (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
     csv = small_csv(tmp_path / "a" / "results.csv")
     moved = tmp_path / "b" / "renamed.csv"

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from pairedgta.conditions import Condition, ConditionGrid
+from pairedgta.datasets import root_hint
 from pairedgta.datasets.base import Group, PairedDataset
 from pairedgta.errors import ConfigError, DataError
 
@@ -27,7 +28,6 @@ log = logging.getLogger(__name__)
 CONDITIONS = ("fog", "night", "rain", "snow")
 SPLITS = ("train", "val", "test")
 REFERENCE = "ACDC-reference"
-URL = "https://acdc.vision.ee.ethz.ch"
 ADVERSE_RE = re.compile(r"^(?P<seq>.+)_frame_(?P<n>\d+)_rgb_anon$")
 # backend-neutral physical parameters of the adverse condition (descriptive only: nothing is rendered)
 _PHYSICAL = {
@@ -67,12 +67,6 @@ def label_path(root: Path, cond: str, split: str, seq: str, n: str) -> Path:
     return root / "gt" / cond / split / seq / f"{seq}_frame_{n}_gt_labelTrainIds.png"
 
 
-ROOT_HINT = (
-    f"ACDC is not available: register and download it (rgb_anon + gt) from {URL}, "
-    "then set {key}=/path/to/ACDC (the folder that holds rgb_anon/ and gt/)"
-)
-
-
 def _as_list(value: Any) -> list[str]:
     if value is None:
         return list(SPLITS[:2])
@@ -98,7 +92,7 @@ def open_acdc(
         raise ConfigError(f"dataset.splits: unknown {bad}; ACDC splits are {', '.join(SPLITS)}")
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"dataset.root={root} does not exist; {ROOT_HINT.format(key='dataset.root')}")
+        raise DataError(f"dataset.root={root} does not exist; {root_hint('acdc', 'dataset.root')}")
     expected = [root / "rgb_anon" / cond / s for s in splits]
     missing_dirs = [p for p in expected if not p.is_dir()]
     if missing_dirs:

@@ -1,38 +1,91 @@
 """Figure families of the plot stage, one module each, all drawn the same way.
 
-Every family is a function `draw(passes, out, opts) -> (files, metrics)` registered here with the stage
-whose outputs it reads (`needs`) and, where it can read a user-given file instead, the config key that
-names it (`unless`). A figure drawn only from a file the user gives (`source`, e.g. Table 1 from the
-authors' per-class CSV at plot.table_csv) reads no stage: when its key is set it is the run's only figure. A pass gives the figures its dataset, grid and the results of its stages, whose
-readers belong to the stages (`p.evaluations[i].xi()`, `p.pseudo.labels.load(group)`, ...): figures
-never name a stage's files and import no stage."""
+Every family is a function `draw(passes, out, opts) -> (files, metrics)` declared by one `FigureSpec` in
+`FIGURES` below: the stage whose outputs it reads (`needs`), the config key of a user-given file that
+replaces that stage (`unless`), or of the only file it is drawn from (`source`, e.g. Table 1 from the
+authors' per-class CSV at plot.table_csv: when that key is set it is the run's only figure and reads no
+stage), and `key`, the function that puts the figure's own input files into the plot stage's cache key.
+The spec is all the plot stage reads before drawing, so a cached run imports no figure module but those
+with a `key` (seaborn alone costs ~0.5 s). A pass gives the figures its dataset, grid and the results of its stages
+(`pairedgta.figures.inputs.FigurePass`), whose readers belong to the stages (`p.evaluations[i].xi()`,
+`p.pseudo.labels.load(group)`, ...): figures never name a stage's files and import no stage.
+
+Adding a figure: a module with `draw`, and one line in `FIGURES`."""
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
-from pairedgta.registry import Registry
+from pairedgta.errors import ConfigError
 
-FIGURES = Registry("figure", "plot.figures")
-FIGURES.register("xi_table", "pairedgta.figures.xi:draw", needs="evaluate")
-FIGURES.register("ranking", "pairedgta.figures.ranking:draw", needs="evaluate")
-FIGURES.register("qualitative", "pairedgta.figures.qualitative:draw", needs="evaluate")
-FIGURES.register("xi_models", "pairedgta.figures.comparison:draw", needs="evaluate")
-FIGURES.register("metric_validity", "pairedgta.figures.validity:draw", needs="evaluate")
-# keyed: metric.validity.permutations and reference_model enter the plot hash
-FIGURES.register("estimators", "pairedgta.figures.estimators:draw", needs="evaluate", keyed=True)
-FIGURES.register("ablation", "pairedgta.figures.ablation:draw", needs="evaluate")
-FIGURES.register("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel")
-FIGURES.register("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate")
-FIGURES.register("robustness", "pairedgta.figures.robustness:draw", needs="evaluate")  # ladders only
-# keyed: the module has a `cache_key(passes, opts)` (files of its own enter the plot hash); declared here
-# so that a cached run imports no figure module (seaborn alone costs ~0.5 s)
-FIGURES.register("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv", keyed=True)
-FIGURES.register("photometry", "pairedgta.figures.photometry:draw", needs="generate", keyed=True)
-FIGURES.register("authors_table", "pairedgta.figures.paper_table:draw", needs=None, source="plot.table_csv", keyed=True)
-FIGURES.register("authors_ranking", "pairedgta.figures.authors_ranking:draw", needs=None, source="plot.frame_counts_csv",
-                 keyed=True)
+if TYPE_CHECKING:
+    from pairedgta.figures.inputs import Passes
+
+Drawn = tuple[list[Path], dict[str, float]]  # the files a figure wrote and the numbers it logs
+Keyed = tuple[dict[str, Any], dict[str, str]]  # (config, input hashes) a figure adds to the plot key
+
+
+@dataclass(frozen=True)
+class FigureSpec:
+    """What a figure reads, declared without importing it."""
+
+    name: str
+    draw: str  # "module:function", called as draw(passes, out, opts) -> (files, metrics)
+    needs: str | None = None  # the upstream stage it reads: generate, pseudolabel or evaluate
+    unless: str | None = None  # config key of a file of the user's that replaces `needs` (cost.csv)
+    source: str | None = None  # config key of the one file it is drawn from instead of the run's data
+    key: str | None = None  # "module:function", (passes, opts) -> (config, inputs): its own files in the key
+
+    def drawer(self) -> Callable[[Passes, Path, FigureOptions], Drawn]:
+        return self._load(self.draw)
+
+    def keyer(self) -> Callable[[Passes, FigureOptions], Keyed] | None:
+        return self._load(self.key) if self.key else None
+
+    def _load(self, target: str) -> Any:
+        module, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except ModuleNotFoundError as exc:  # a plotting dependency missing: the fix, not a traceback
+            if exc.name and exc.name.split(".")[0] == "pairedgta":
+                raise
+            raise ConfigError(f"plot.figures={self.name} needs the Python package '{exc.name}', which is not "
+                              "installed; install the project as the README says (pip install -e .)") from None
+
+
+FIGURES: tuple[FigureSpec, ...] = (
+    FigureSpec("xi_table", "pairedgta.figures.xi:draw", needs="evaluate"),
+    FigureSpec("ranking", "pairedgta.figures.ranking:draw", needs="evaluate"),
+    FigureSpec("qualitative", "pairedgta.figures.qualitative:draw", needs="evaluate"),
+    FigureSpec("xi_models", "pairedgta.figures.comparison:draw", needs="evaluate"),
+    FigureSpec("metric_validity", "pairedgta.figures.validity:draw", needs="evaluate"),
+    # keyed by metric.validity.permutations and reference_model, which only this figure reads
+    FigureSpec("estimators", "pairedgta.figures.estimators:draw", needs="evaluate",
+               key="pairedgta.figures.estimators:cache_key"),
+    FigureSpec("ablation", "pairedgta.figures.ablation:draw", needs="evaluate"),
+    FigureSpec("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel"),
+    FigureSpec("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate"),
+    FigureSpec("robustness", "pairedgta.figures.robustness:draw", needs="evaluate"),  # only on a severity ladder
+    # keyed by the files they read besides the stages' (cost.csv, the paper's timings, the authors' CSVs)
+    FigureSpec("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv",
+               key="pairedgta.figures.cost:cache_key"),
+    FigureSpec("photometry", "pairedgta.figures.photometry:draw", needs="generate",
+               key="pairedgta.figures.photometry:cache_key"),
+    FigureSpec("authors_table", "pairedgta.figures.paper_table:draw", source="plot.table_csv",
+               key="pairedgta.figures.paper_table:cache_key"),
+    FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw", source="plot.frame_counts_csv",
+               key="pairedgta.figures.authors_ranking:cache_key"),
+)
+_BY_NAME = {spec.name: spec for spec in FIGURES}
+
+
+def figure(name: Any) -> FigureSpec:
+    """The spec of a figure named in plot.figures; one line listing the known ones for any other name."""
+    if name not in _BY_NAME:
+        raise ConfigError(f"plot.figures={name!r} is unknown; choose one of: {', '.join(sorted(_BY_NAME))}")
+    return _BY_NAME[name]
 
 
 @dataclass
@@ -68,4 +121,4 @@ def lookup(cfg: dict[str, Any], dotted: str) -> Any:
     return node
 
 
-__all__ = ["FIGURES", "FigureOptions", "lookup"]
+__all__ = ["FIGURES", "FigureOptions", "FigureSpec", "figure", "lookup"]

@@ -22,6 +22,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 PAIRING_COLUMNS = ("camera_jitter_m", "camera_jitter_deg", "object_resample_prob", "object_move_m")
 
@@ -109,7 +110,7 @@ def ablation_table(frame: pd.DataFrame, classes: list[str], selection: str, out:
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Mean xi, rho_valid and structure agreement per pairing level (one evaluated pass per level)."""
     evaluated = [p for p in passes if p.evaluations]
     if not evaluated:

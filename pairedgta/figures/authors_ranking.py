@@ -17,6 +17,7 @@ import pandas as pd
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import read_checked_csv
+from pairedgta.figures.inputs import Passes
 from pairedgta.figures.ranking import RankingInput, ranking_figure, rho_table
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import convention_from_config
@@ -98,7 +99,7 @@ def _options(opts: FigureOptions) -> tuple[Path, dict[str, Any]]:
     return Path(str(plot["frame_counts_csv"])), settings
 
 
-def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
     """The plot entry depends on the file's content (not its path) and the rho settings."""
     path, settings = _options(opts)
     if not path.is_file():
@@ -106,7 +107,7 @@ def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[s
     return settings, {"frame_counts_csv": sha256_file(path)[:16]}
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """The ranking figure and rho_valid.csv/.md from plot.frame_counts_csv; metrics
     `rho_valid/<dataset>/<model>/<selection>/<class>`."""
     path, s = _options(opts)

@@ -12,11 +12,12 @@ import seaborn as sns
 
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 
 
-def mean_table(passes: list, label: str | None = None) -> pd.DataFrame:
+def mean_table(passes: Passes, label: str | None = None) -> pd.DataFrame:
     """Long table: pass, model, condition, xi_mean (vs the pseudo-labels), gt_miou (NaN without labels)."""
     rows = []
     for p in passes:
@@ -32,7 +33,7 @@ def mean_table(passes: list, label: str | None = None) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["pass", "model", "condition", "xi_mean", "gt_miou"])
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     metrics: dict[str, float] = {}
     for p in passes:

@@ -15,6 +15,7 @@ from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import PairedDataset, load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
 from pairedgta.figures.common import class_legend_handles, save  # noqa: E402
+from pairedgta.figures.inputs import Passes
 
 
 def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, formats: list[str], dpi: int,
@@ -50,7 +51,7 @@ def contact_sheet(dataset: PairedDataset, conditions: list[str], out: Path, form
     return save(fig, out, stem, formats, dpi)
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """A contact sheet of the first group of every generated pass."""
     files: list[Path] = []
     for p in passes:

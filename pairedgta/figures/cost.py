@@ -17,6 +17,7 @@ import seaborn as sns
 from pairedgta.errors import DataError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, markdown_table, paper_style, save, slug
+from pairedgta.figures.inputs import Passes
 
 log = logging.getLogger("pairedgta.plot")
 
@@ -139,7 +140,7 @@ def cost_table(sources: list[Timings], out: Path, stem: str = "cost_summary") ->
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 
 
-def sources(passes: list, opts: FigureOptions) -> list[tuple[str, str, Path]]:
+def sources(passes: Passes, opts: FigureOptions) -> list[tuple[str, str, Path]]:
     """(metric key, label, CSV) of every timing source: the paper's CSV (cost.paper), then cost.csv or
     each generated pass's own timings."""
     from pairedgta.data import PAPER_GENERATION_TIMES
@@ -161,7 +162,7 @@ def sources(passes: list, opts: FigureOptions) -> list[tuple[str, str, Path]]:
     return listed
 
 
-def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
     """The cost settings, and the content hash of every timing CSV read (the plot stage's cache key)."""
     import hashlib
 
@@ -170,7 +171,7 @@ def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[s
     return dict(opts.cfg.get("cost") or {}), inputs
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     listed = sources(passes, opts)
     timings = [load_timings(path, label) for _, label, path in listed]
     if not timings:

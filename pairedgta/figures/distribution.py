@@ -23,6 +23,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 
 def pixel_mass(pseudo: Any) -> pd.DataFrame:
@@ -85,7 +86,7 @@ def distribution_table(pseudo: Any, out: Path, stem: str = "pixel_mass") -> list
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Pixel mass per class of each pass's pseudo-labels, with one reference image and its pseudo-label."""
     files: list[Path] = []
     metrics: dict[str, float] = {}

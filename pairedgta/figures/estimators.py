@@ -22,6 +22,8 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_table, paper_style, save
+from pairedgta.figures.inputs import Passes
+from pairedgta.figures.validity import FIX, evaluated_on_every_pass, references
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, TARGETS, USES_CLEAN_LABELS,
@@ -32,7 +34,6 @@ NAMES = {"xi": "ξ (label-free)", "ac": "AC", "doc": "DoC", "atc": "ATC", "entro
          "self_agreement": "self-agreement", "clean_miou": "clean GT mIoU"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
 STATS = ("spearman", "kendall", "mae", "p_permutation")
-FIX = "rerun with force=[evaluate]"
 
 
 def settings(opts: FigureOptions) -> dict[str, Any]:
@@ -43,37 +44,18 @@ def settings(opts: FigureOptions) -> dict[str, Any]:
             "seed": int(boot.get("seed", 0)), "reference_model": opts.cfg.get("reference_model")}
 
 
-def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
     """What the figure reads beyond the evaluations (the plot stage's cache key): permutations, reference."""
     return settings(opts), {}
 
 
-def references(passes: list, opts: FigureOptions) -> set[str]:
-    """The pseudo-label source of every pass (the run's reference_model where a pass has none)."""
-    refs = {p.pseudo.reference_model() for p in passes if getattr(p, "pseudo", None) is not None}
-    return refs or ({str(opts.cfg["reference_model"])} if opts.cfg.get("reference_model") else set())
-
-
-def load(passes: list) -> tuple[list[GroupCounts], list[EstimatorCounts], dict[str, list[Path]]]:
+def load(passes: Passes) -> tuple[list[GroupCounts], list[EstimatorCounts], dict[str, list[Path]]]:
     """Per model evaluated on every pass (sorted by name): its groups of every pass, and the pass's
     predictions.npz paths."""
-    per: dict[str, list[tuple[GroupCounts, EstimatorCounts, Path]]] = {}
-    for p in passes:
-        for e in p.evaluations:
-            arrays = e.group_counts()
-            missing = [k for k in COUNT_ARRAYS if k not in arrays]
-            if missing:
-                raise ConfigError(f"plot.figures: estimators needs {', '.join(missing)} in {Path(e.path) / 'group_counts.npz'}"
-                                  f", written by a newer evaluate; {FIX}")
-            if not arrays["cm_present"].any():
-                raise ConfigError(f"plot.figures: estimators needs ground-truth labels under every condition; dataset "
-                                  f"{p.label} has none (use the generated dataset of the embedded renderer)")
-            per.setdefault(e.model, []).append((GroupCounts.from_arrays(e.model, arrays),
-                                                EstimatorCounts.from_arrays(e.model, arrays), Path(e.path)))
-    full = {m: parts for m, parts in sorted(per.items()) if len(parts) == len(passes)}
-    return ([concat_groups(g for g, _, _ in parts) for parts in full.values()],
-            [concat_counts(c for _, c, _ in parts) for parts in full.values()],
-            {m: [path for _, _, path in parts] for m, parts in full.items()})
+    full = evaluated_on_every_pass(passes, "estimators", COUNT_ARRAYS)
+    return ([concat_groups(GroupCounts.from_arrays(m, counts) for counts, _ in parts) for m, parts in full.items()],
+            [concat_counts(EstimatorCounts.from_arrays(m, counts) for counts, _ in parts) for m, parts in full.items()],
+            {m: [path for _, path in parts] for m, parts in full.items()})
 
 
 def agreement(models: list[GroupCounts], paths: dict[str, list[Path]], n_passes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,7 +83,7 @@ def agreement(models: list[GroupCounts], paths: dict[str, list[Path]], n_passes:
     return np.concatenate(agree), np.concatenate(scored)
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     models, counts, paths = load(passes)
     refs = references(passes, opts)
     ranked = ranked_models([m.model for m in models], refs)

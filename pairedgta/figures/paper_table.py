@@ -24,6 +24,7 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import MODEL_DISPLAY, read_checked_csv, slug
+from pairedgta.figures.inputs import Passes
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.conventions import Convention, convention_from_config
 from pairedgta.metrics.reference_consistency import class_mean
@@ -223,7 +224,7 @@ def _options(opts: FigureOptions) -> tuple[Path, Convention, dict[str, Any]]:
     return Path(str(plot["table_csv"])), convention_from_config(opts.cfg.get("metric") or {}), filters
 
 
-def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
     """The plot entry depends on the file's content (not its path), the filters and the convention."""
     path, convention, filters = _options(opts)
     if not path.is_file():
@@ -231,7 +232,7 @@ def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[s
     return {"filter": filters, "convention": convention.as_dict()}, {"table_csv": sha256_file(path)[:16]}
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Table 1 (CSV/Markdown/LaTeX, a heatmap per model) from plot.table_csv under the run's metric
     convention; the metrics are every Mean, `table/authors/xi_mean/<condition>/<model>`."""
     path, convention, filters = _options(opts)

@@ -20,6 +20,7 @@ from pairedgta.conditions import condition_display  # noqa: E402
 from pairedgta.datasets import load_image, load_label  # noqa: E402
 from pairedgta.figures import FigureOptions  # noqa: E402
 from pairedgta.figures.common import markdown_table, paper_style, save  # noqa: E402
+from pairedgta.figures.inputs import Passes
 from pairedgta.metrics.photometry import band_checks, group_rows, ladder_checks, physics_checks, summarise  # noqa: E402
 
 DEFAULTS = {"bands": {}, "night_max_luma_ratio": 0.35, "night_sky_max_luma": 0.15, "ladder_max_rise": 0.02}
@@ -35,7 +36,7 @@ def reference_table() -> pd.DataFrame:
     return pd.read_csv(GTA_PHOTOMETRY)
 
 
-def cache_key(passes: list, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
+def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
     """The settings and the shipped GTA V table's content (the plot stage's cache key)."""
     from pairedgta.data import GTA_PHOTOMETRY
 
@@ -95,7 +96,7 @@ def _write(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     s = settings(opts)
     gta = reference_table()
     files: list[Path] = []

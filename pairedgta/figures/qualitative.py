@@ -31,6 +31,7 @@ from pairedgta.figures.common import (
     save,
     slug,
 )
+from pairedgta.figures.inputs import Passes
 
 log = logging.getLogger("pairedgta.plot")
 COLUMNS = ("clean image", "clean\nprediction", "adverse image", "adverse\nprediction", "adverse\nconfidence",
@@ -169,7 +170,7 @@ def clean_condition(p: Any) -> str:
     return clean if clean in p.grid.names else p.grid.reference
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Worst/best groups per adverse condition for every evaluated model of every pass."""
     n = int(opts.plot.get("qualitative_groups", 2))
     wanted = opts.plot.get("qualitative_conditions")

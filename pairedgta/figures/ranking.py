@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.conditions import headline_condition
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     concat_tables,
@@ -22,6 +23,7 @@ from pairedgta.figures.common import (
     paper_style,
     save,
 )
+from pairedgta.figures.inputs import Passes
 
 SELECTION_LABEL = {"top_m": "top-M", "nonzero": "non-zero"}
 
@@ -34,16 +36,6 @@ class RankingInput:
     condition: str
     counts: pd.DataFrame  # frame_counts.csv rows of every model
     rho: pd.DataFrame  # rho_valid.csv rows of every model
-
-
-def pick_condition(conditions: list[str], wanted: str | None, reference: str) -> str | None:
-    """The configured condition when this dataset has it, else Night-EXTRASUNNY, else the first adverse."""
-    adverse = [c for c in conditions if c != reference]
-    if wanted and wanted in adverse:
-        return wanted
-    if "Night-EXTRASUNNY" in adverse:
-        return "Night-EXTRASUNNY"
-    return adverse[0] if adverse else None
 
 
 def sorted_counts(counts: pd.DataFrame, model: str, cls: str, condition: str) -> pd.DataFrame:
@@ -167,7 +159,7 @@ def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: s
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """The ranking figure and rho table over every evaluated pass (its own adverse condition each)."""
     ranking = opts.plot.get("ranking") or {}
     classes = list(ranking.get("classes") or ["person", "car"])
@@ -177,8 +169,8 @@ def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict
             continue
         counts = concat_tables(p.evaluations, "frame_counts")
         rho = concat_tables(p.evaluations, "rho")
-        wanted = ((p.cfg.get("plot") or {}).get("ranking") or {}).get("condition")
-        cond = pick_condition(list(dict.fromkeys(counts["condition"])) if not counts.empty else [], wanted, p.grid.reference)
+        conds = list(dict.fromkeys(counts["condition"])) if not counts.empty else []
+        cond = headline_condition(conds, p.run.plot.ranking.condition, p.grid.reference)  # plot.ranking.condition where the pass has it
         if cond is not None:
             inputs.append(RankingInput(p.label, cond, counts, rho))
     if not inputs:

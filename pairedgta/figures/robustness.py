@@ -16,6 +16,7 @@ import pandas as pd
 
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (TEXT_WIDTH, markdown_table, model_color, model_display, paper_style, save)
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 
@@ -95,14 +96,14 @@ def _legend(fig, ax) -> None:
                bbox_to_anchor=(0.5, 1.0 - 0.25 / fig.get_figheight()))
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     metrics: dict[str, float] = {}
     cfg = dict(opts.plot.get("robustness") or {})
     below = float(cfg.get("break_below", 0.5))
     classes = list(cfg.get("classes") or [])
     for p in passes:
-        ladder = getattr(p.grid, "ladder", None)
+        ladder = p.grid.ladder
         if ladder is None or not p.evaluations:
             continue
         curves = curve_table(p)

@@ -19,35 +19,54 @@ from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_color, model_display, paper_style, save
+from pairedgta.figures.inputs import Passes
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.metrics.validity import GroupCounts, concat_groups, validity
 
 MARKERS = "os^Dv<>Pp*Xh"
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "GT mIoU", "xi_gt_mean": "ξ vs GT"}
+FIX = "rerun with force=[evaluate]"
 
 
-def group_counts(passes: list) -> list[GroupCounts]:
-    """Per model, its groups of every pass (only models evaluated on every pass, with labels)."""
-    per_model: dict[str, list[GroupCounts]] = {}
+def references(passes: Passes, opts: FigureOptions) -> set[str]:
+    """The pseudo-label source of every pass (the run's reference_model where a pass has none): not ranked,
+    it would grade itself."""
+    refs = {p.pseudo.reference_model() for p in passes if p.pseudo is not None}
+    return refs or ({str(opts.cfg["reference_model"])} if opts.cfg.get("reference_model") else set())
+
+
+def evaluated_on_every_pass(passes: Passes, figure: str,
+                            arrays: tuple[str, ...] = ()) -> dict[str, list[tuple[dict[str, np.ndarray], Path]]]:
+    """Per model evaluated on every pass (sorted by name): each pass's group counts (`e.group_counts()`) and
+    the entry's folder. The one reader of the figures that rank models against ground truth: every entry
+    needs the counts with labels under every condition, and the `arrays` beyond xi's that `figure` reads."""
+    per: dict[str, list[tuple[dict[str, np.ndarray], Path]]] = {}
     for p in passes:
         for e in p.evaluations:
-            arrays = e.group_counts()
-            if not arrays:
-                raise ConfigError(f"plot.figures: metric_validity needs evaluate's group_counts.npz, which {e.path} "
-                                  "lacks (written before evaluate VERSION 4); rerun with force=[evaluate]")
-            if not arrays["cm_present"].any():
-                raise ConfigError(f"plot.figures: metric_validity needs ground-truth labels under every condition; "
-                                  f"dataset {p.label} has none (use the generated dataset of the embedded renderer)")
-            per_model.setdefault(e.model, []).append(GroupCounts.from_arrays(e.model, arrays))
-    n_passes = len(passes)
-    return [concat_groups(parts) for model, parts in sorted(per_model.items()) if len(parts) == n_passes]
+            counts = e.group_counts()
+            if not counts:
+                raise ConfigError(f"plot.figures: {figure} needs evaluate's group_counts.npz, which {e.path} lacks "
+                                  f"(written before evaluate VERSION 4); {FIX}")
+            missing = [k for k in arrays if k not in counts]
+            if missing:
+                raise ConfigError(f"plot.figures: {figure} needs {', '.join(missing)} in "
+                                  f"{Path(e.path) / 'group_counts.npz'}, written by a newer evaluate; {FIX}")
+            if not counts["cm_present"].any():
+                raise ConfigError(f"plot.figures: {figure} needs ground-truth labels under every condition; dataset "
+                                  f"{p.label} has none (use the generated dataset of the embedded renderer)")
+            per.setdefault(e.model, []).append((counts, Path(e.path)))
+    return {model: parts for model, parts in sorted(per.items()) if len(parts) == len(passes)}
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
-    from pairedgta.figures.estimators import references
+def group_counts(passes: Passes) -> list[GroupCounts]:
+    """Per model, its groups of every pass (only models evaluated on every pass, with labels)."""
+    return [concat_groups(GroupCounts.from_arrays(model, counts) for counts, _ in parts)
+            for model, parts in evaluated_on_every_pass(passes, "metric_validity").items()]
 
-    refs = references(passes, opts)  # the pseudo-label source is not ranked: it would grade itself
+
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+    refs = references(passes, opts)
     models = [m for m in group_counts(passes) if m.model not in refs]
     if len(models) < 3:  # two models always rank-correlate at +1 or -1: no evidence either way
         raise ConfigError(f"plot.figures: metric_validity ranks models and found {len(models)} evaluated on every pass "

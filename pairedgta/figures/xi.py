@@ -23,6 +23,7 @@ from pairedgta.figures.common import (
     save,
     slug,
 )
+from pairedgta.figures.inputs import Passes
 
 GT = "ground_truth"
 
@@ -232,7 +233,7 @@ def heatmap_figures(xi: pd.DataFrame, reference: str, out: Path, formats: list[s
     return files
 
 
-def draw(passes: list, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
+def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Table 1 (CSV/Markdown/LaTeX) + heatmap per evaluated pass, xi against the pseudo-labels."""
     files: list[Path] = []
     metrics: dict[str, float] = {}

@@ -30,6 +30,7 @@ from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.settings import conditions_for, metric_settings
 from pairedgta.schema import as_dict
 from pairedgta.models import shared_segmenter
+from pairedgta.conditions import headline_condition
 from pairedgta.stages.common import (
     Context,
     StageResult,
@@ -99,10 +100,11 @@ class EvaluateResult(StageResult):
     def artifacts(self) -> list[Path]:
         return [self.path / f for f in self.FILES if (self.path / f).is_file()]
 
-    def metrics(self, per_class: bool = False) -> dict[str, float]:
+    def metrics(self, per_class: bool = False, headline: str | None = None) -> dict[str, float]:
         """The MLflow view: xi_mean/<cond>, xi_gt_mean/<cond>, gt_miou/<cond>, agreement/<cond> and the
-        headline condition's rho_valid/<sel>/<class>; with `per_class` (tracking.class_metrics) also
-        xi/<cond>/<class>, xi_gt/<cond>/<class> and rho_valid/<cond>/<sel>/<class>, ten times as many
+        headline condition's rho_valid/<sel>/<class> (`conditions.headline_condition`: `headline`, the run's
+        plot.ranking.condition, when set, as the ranking figure shows); with `per_class` (tracking.class_metrics)
+        also xi/<cond>/<class>, xi_gt/<cond>/<class> and rho_valid/<cond>/<sel>/<class>, ten times as many
         metrics (the xi table and xi.csv/rho_valid.csv hold them either way)."""
         metrics: dict[str, float] = {}
         for row in self.xi().itertuples():
@@ -113,7 +115,7 @@ class EvaluateResult(StageResult):
                 metrics[f"{prefix}/{row.condition}/{row.class_name}"] = row.xi
         rho = self.rho()
         conds = list(dict.fromkeys(rho["condition"])) if not rho.empty else []
-        main = "Night-EXTRASUNNY" if "Night-EXTRASUNNY" in conds else (conds[0] if conds else None)
+        main = headline_condition(conds, headline)
         for row in rho.itertuples():
             if per_class:
                 metrics[f"rho_valid/{row.condition}/{row.selection}/{row.class_name}"] = row.rho
@@ -298,7 +300,8 @@ def step(ctx: Context, p: Any, state: Any) -> None:
             recorder.params({"model": model_cfg, "metric": as_dict(ctx.run.metric), "reference_model": state.models.reference["name"]})
             recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
                            "pass": p.label, "model": model_cfg["name"]})
-            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
+            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics,
+                                             headline=ctx.run.plot.ranking.condition))
             p.record_dataset(recorder)
             recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
             recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",

@@ -12,6 +12,7 @@ overrides) serves wherever the run uses that model, evaluated or as reference; e
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -45,9 +46,14 @@ class PassResult:
     pseudo: Any = None  # pseudolabel.PseudoLabels
     evaluations: list[evaluate.EvaluateResult] = field(default_factory=list)
 
+    @functools.cached_property
+    def run(self) -> schema.RunConfig:
+        """The pass's config, typed (pairedgta/schema.py)."""
+        return schema.parse(self.cfg)
+
     @property
     def pairing(self) -> dict[str, float]:
-        return schema.as_dict(schema.parse(self.cfg).generate.pairing)
+        return schema.as_dict(self.run.generate.pairing)
 
     def record_dataset(self, recorder: Recorder) -> None:
         """The pass's dataset as an MLflow dataset input of the active run."""

@@ -1,9 +1,9 @@
 """Plot stage: the paper's figures and tables from the cached stage outputs of one or more passes (a pass
 = one dataset variant: the generated dataset, ACDC, a pairing level ...). `plot.figures` picks the
-families registered in pairedgta.figures (xi_table, ranking, qualitative, ablation, distribution,
+families declared in pairedgta.figures.FIGURES (xi_table, ranking, qualitative, ablation, distribution,
 contact_sheet, cost); each draws itself from the passes.
 
-A figure registered with a `source` key (authors_table: Table 1 from the authors' released per-class
+A figure declared with a `source` key (authors_table: Table 1 from the authors' released per-class
 results, plot.table_csv=PATH) is drawn from that file alone: when the key is set it is the only figure
 and no stage runs before the plot (stages=[plot]).
 
@@ -12,21 +12,23 @@ to MLflow (so a cache hit logs them too) and `owners.json` which figures show on
 go to that model's MLflow run)."""
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
 from pairedgta.cache import require_intact
 from pairedgta.errors import ConfigError
-from pairedgta.figures import FIGURES, FigureOptions, lookup
+from pairedgta.figures import FIGURES, FigureOptions, figure, lookup
 from pairedgta.jsonio import write_json
 from pairedgta.stages.common import Context, StageResult, run_cached
+
+if TYPE_CHECKING:  # planning imports this module when it plans
+    from pairedgta.stages.planning import PassResult
 
 log = logging.getLogger("pairedgta.plot")
 VERSION = "10"  # 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
@@ -60,8 +62,8 @@ class Figures(StageResult):
 
 def sourced(cfg: dict[str, Any]) -> dict[str, str]:
     """figure -> the config key of the file it is drawn from, for the figures whose key is set."""
-    keys = {name: FIGURES.meta(name).get("source") for name in FIGURES.names()}
-    return {name: key for name, key in keys.items() if key and lookup(cfg, key)}
+    specs = sorted(FIGURES, key=lambda spec: spec.name)  # by name: the order they are drawn in
+    return {spec.name: spec.source for spec in specs if spec.source and lookup(cfg, spec.source)}
 
 
 def figures_of(cfg: dict[str, Any]) -> list[str]:
@@ -71,7 +73,7 @@ def figures_of(cfg: dict[str, Any]) -> list[str]:
     # the default list has one owner, pairedgta/conf/config.yaml; an empty list draws nothing
     figures = list((cfg.get("plot") or {}).get("figures") or [])
     for f in figures:
-        source = FIGURES.meta(f).get("source")  # an unknown name: one line listing the known ones
+        source = figure(f).source  # an unknown name: one line listing the known ones
         if source:
             raise ConfigError(f"plot.figures: {f} is drawn from a file of yours; set {source}=PATH (with stages=[plot])")
     return figures
@@ -81,19 +83,18 @@ def needed_stages(cfg: dict[str, Any]) -> set[str]:
     """Which upstream stages the requested figures read (a figure given its own input file needs none)."""
     needs = set()
     for f in figures_of(cfg):
-        meta = FIGURES.meta(f)
-        if not meta.get("needs") or (meta.get("unless") and lookup(cfg, meta["unless"])):
-            continue
-        needs.add(meta["needs"])
+        spec = figure(f)
+        if spec.needs and not (spec.unless and lookup(cfg, spec.unless)):
+            needs.add(spec.needs)
     return needs
 
 
-def options(cfg: dict[str, Any], passes: list[Any]) -> FigureOptions:
+def options(cfg: dict[str, Any], passes: list[PassResult]) -> FigureOptions:
     pcfg = cfg.get("plot") or {}
     return FigureOptions(list(pcfg.get("formats", ["png"])), int(pcfg.get("dpi", 150)), cfg, multi=len(passes) > 1)
 
 
-def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
+def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, Any]:
     opts = options(ctx.cfg, passes)
     files: list[Path] = []
     metrics: dict[str, float] = {}
@@ -101,7 +102,7 @@ def make_plots(ctx: Context, passes: list[Any], out: Path) -> dict[str, Any]:
     bar = tqdm(names, desc="plot", unit="figure")
     for name in bar:
         bar.set_postfix_str(name)
-        drawn, numbers = FIGURES.resolve(name)(passes, out, opts)
+        drawn, numbers = figure(name).drawer()(passes, out, opts)
         files += drawn
         metrics.update(numbers)
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
@@ -159,8 +160,8 @@ def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str,
             inputs[f"{tag}/evaluate/{j}"] = e.key
     for name in figures:
         # a figure that reads files of its own (cost.csv, the paper's timings) puts their hashes in the key
-        if FIGURES.meta(name).get("keyed"):
-            cache_key = getattr(inspect.getmodule(FIGURES.resolve(name)), "cache_key")
+        cache_key = figure(name).keyer()
+        if cache_key is not None:
             config[name], extra_inputs = cache_key(passes, options(ctx.cfg, passes))
             inputs.update(extra_inputs)
     return config, inputs
