@@ -92,7 +92,7 @@ def figure(name: Any) -> FigureSpec:
 class FigureOptions:
     formats: list[str]
     dpi: int
-    cfg: dict[str, Any]  # the run's config (the first pass's): plot.*, metric.*, cost.*, device
+    run: Any  # pairedgta.schema.RunConfig of the run (the first pass's): plot, metric, cost, photometry, device
     multi: bool = False  # several passes: file stems get the pass label
     # file name -> the model (and pass) a figure shows alone; the plot stage saves it so each model's
     # MLflow run can carry its own figures
@@ -105,8 +105,9 @@ class FigureOptions:
         return paths
 
     @property
-    def plot(self) -> dict[str, Any]:
-        return dict(self.cfg.get("plot") or {})
+    def plot(self) -> Any:
+        """pairedgta.schema.PlotConfig"""
+        return self.run.plot
 
     def stem(self, base: str, label: str) -> str:
         from pairedgta.figures.common import slug

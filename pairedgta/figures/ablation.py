@@ -115,9 +115,9 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     evaluated = [p for p in passes if p.evaluations]
     if not evaluated:
         return [], {}
-    classes = list((opts.plot.get("ranking") or {}).get("classes") or ["person", "car"])
-    selections = list((opts.cfg.get("metric") or {}).get("rho", {}).get("selections") or ["top_m"])
-    selection = str((opts.plot.get("ablation") or {}).get("selection") or selections[0])
+    classes = list(opts.plot.ranking.classes)
+    selections = list(opts.run.metric.rho.selections)
+    selection = opts.plot.ablation.selection or selections[0]
     levels = [Level(p.label, p.pairing, concat_tables(p.evaluations, "xi"), concat_tables(p.evaluations, "rho"),
                     p.generate.validation() if p.generate is not None else None) for p in evaluated]
     frame = ablation_frame(levels, evaluated[0].grid.reference, classes, selection)

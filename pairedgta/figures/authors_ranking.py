@@ -14,6 +14,7 @@ from typing import Any
 
 import pandas as pd
 
+from pairedgta.schema import as_dict
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import read_checked_csv
@@ -83,10 +84,10 @@ def inputs_from_counts(df: pd.DataFrame, selections: list[str], m: int, resample
 
 def _options(opts: FigureOptions) -> tuple[Path, dict[str, Any]]:
     plot = opts.plot
-    if not plot.get("frame_counts_csv"):
+    if not plot.frame_counts_csv:
         raise ConfigError("plot.figures: authors_ranking draws rho_valid from the authors' per-frame counts; "
                           f"set {KEY}=PATH (their framewise_target_class_counts.csv)")
-    metric = opts.cfg.get("metric") or {}
+    metric = as_dict(opts.run.metric)
     rho = metric.get("rho") or {}
     selections = list(rho.get("selections") or SELECTIONS)
     conv = convention_from_config(metric, selections)
@@ -94,9 +95,8 @@ def _options(opts: FigureOptions) -> tuple[Path, dict[str, Any]]:
     settings = {"selections": selections, "m": int(rho.get("m", 25)), "resamples": int(boot.get("resamples", 1000)),
                 "confidence": float(boot.get("confidence", 0.95)), "seed": int(boot.get("seed", 0)),
                 "headline": conv.rho_headline, "convention": conv.name,
-                "classes": list((plot.get("ranking") or {}).get("classes") or []),
-                "window": int((plot.get("ranking") or {}).get("window", 5))}
-    return Path(str(plot["frame_counts_csv"])), settings
+                "classes": list(plot.ranking.classes), "window": plot.ranking.window}
+    return Path(str(plot.frame_counts_csv)), settings
 
 
 def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:

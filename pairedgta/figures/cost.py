@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import seaborn as sns
 
+from pairedgta.schema import as_dict
 from pairedgta.errors import DataError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, markdown_table, paper_style, save, slug
@@ -145,7 +146,7 @@ def sources(passes: Passes, opts: FigureOptions) -> list[tuple[str, str, Path]]:
     each generated pass's own timings."""
     from pairedgta.data import PAPER_GENERATION_TIMES
 
-    ccfg = opts.cfg.get("cost") or {}
+    ccfg = as_dict(opts.run.cost)
     listed: list[tuple[str, str, Path]] = []
     if ccfg.get("paper", True):
         listed.append(("paper", str(ccfg.get("paper_label") or "paper (GTA V, RTX 2080)"), PAPER_GENERATION_TIMES))
@@ -155,7 +156,7 @@ def sources(passes: Passes, opts: FigureOptions) -> list[tuple[str, str, Path]]:
         return listed
     for p in passes:
         if p.generate is not None:
-            backend = (p.cfg.get("renderer") or {}).get("backend", "renderer")
+            backend = p.run.renderer.get("backend", "renderer")
             label = str(ccfg.get("label") or f"this run ({backend})")
             key = "run" if len(passes) == 1 else f"run_{slug(p.label)}"
             listed.append((key, label if len(passes) == 1 else f"{label} {p.label}", p.generate.timings_csv))
@@ -168,7 +169,7 @@ def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict
 
     inputs = {f"cost/{key}": hashlib.sha256(path.read_bytes()).hexdigest()[:16]
               for key, _, path in sources(passes, opts) if path.is_file()}
-    return dict(opts.cfg.get("cost") or {}), inputs
+    return as_dict(opts.run.cost), inputs
 
 
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:

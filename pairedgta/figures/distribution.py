@@ -94,7 +94,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         if p.pseudo is None or p.dataset is None:
             continue
         paths, _example = distribution_figure(p.dataset, p.pseudo, out, opts.formats, opts.dpi,
-                                              example=opts.plot.get("distribution_example"),
+                                              example=opts.plot.distribution_example,
                                               stem=opts.stem("pseudo_label_distribution", p.label))
         files += paths + distribution_table(p.pseudo, out, stem=opts.stem("pixel_mass", p.label))
         hist = p.pseudo.histogram()

@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from pairedgta.schema import as_dict
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
@@ -37,11 +38,9 @@ STATS = ("spearman", "kendall", "mae", "p_permutation")
 
 
 def settings(opts: FigureOptions) -> dict[str, Any]:
-    metric = opts.cfg.get("metric") or {}
-    boot = metric.get("bootstrap") or {}
-    return {"permutations": int((metric.get("validity") or {}).get("permutations", 10000)),
-            "resamples": int(boot.get("resamples", 1000)), "confidence": float(boot.get("confidence", 0.95)),
-            "seed": int(boot.get("seed", 0)), "reference_model": opts.cfg.get("reference_model")}
+    metric, boot = opts.run.metric, opts.run.metric.bootstrap
+    return {"permutations": metric.validity.permutations, "resamples": boot.resamples, "confidence": boot.confidence,
+            "seed": boot.seed, "reference_model": opts.run.reference_model}
 
 
 def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
@@ -91,10 +90,9 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         raise ConfigError(f"plot.figures: estimators ranks the models other than the reference "
                           f"({', '.join(sorted(refs)) or 'none'}) evaluated on every pass and found {len(ranked)} "
                           f"({', '.join(ranked) or 'none'}); evaluate at least {MIN_RANKED} besides it (models=[...])")
-    metric = opts.cfg.get("metric") or {}
-    conv = convention_from_config(metric)
+    conv = convention_from_config(as_dict(opts.run.metric))
     s = settings(opts)
-    clean = (metric.get("rho") or {}).get("clean_condition") or passes[0].grid.reference
+    clean = opts.run.metric.rho.clean_condition or passes[0].grid.reference
     agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
     cells, stats = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
                            refs, conv.absent, s["resamples"], s["confidence"], s["seed"], s["permutations"],

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pairedgta.schema import as_dict
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.figures import FigureOptions
@@ -217,11 +218,11 @@ def paper_table(csv_path: str | Path, out: Path, convention: Convention, filters
 # -- the registered figure `authors_table` (plot.table_csv=PATH, stages=[plot]) ---------------------------
 def _options(opts: FigureOptions) -> tuple[Path, Convention, dict[str, Any]]:
     plot = opts.plot
-    if not plot.get("table_csv"):
+    if not plot.table_csv:
         raise ConfigError("plot.figures: authors_table draws Table 1 from the authors' per-class results; "
                           "set plot.table_csv=PATH (their results_class_retention_by_condition.csv)")
-    filters = {k: v for k, v in dict(plot.get("table_filter") or {}).items() if v is not None}
-    return Path(str(plot["table_csv"])), convention_from_config(opts.cfg.get("metric") or {}), filters
+    filters = {k: v for k, v in as_dict(plot.table_filter).items() if v is not None}
+    return Path(str(plot.table_csv)), convention_from_config(as_dict(opts.run.metric)), filters
 
 
 def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:

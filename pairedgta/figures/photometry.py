@@ -27,7 +27,7 @@ DEFAULTS = {"bands": {}, "night_max_luma_ratio": 0.35, "night_sky_max_luma": 0.1
 
 
 def settings(opts: FigureOptions) -> dict[str, Any]:
-    return {**DEFAULTS, **dict(opts.cfg.get("photometry") or {})}
+    return {**DEFAULTS, **opts.run.photometry}
 
 
 def reference_table() -> pd.DataFrame:

@@ -166,14 +166,14 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
 
 
 def clean_condition(p: Any) -> str:
-    clean = ((p.cfg.get("metric") or {}).get("rho") or {}).get("clean_condition")
+    clean = p.run.metric.rho.clean_condition
     return clean if clean in p.grid.names else p.grid.reference
 
 
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """Worst/best groups per adverse condition for every evaluated model of every pass."""
-    n = int(opts.plot.get("qualitative_groups", 2))
-    wanted = opts.plot.get("qualitative_conditions")
+    n = opts.plot.qualitative_groups
+    wanted = opts.plot.qualitative_conditions
     files: list[Path] = []
     tables = []
     for p in passes:
@@ -186,7 +186,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
             paths, table = qualitative_grid(
                 p.dataset, p.pseudo.labels, e.agreement(), model_cfg, conditions, n, clean, out,
                 opts.stem("qualitative", p.label) + f"_{slug(model_cfg['name'])}", opts.formats, opts.dpi,
-                title=f"{p.label} \u00b7 {model_cfg['name']}" if opts.multi else "", device=str(opts.cfg.get("device", "cpu")),
+                title=f"{p.label} \u00b7 {model_cfg['name']}" if opts.multi else "", device=opts.run.device,
             )
             files += opts.own(paths, model_cfg["name"], p.label)
             if not table.empty:

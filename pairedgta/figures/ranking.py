@@ -161,8 +161,8 @@ def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: s
 
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     """The ranking figure and rho table over every evaluated pass (its own adverse condition each)."""
-    ranking = opts.plot.get("ranking") or {}
-    classes = list(ranking.get("classes") or ["person", "car"])
+    ranking = opts.plot.ranking
+    classes = list(ranking.classes)
     inputs = []
     for p in passes:
         if not p.evaluations:
@@ -175,8 +175,8 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
             inputs.append(RankingInput(p.label, cond, counts, rho))
     if not inputs:
         return [], {}
-    selections = tuple((opts.cfg.get("metric") or {}).get("rho", {}).get("selections") or ("top_m", "nonzero"))
-    files = ranking_figure(inputs, classes, int(ranking.get("window", 5)), out, opts.formats, opts.dpi, selections=selections)
+    selections = tuple(opts.run.metric.rho.selections)
+    files = ranking_figure(inputs, classes, ranking.window, out, opts.formats, opts.dpi, selections=selections)
     files += rho_table(inputs, classes, out)
     metrics: dict[str, float] = {}
     for inp in inputs:

@@ -99,9 +99,8 @@ def _legend(fig, ax) -> None:
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     metrics: dict[str, float] = {}
-    cfg = dict(opts.plot.get("robustness") or {})
-    below = float(cfg.get("break_below", 0.5))
-    classes = list(cfg.get("classes") or [])
+    below = opts.plot.robustness.break_below
+    classes = list(opts.plot.robustness.classes or [])
     for p in passes:
         ladder = p.grid.ladder
         if ladder is None or not p.evaluations:

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from pairedgta.schema import as_dict
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
@@ -33,7 +34,7 @@ def references(passes: Passes, opts: FigureOptions) -> set[str]:
     """The pseudo-label source of every pass (the run's reference_model where a pass has none): not ranked,
     it would grade itself."""
     refs = {p.pseudo.reference_model() for p in passes if p.pseudo is not None}
-    return refs or ({str(opts.cfg["reference_model"])} if opts.cfg.get("reference_model") else set())
+    return refs or ({opts.run.reference_model} if opts.run.reference_model else set())
 
 
 def evaluated_on_every_pass(passes: Passes, figure: str,
@@ -71,14 +72,12 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     if len(models) < 3:  # two models always rank-correlate at +1 or -1: no evidence either way
         raise ConfigError(f"plot.figures: metric_validity ranks models and found {len(models)} evaluated on every pass "
                           f"besides the reference model {', '.join(sorted(refs))}; evaluate at least 3 (models=[...])")
-    cfg = opts.cfg
-    metric = cfg.get("metric") or {}
-    conv = convention_from_config(metric)
-    boot = metric.get("bootstrap") or {}
-    clean = (metric.get("rho") or {}).get("clean_condition") or passes[0].grid.reference
+    metric, boot = opts.run.metric, opts.run.metric.bootstrap
+    conv = convention_from_config(as_dict(metric))
+    clean = metric.rho.clean_condition or passes[0].grid.reference
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude)
-    cells, corr = validity(models, clean, include, conv.absent, int(boot.get("resamples", 1000)),
-                           float(boot.get("confidence", 0.95)), int(boot.get("seed", 0)), conv.min_images,
+    cells, corr = validity(models, clean, include, conv.absent, boot.resamples,
+                           boot.confidence, boot.seed, conv.min_images,
                            conv.min_pixels)
     cells_df, corr_df = pd.DataFrame(cells), pd.DataFrame(corr)
     cells_df["convention"] = corr_df["convention"] = conv.name
@@ -124,7 +123,7 @@ def _figure(cells: pd.DataFrame, corr: pd.DataFrame, out: Path, opts: FigureOpti
         part = corr[corr["target"] == "rpc"]
         scopes = list(part["scope"])
         y = np.arange(len(scopes))
-        level = float(((opts.cfg.get("metric") or {}).get("bootstrap") or {}).get("confidence", 0.95))
+        level = opts.run.metric.bootstrap.confidence
         for offset, stat, color in ((-0.17, "spearman", "tab:blue"), (0.17, "kendall", "tab:orange")):
             vals = part[stat].to_numpy(float)
             lo, hi = part[f"{stat}_ci_low"].to_numpy(float), part[f"{stat}_ci_high"].to_numpy(float)

@@ -25,6 +25,7 @@ from pairedgta.cache import require_intact
 from pairedgta.errors import ConfigError
 from pairedgta.figures import FIGURES, FigureOptions, figure, lookup
 from pairedgta.jsonio import write_json
+from pairedgta.schema import RunConfig, as_dict
 from pairedgta.stages.common import Context, StageResult, run_cached
 
 if TYPE_CHECKING:  # planning imports this module when it plans
@@ -89,13 +90,12 @@ def needed_stages(cfg: dict[str, Any]) -> set[str]:
     return needs
 
 
-def options(cfg: dict[str, Any], passes: list[PassResult]) -> FigureOptions:
-    pcfg = cfg.get("plot") or {}
-    return FigureOptions(list(pcfg.get("formats", ["png"])), int(pcfg.get("dpi", 150)), cfg, multi=len(passes) > 1)
+def options(run: RunConfig, passes: list[PassResult]) -> FigureOptions:
+    return FigureOptions(list(run.plot.formats), int(run.plot.dpi), run, multi=len(passes) > 1)
 
 
 def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, Any]:
-    opts = options(ctx.cfg, passes)
+    opts = options(ctx.run, passes)
     files: list[Path] = []
     metrics: dict[str, float] = {}
     names = figures_of(ctx.cfg)
@@ -147,7 +147,7 @@ def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str,
     figures = figures_of(ctx.cfg)
     # a figure's own input file enters the key by its content (its cache_key), not by its path
     paths = {key.split(".", 1)[1] for key in sourced(ctx.cfg).values() if key.startswith("plot.")}
-    config: dict[str, Any] = {"plot": {k: v for k, v in ctx.cfg["plot"].items() if k not in paths},
+    config: dict[str, Any] = {"plot": {k: v for k, v in as_dict(ctx.run.plot).items() if k not in paths},
                               "reference": [p.grid.reference for p in passes], "pairing": [p.pairing for p in passes]}
     inputs: dict[str, str] = {}
     for i, p in enumerate(passes):
@@ -162,7 +162,7 @@ def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str,
         # a figure that reads files of its own (cost.csv, the paper's timings) puts their hashes in the key
         cache_key = figure(name).keyer()
         if cache_key is not None:
-            config[name], extra_inputs = cache_key(passes, options(ctx.cfg, passes))
+            config[name], extra_inputs = cache_key(passes, options(ctx.run, passes))
             inputs.update(extra_inputs)
     return config, inputs
 
