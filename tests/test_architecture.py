@@ -158,3 +158,11 @@ def test_a_cached_rerun_imports_no_torch(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "cache hit" in proc.stdout + proc.stderr and "LOADED []" in proc.stdout, (proc.stdout[-1500:], proc.stderr[-1500:])
+
+
+def test_no_module_over_500_lines():
+    """A module past 500 lines has been doing more than one job each time it got there (the test server in
+    pairedgta/testing/ mirrors a whole protocol and is exempt)."""
+    long = {p.relative_to(PKG).as_posix(): n for p in PKG.rglob("*.py")
+            if "testing" not in p.relative_to(PKG).parts and (n := len(p.read_text().splitlines())) > 500}
+    assert not long, long
