@@ -279,7 +279,7 @@ BAD_CONFIG = {
     "key_of_another_renderer_unprefixed": (["renderer.samples=4"], "renderer.samples is not a key of renderer=synthetic; "
                                            "its keys are backend, height, max_distance, noise_std, road_half_width, "
                                            "sidewalk_width, width (renderer.samples is a key of renderer=blender)"),
-    "key_of_another_model_unprefixed": (["model.path=/w"], "model.path is not a key of model=tiny_segformer; its keys are"),
+    "key_no_model_reads_unprefixed": (["model.colour=red"], "model.colour is not a key of model=tiny_segformer; its keys are"),
     "unknown_top_level_key": (["colour=red"], "colour is not a key of pairedgta; its top-level keys are cache, cache_dir"),
     "unknown_nested_key_unprefixed": (["metric.bootstrap.sead=3"],
                                       "metric.bootstrap.sead is not a key of pairedgta; did you mean metric.bootstrap.seed?"),

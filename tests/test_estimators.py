@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pairedgta import schema
 from pairedgta.errors import ConfigError
 from pairedgta.metrics.estimators import (ESTIMATORS, TARGETS, EstimatorCounts, atc, atc_threshold, compare,
                                           estimator_values, gde, loco_mae, model_draws, pairwise_agreement,
@@ -283,9 +284,10 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     p = _fake_pass(tmp_path / "eval", names, "demo_segformer")
     out = tmp_path / "plot"
     out.mkdir()
-    cfg = {"reference_model": "something_else", "metric": {"convention": "strict", "absent": "nan",
+    cfg = {"reference_model": "something_else", "metric": {
+           "convention": "strict", "absent": "nan", "min_images": 0, "min_pixels": 0,  # no support rule on 4 groups
            "bootstrap": {"resamples": 40, "confidence": 0.9, "seed": 0}, "validity": {"permutations": 100}}}
-    files, metrics = draw([p], out, FigureOptions(["png"], 40, cfg))
+    files, metrics = draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
     assert {f.name for f in files} == {"estimators.csv", "estimators.md", "estimator_cells.csv", "estimators.png"}
     cells = pd.read_csv(out / "estimator_cells.csv")
     assert "demo_segformer" not in set(cells["model"]) and len(cells) == 4 * 2  # the pass's reference is left out
@@ -302,16 +304,16 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     # a model evaluated before the estimator sums, or without predictions: one line naming the fix
     (tmp_path / "eval" / "m4" / "predictions.npz").unlink()
     with pytest.raises(ConfigError, match=r"predictions.npz.*force=\[evaluate\]"):
-        draw([p], out, FigureOptions(["png"], 40, cfg))
+        draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
     old = dict(p.evaluations[0].group_counts())
     del old["est_conf_hist"]
     p.evaluations[0].group_counts = lambda: old
     with pytest.raises(ConfigError, match=r"est_conf_hist.*group_counts.npz.*force=\[evaluate\]"):
-        draw([p], out, FigureOptions(["png"], 40, cfg))
+        draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
     # three models besides the reference: too few to rank
     p3 = _fake_pass(tmp_path / "eval3", names[1:], "demo_segformer")
     with pytest.raises(ConfigError, match="at least 4"):
-        draw([p3], out, FigureOptions(["png"], 40, cfg))
+        draw([p3], out, FigureOptions(["png"], 40, schema.parse(cfg)))
 
 
 def test_one_reader_of_the_group_counts_serves_both_figures_and_xi_needs_no_estimator_sums(tmp_path):
@@ -330,17 +332,18 @@ def test_one_reader_of_the_group_counts_serves_both_figures_and_xi_needs_no_esti
         e.group_counts = lambda a={k: v for k, v in e.group_counts().items() if not k.startswith("est_")}: a
     out = tmp_path / "plot"
     out.mkdir()
-    cfg = {"reference_model": "demo_segformer", "metric": {"convention": "strict", "absent": "nan",
+    cfg = {"reference_model": "demo_segformer", "metric": {
+           "convention": "strict", "absent": "nan", "min_images": 0, "min_pixels": 0,  # no support rule on 4 groups
            "bootstrap": {"resamples": 20, "confidence": 0.9, "seed": 0}}}
-    files, metrics = validity_figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+    files, metrics = validity_figure.draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
     cells = pd.read_csv(out / "metric_validity_cells.csv")
     assert "demo_segformer" not in set(cells["model"]) and cells["model"].nunique() == 4 and metrics
     with pytest.raises(ConfigError, match=r"estimators needs est_pixels, .*group_counts.npz.*force=\[evaluate\]"):
-        estimators_figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+        estimators_figure.draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
     p.evaluations[0].group_counts = lambda: {}  # an entry from before the group counts: both say so alike
     for name, figure in (("metric_validity", validity_figure), ("estimators", estimators_figure)):
         with pytest.raises(ConfigError, match=rf"{name} needs evaluate's group_counts.npz.*force=\[evaluate\]"):
-            figure.draw([p], out, FigureOptions(["png"], 40, cfg))
+            figure.draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
 
 
 def test_the_difference_to_xi_is_paired_on_the_same_resamples():
