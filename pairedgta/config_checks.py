@@ -7,7 +7,6 @@ With `variants`, every pass's config (the run's config with the variant's overri
 and the error names the variant's key."""
 from __future__ import annotations
 
-import math
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -27,25 +26,6 @@ def _get(cfg: dict[str, Any], dotted: str) -> Any:
             return None
         node = node[part]
     return node
-
-
-def _number(value: Any, key: str, kind: type, where: str) -> float | int:
-    """`value` as int/float; bool, strings and non-finite numbers are refused."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        if isinstance(value, str):
-            try:
-                value = int(value) if kind is int else float(value)
-            except ValueError:
-                raise ConfigError(f"{where}{key}={value!r} is not a number; {_hint(key)}") from None
-        else:
-            raise ConfigError(f"{where}{key}={value!r} is not a number; {_hint(key)}")
-    if kind is int:
-        if isinstance(value, float) and not value.is_integer():
-            raise ConfigError(f"{where}{key}={value!r} must be an integer; {_hint(key)}")
-        return int(value)
-    if not math.isfinite(float(value)):
-        raise ConfigError(f"{where}{key}={value!r} must be finite; {_hint(key)}")
-    return float(value)
 
 
 # key -> (type, predicate, what to use)
@@ -222,7 +202,7 @@ def check_run_config(cfg: dict[str, Any]) -> RunConfig:
                 if optional or key.split(".")[0] not in pcfg:
                     continue
                 raise ConfigError(f"{where}{key} is not set; {use}")
-            if not ok(_number(value, key, kind, where)):
+            if not ok(schema.number(value, kind, f"{where}{key}", _hint(key))):
                 raise ConfigError(f"{where}{key}={value!r} is out of range; {use}")
         _known_model(run.reference_model, f"{where}reference_model")
         check_plot(run, names, where)

@@ -338,12 +338,12 @@ def _optional(tp: Any) -> tuple[bool, Any]:
     return False, tp
 
 
-def _number(value: Any, kind: type, path: str, use: str) -> float | int:
+def number(value: Any, kind: type, path: str, use: str) -> float | int:
     """`value` as int/float: numeric strings convert; bool, other strings and non-finite numbers are refused."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         if isinstance(value, str):
             try:
-                return _number(int(value) if kind is int else float(value), kind, path, use)
+                return number(int(value) if kind is int else float(value), kind, path, use)
             except ValueError:
                 pass
         raise ConfigError(f"{path}={value!r} is not a number; {use}")
@@ -374,7 +374,7 @@ def _value(tp: Any, value: Any, path: str, use: str) -> Any:
             return str(value).lower() == "true"
         raise ConfigError(f"{path}={value!r} must be true or false")
     if tp in (int, float):
-        return _number(value, tp, path, use)
+        return number(value, tp, path, use)
     if tp is str:
         if isinstance(value, (dict, list)):
             raise ConfigError(f"{path}={value!r} must be a single value; {use}")

@@ -29,7 +29,7 @@ from pairedgta.errors import ConfigError
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached
+from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
 from pairedgta.tracking import Recorder, bundle, dataset_label, run_name
 
 log = logging.getLogger("pairedgta.cityscapes_val")
@@ -97,7 +97,7 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, devi
 
 
 @dataclasses.dataclass
-class CityscapesVal:
+class CityscapesVal(Unsharded):
     """The model check (pairedgta.stages.common.Stage): one model on the Cityscapes val split, against the
     published mIoU. Outside the paired graph."""
 
@@ -123,12 +123,6 @@ class CityscapesVal:
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
         return compute(self.dataset, self.model_cfg, out, self.ctx.run.device)
-
-    def shards(self) -> tuple[int, int]:
-        return 1, 0
-
-    def build_shard(self, key: str) -> Path | None:
-        raise NotImplementedError("the model check is not sharded")
 
 
 def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_cfg: dict[str, Any]) -> StageResult:

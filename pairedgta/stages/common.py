@@ -137,6 +137,16 @@ class Stage(Protocol):
         parts while other shards' are missing, None when every part is there (then the runner builds)."""
 
 
+class Unsharded:
+    """The two Stage members of a stage that is never split over jobs."""
+
+    def shards(self) -> tuple[int, int]:
+        return 1, 0
+
+    def build_shard(self, key: str) -> Path | None:
+        raise AssertionError("run_cached asks for shards only where shards() says N > 1")
+
+
 def _hit(ctx: Context, stage: str, key: str, label: str, what: str, result_cls: type[StageResult]) -> StageResult:
     log.info("%s: cache hit %s (skipped; force=[%s] recomputes)", what, ctx.cache.path(stage, key), stage)
     ctx.cache.use(stage, key)

@@ -26,7 +26,7 @@ from pairedgta.errors import ConfigError
 from pairedgta.figures import FIGURES, FigureOptions, figure, lookup
 from pairedgta.jsonio import write_json
 from pairedgta.schema import RunConfig, as_dict
-from pairedgta.stages.common import Context, StageResult, run_cached
+from pairedgta.stages.common import Context, StageResult, Unsharded, run_cached
 
 if TYPE_CHECKING:  # planning imports this module when it plans
     from pairedgta.stages.planning import PassResult
@@ -112,7 +112,7 @@ def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, A
 
 
 @dataclass
-class Plot:
+class Plot(Unsharded):
     """The plot stage (pairedgta.stages.common.Stage): the requested figures of every pass of the run."""
 
     ctx: Context
@@ -134,12 +134,6 @@ class Plot:
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
         return make_plots(self.ctx, self.passes, out)
-
-    def shards(self) -> tuple[int, int]:
-        return 1, 0
-
-    def build_shard(self, key: str) -> Path | None:
-        raise NotImplementedError("the plot stage is not sharded")
 
 
 def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str, str]]:

@@ -17,7 +17,7 @@ import pandas as pd
 from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, model_hash_config, run_cached, torch_threads
+from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached, torch_threads
 
 from pairedgta.lazy import lazy_module
 
@@ -122,7 +122,7 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
 
 
 @dataclass
-class Pseudolabel:
+class Pseudolabel(Unsharded):
     """The pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference model."""
 
     ctx: Context
@@ -148,12 +148,6 @@ class Pseudolabel:
     def build(self, out: Path, key: str) -> dict[str, Any]:
         with torch_threads(self.ctx.run.threads):
             return compute(self.ctx, self.dataset, out, self.model_cfg, self.ctx.run.pseudolabel.tau)
-
-    def shards(self) -> tuple[int, int]:
-        return 1, 0
-
-    def build_shard(self, key: str) -> Path | None:
-        raise NotImplementedError("the pseudo-label stage is not sharded")
 
 
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
