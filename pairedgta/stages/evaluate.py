@@ -156,13 +156,11 @@ def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: 
 
 
 def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any],
-                 conditions: list[str], groups: list[Any]) -> list[dict[str, Any]]:
-    """The groups' counts (`counting.group_counts`) under the run's settings: the model on `device`, with
-    `threads` inference threads, images decoded by `evaluate.num_workers` DataLoader workers."""
+                 conditions: list[str], groups: list[Any], s: dict[str, Any]) -> list[dict[str, Any]]:
+    """The groups' counts (`counting.group_counts`) under the metric settings `s` (the ones the stage hashed):
+    the model on `device`, with `threads` inference threads, images decoded by `evaluate.num_workers` workers."""
     if not groups:
         return []
-    grid = dataset.grid or ctx.grid
-    s = metric_settings(ctx.run, grid.names, dataset.reference)
     device, ev = ctx.run.device, ctx.run.evaluate
     segmenter = shared_segmenter(model_cfg, device=device)
     with torch_threads(ctx.run.threads):
@@ -171,11 +169,9 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
 
 
 def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
-            reference_model: str, out: Path, parts: Path | None = None) -> dict[str, Any]:
+            s: dict[str, Any], reference_model: str, out: Path, parts: Path | None = None) -> dict[str, Any]:
     """Evaluate every group, or merge the partial sums that shard jobs left in `parts` and compute only
     the groups no shard covered; the outputs are the same either way (groups in dataset order)."""
-    grid = dataset.grid or ctx.grid
-    s = metric_settings(ctx.run, grid.names, dataset.reference)
     conv = s["convention"]
     log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
              "sampling %s", conv["name"], conv["absent"], list(conv["mean_exclude"]) or "none", conv["agreement"],
@@ -184,7 +180,7 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
     missing = [g for g in dataset.groups if g.group_id not in done]
     if done:
         log.info("evaluate: merging %d group(s) from shard jobs, computing %d", len(done), len(missing))
-    for r in count_groups(ctx, dataset, pseudo, model_cfg, conditions, missing):
+    for r in count_groups(ctx, dataset, pseudo, model_cfg, conditions, missing, s):
         done[r["group_id"]] = r
     model = str(model_cfg["name"])
     covered = tables.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
@@ -233,7 +229,7 @@ class Evaluate:
         return parts_dir(self.ctx, key)
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
-        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions,
+        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings,
                        self.pseudo.reference_model(), out, parts=self.parts(key))
 
     def shards(self) -> tuple[int, int]:
@@ -250,7 +246,8 @@ class Evaluate:
         log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", name, shard, num,
                  len(mine), len(groups), len(mine) - len(todo))
         if todo:
-            results = count_groups(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, todo)
+            results = count_groups(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, todo,
+                                   self.settings)
             shards.write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + results)
         covered = shards.read_parts(parts)
         if all(g.group_id in covered for g in groups):
