@@ -252,7 +252,9 @@ def known_key_paths() -> set[str]:
     known: set[str] = set()
     for path in [CONFIG_DIR / "config.yaml", *sorted((CONFIG_DIR / "experiment").glob("*.yaml"))]:
         known |= _paths(_load_yaml(path))
-    for group in (p for p in CONFIG_DIR.iterdir() if p.is_dir() and p.name not in ("experiment", "hydra", "zoo")):
+    # a group is a folder of YAML options (not __pycache__, which Python writes into the package's folders)
+    for group in (p for p in CONFIG_DIR.iterdir() if p.is_dir() and not p.name.startswith(("_", "."))
+                  and p.name not in ("experiment", "hydra", "zoo")):
         known.add(group.name)
         for option in group.glob("*.yaml"):
             known |= _paths(_load_yaml(option), f"{group.name}.")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,13 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 # keeps two workers from each spinning two threads on two cores
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+# The suite starts dozens of interpreters (CLI runs, SLURM jobs, tracking children) besides the xdist
+# workers, which each rewrite every test module's asserts: where the environment sets
+# PYTHONDONTWRITEBYTECODE, every one of them compiled pairedgta and the tests from source again (4 s of
+# collection per worker, 0.4 s per interpreter). The suite keeps Python's default, the usual
+# __pycache__ folders (ignored by git).
+if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
+    sys.dont_write_bytecode = False
 
 
 @pytest.fixture

@@ -53,7 +53,7 @@ def test_four_jobs_at_once_lose_no_run_and_the_background_child_records_a_run(se
     assert any(later[0] < earlier[1] for earlier, later in zip(spans, spans[1:])), "the jobs ran at once"
 
     # one run of the whole pipeline (its dataset cached by the sweep) through the default background child
-    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0"], tmp_path, subprocess_=True)
+    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout + proc.stderr
     assert "stopped before it had logged" not in out and "View run" not in out, out[-2000:]

@@ -91,17 +91,19 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     # ... resubmitted at once (while the first sweep waits out submitit's grace for a result file that a
     # cancelled job never writes), it renders only what is missing
     again = _sweep(S + ["stages=[generate]", "generate.num_shards=2", "generate.shard=0"], cluster, slurm, "gen-again")
-    code, out = _finish(gen)
-    assert code != 0 and "CANCELLED" in out, out[-3000:]  # the sweep says the job was cancelled, and does not hang
-    assert "Bypassing sacct" not in out and out.count("SLURM accounting is off") == 1, out[-3000:]
     code, out = _finish(again)
     assert code == 0, out[-3000:]
     log = (cluster / "gen-again" / "0" / "pairedgta.log").read_text()
     assert f"resuming, {len(kept)} of 2 scenes already rendered" in log, log[-2000:]
     assert log.rstrip().splitlines()[-1].split(" - ", 1)[1].startswith("results: "), "the job's log ends with its results"
 
-    # 2. pseudo-labels in one job, then 2 SLURM jobs evaluate half of the groups each
-    code, out = _finish(_sweep(S + ["stages=[pseudolabel]"], cluster, slurm, "pl"))
+    # 2. pseudo-labels in one job (submitted while the first sweep still waits out its grace), then 2 SLURM
+    # jobs evaluate half of the groups each
+    pl = _sweep(S + ["stages=[pseudolabel]"], cluster, slurm, "pl")
+    code, out = _finish(gen)
+    assert code != 0 and "CANCELLED" in out, out[-3000:]  # the sweep says the job was cancelled, and does not hang
+    assert "Bypassing sacct" not in out and out.count("SLURM accounting is off") == 1, out[-3000:]
+    code, out = _finish(pl)
     assert code == 0, out[-3000:]
     code, out = _finish(_sweep(S + ["stages=[evaluate]", "evaluate.num_shards=2", "evaluate.shard=range(2)"],
                                cluster, slurm, "eval"))
