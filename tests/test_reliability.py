@@ -541,7 +541,7 @@ def test_sigterm_unwinds_marks_the_run_killed_and_keeps_finished_work(tmp_path, 
 @pytest.mark.slow
 def test_a_crashed_generate_partial_is_removed_after_the_next_successful_run(tmp_path):
     cache = tmp_path / "cache"
-    proc = cli(slow_args(tmp_path, scenes=3000) + ["stages=[generate]"], tmp_path)
+    proc = cli(slow_args(tmp_path, scenes=3000) + ["stages=[generate]", "tracking.enabled=false"], tmp_path)
     try:
         assert wait_until(lambda: any(True for _ in cache.glob("generate/.partial-*/scenes/0000[0-9]")), 300, proc)
         proc.kill()
@@ -550,7 +550,7 @@ def test_a_crashed_generate_partial_is_removed_after_the_next_successful_run(tmp
         if proc.poll() is None:
             proc.kill()
     assert list(cache.glob("generate/.partial-*"))
-    other = cli(slow_args(tmp_path, scenes=2) + ["stages=[generate]"], tmp_path)
+    other = cli(slow_args(tmp_path, scenes=2) + ["stages=[generate]", "tracking.enabled=false"], tmp_path)
     out, err = other.communicate(timeout=300)
     assert other.returncode == 0, err[-2000:]
     assert leftovers(cache) == []

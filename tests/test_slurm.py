@@ -100,6 +100,9 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     # 2. pseudo-labels in one job (submitted while the first sweep still waits out its grace), then 2 SLURM
     # jobs evaluate half of the groups each
     pl = _sweep(S + ["stages=[pseudolabel]"], cluster, slurm, "pl")
+    # ... and while SLURM runs it, the same config in one local run (this process: the job is another)
+    proc = run_cli(DATA + [f"cache_dir={local / 'cache'}"], local)
+    assert proc.returncode == 0, proc.stderr[-3000:]
     code, out = _finish(gen)
     assert code != 0 and "CANCELLED" in out, out[-3000:]  # the sweep says the job was cancelled, and does not hang
     assert "Bypassing sacct" not in out and out.count("SLURM accounting is off") == 1, out[-3000:]
@@ -111,12 +114,10 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     sharded = _entry(cache, "evaluate")  # the shard that ends last merges the partial sums into the entry
     assert not list((cache / "evaluate").glob(".parts-*"))
 
-    # 3. the unsharded run merges and plots; one local run of the same config gives the same bytes
+    # 3. the unsharded run merges and plots; the local run of the same config gave the same bytes
     proc = run_cli(S, cluster)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"evaluate [tiny_segformer]: cache hit {sharded}" in proc.stdout + proc.stderr
-    proc = run_cli(DATA + [f"cache_dir={local / 'cache'}"], local)
-    assert proc.returncode == 0, proc.stderr[-3000:]
     a, b = _entry(local / "cache", "generate"), _entry(cache, "generate")
     assert a.name == b.name
     images = _files(a, "*.png")
