@@ -27,7 +27,8 @@ def ladder(tmp_path_factory):
     """One fog ladder (6 conditions x 4 scenes) evaluated with min_transmittance 0 and 0.2."""
     tmp = tmp_path_factory.mktemp("ladder")
     mlflow_store(tmp / "mlflow.db")  # fast_overrides' store, seeded: tracking is on here
-    base = fast_overrides(tmp) + LADDER + ["tracking.enabled=true", "plot.robustness.classes=[road,car]"]
+    base = fast_overrides(tmp) + LADDER + ["tracking.enabled=true", "plot.robustness.classes=[road,car]",
+                                                 "plot.figures=[robustness]"]
     plain = {**run(compose_cfg(base)), "_cache": tmp / "cache"}
     masked = {**run(compose_cfg(base + ["metric.min_transmittance=0.2"])), "_cache": tmp / "cache"}
     return tmp, plain, masked

@@ -18,7 +18,7 @@ def hits(summary):
 
 @pytest.mark.slow
 def test_cache_hit_selective_recompute_and_force(tmp_path):
-    base = fast_overrides(tmp_path) + ["models=[tiny_segformer]"]
+    base = fast_overrides(tmp_path) + ["models=[tiny_segformer]", "plot.figures=[xi_models]"]  # one figure: the plot's time
     first = run(compose_cfg(base))
     assert not any(hits(first).values())
     again = run(compose_cfg(base))

@@ -49,8 +49,11 @@ def wait_until(predicate, timeout=120.0, proc: subprocess.Popen | None = None) -
 
 
 def fast(tmp: Path, *extra: str) -> list[str]:
-    """fast_overrides with `extra` replacing same-key entries (Hydra refuses a key given twice)."""
+    """fast_overrides with `extra` replacing same-key entries (Hydra refuses a key given twice), and one
+    figure unless `extra` names them (drawing is most of a tiny run's time; these tests read no figure)."""
     keys = {e.split("=", 1)[0] for e in extra}
+    extra = extra if "plot.figures" in keys else (*extra, "plot.figures=[xi_models]")
+    keys.add("plot.figures")
     return [o for o in fast_overrides(tmp) if o.split("=", 1)[0] not in keys] + list(extra)
 
 
