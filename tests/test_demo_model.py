@@ -5,6 +5,7 @@ metric holds: the control trained without photometric augmentation keeps less of
 pseudo-labels than demo_segformer under daytime rain and at sunset."""
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -30,6 +31,12 @@ CONDITIONS = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Night-EXTRASUN
 TAU = 0.6  # the main job's pseudo-label confidence
 
 
+@functools.cache
+def zoo_model(name: str):
+    """One build per member and module: the loading test builds it, the held-out tests reuse it."""
+    return build_segmenter(name)
+
+
 def card(name: str) -> dict:
     return json.loads((WEIGHTS / name / "model_card.json").read_text())
 
@@ -49,7 +56,7 @@ def test_zoo_weights_ship_load_offline_strictly_and_are_small(name):
     c = card(name)
     assert c["model"] == name and c["data"]["condition"] == "Day-EXTRASUNNY" and c["val_miou"] >= 0.35
     assert c["parameters"] <= 4_000_000 and c.get("command", "").startswith("python experiments/train_demo_model.py")
-    seg = build_segmenter(name)  # in-project families load model.safetensors strictly (every key, every shape)
+    seg = zoo_model(name)  # in-project families load model.safetensors strictly (every key, every shape)
     assert sum(p.numel() for p in seg.module.parameters()) == c["parameters"]
     assert model_config(name)["family"] == c.get("family", "segformer")
     probs = seg.predict_proba(torch.rand(1, 3, 64, 128))
@@ -97,7 +104,7 @@ def predictions(name: str, scenes, conditions: tuple[str, ...] = CONDITIONS) -> 
     module (the held-out scenes are the module's too), as three tests read demo_segformer's."""
     key = (id(scenes), name, conditions)
     if key not in _PREDICTIONS:
-        seg = build_segmenter(name)
+        seg = zoo_model(name)
         out = []
         for images, _ in scenes:
             labels, conf = seg.predict(np.stack([images[c] for c in conditions]))
