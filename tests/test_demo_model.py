@@ -96,42 +96,41 @@ def held_out():
     return scenes
 
 
-_PREDICTIONS: dict[tuple[int, str, tuple[str, ...]], list] = {}
-
-
-def predictions(name: str, scenes, conditions: tuple[str, ...] = CONDITIONS) -> list[dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Per scene, the model's (labels, confidence) per condition; each model's forward passes run once per
-    module (the held-out scenes are the module's too), as three tests read demo_segformer's."""
-    key = (id(scenes), name, conditions)
-    if key not in _PREDICTIONS:
+@pytest.fixture(scope="module")
+def predict(held_out):
+    """predict(name, conditions) -> per held-out scene, the model's (labels, confidence) per condition; each
+    model's forward passes run once per module, as three tests read demo_segformer's."""
+    @functools.cache
+    def predict(name: str, conditions: tuple[str, ...] = CONDITIONS) -> list[dict[str, tuple[np.ndarray, np.ndarray]]]:
         seg = zoo_model(name)
         out = []
-        for images, _ in scenes:
+        for images, _ in held_out:
             labels, conf = seg.predict(np.stack([images[c] for c in conditions]))
             out.append({c: (labels[i].numpy(), conf[i].numpy()) for i, c in enumerate(conditions)})
-        _PREDICTIONS[key] = out
-    return _PREDICTIONS[key]
+        return out
+
+    return predict
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ZOO)
-def test_zoo_model_on_fresh_held_out_scenes(name, held_out):
+def test_zoo_model_on_fresh_held_out_scenes(name, held_out, predict):
     cm = ConfusionMatrix()
     # the two models other tests read under every condition reuse those forwards; the rest run the clean image only
     conditions = CONDITIONS if name in ("demo_segformer", "demo_segformer_noaug") else ("Day-EXTRASUNNY",)
-    for (_, truth), pred in zip(held_out, predictions(name, held_out, conditions)):
+    for (_, truth), pred in zip(held_out, predict(name, conditions)):
         cm.update(truth, pred["Day-EXTRASUNNY"][0])
     assert cm.miou() >= card(name)["test_floor_miou"], (name, cm.miou(), card(name)["test_floor_miou"])
 
 
 @pytest.mark.slow
-def test_demo_model_degrades_gradually(held_out):
+def test_demo_model_degrades_gradually(predict):
     """Against its own pseudo-labels (tau 0.6, as the main job): the day's rain and the clear sunset cost
     demo_segformer less than the night, clear or foggy (the night keeps about an eighth of the clean luma,
     camera=gta)."""
     names = ("Day-RAIN", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")
     xi = {c: ReferenceConsistency() for c in names}
-    for pred in predictions("demo_segformer", held_out):
+    for pred in predict("demo_segformer"):
         labels, conf = pred["Day-EXTRASUNNY"]
         for c, m in xi.items():
             m.update(np.where(conf >= TAU, labels, 255), pred[c][0])
@@ -140,11 +139,11 @@ def test_demo_model_degrades_gradually(held_out):
 
 
 @pytest.mark.slow
-def test_the_control_without_photometric_augmentation_keeps_less_under_rain_and_at_sunset(held_out):
+def test_the_control_without_photometric_augmentation_keeps_less_under_rain_and_at_sunset(predict):
     """The known answer: against demo_segformer's pseudo-labels (tau 0.6, as the main job), the brittle
     control keeps less than demo_segformer under Day-RAIN and Sunset-EXTRASUNNY."""
-    reference = predictions("demo_segformer", held_out)
-    control = predictions("demo_segformer_noaug", held_out)
+    reference = predict("demo_segformer")
+    control = predict("demo_segformer_noaug")
     for cond in ("Day-RAIN", "Sunset-EXTRASUNNY"):
         kept = {}
         for name, preds in (("demo_segformer", reference), ("demo_segformer_noaug", control)):

@@ -52,9 +52,8 @@ def fast(tmp: Path, *extra: str) -> list[str]:
     """fast_overrides with `extra` replacing same-key entries (Hydra refuses a key given twice), and one
     figure unless `extra` names them (drawing is most of a tiny run's time; these tests read no figure)."""
     keys = {e.split("=", 1)[0] for e in extra}
-    extra = extra if "plot.figures" in keys else (*extra, "plot.figures=[xi_models]")
-    keys.add("plot.figures")
-    return [o for o in fast_overrides(tmp) if o.split("=", 1)[0] not in keys] + list(extra)
+    base = fast_overrides(tmp) + ["plot.figures=[xi_models]"]
+    return [o for o in base if o.split("=", 1)[0] not in keys] + list(extra)
 
 
 def hits(summary):
