@@ -23,6 +23,41 @@ if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
     sys.dont_write_bytecode = False
 
 
+def _parse_each_yaml_text_once() -> None:
+    """Every Hydra compose re-reads and re-parses the ~30 YAML files it uses; the suite composes the
+    config some thousand times in its two workers (in-process CLI runs compose twice: Hydra's get_mode,
+    then the run), and parsing was a fifth of the suite's CPU (py-spy over the whole suite). Keyed by
+    the file's text, a parse is a pure function: the first load of a text goes through OmegaConf as
+    ever (a broken file's error names it as ever), later loads of the same text get a deep copy of that
+    result, as independent of every other load as a fresh parse. Runs in fresh interpreters (the
+    subprocess tests, SLURM jobs, the wheel) parse as a user's run does."""
+    import copy
+    import io
+
+    from omegaconf import OmegaConf
+
+    original = OmegaConf.load
+    parsed: dict[str, object] = {}
+
+    def load(file_):
+        if isinstance(file_, (str, os.PathLike)) or not callable(getattr(file_, "seek", None)):
+            return original(file_)
+        text = file_.read()
+        if isinstance(text, bytes):
+            text = text.decode("utf-8")
+        if text in parsed:
+            return copy.deepcopy(parsed[text])
+        file_.seek(0)
+        cfg = original(file_)
+        parsed[text] = copy.deepcopy(cfg)
+        return cfg
+
+    OmegaConf.load = staticmethod(load)
+
+
+_parse_each_yaml_text_once()
+
+
 @pytest.fixture
 def tmp(tmp_path: Path) -> Path:
     return tmp_path

@@ -440,11 +440,12 @@ def cli(args: list[str], cwd: Path, run_dir: bool = True) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def slow_args(tmp_path: Path, scenes: int = 100) -> list[str]:
-    """100 scenes: pseudolabel + evaluate take ~12 s on one idle core, three times what the run's
-    tracking child needs to import MLflow and open its run (~4 s): a wide window to be caught in."""
+def slow_args(tmp_path: Path, scenes: int = 30) -> list[str]:
+    """30 scenes through demo_segformer: pseudolabel + evaluate take ~13 s on one idle core, three times
+    what the run's tracking child needs to import MLflow and open its run (~4 s): a wide window to be
+    caught in. (A tiny model needed 100 scenes for that window, and generating them cost twice as much.)"""
     return [f"cache_dir={tmp_path / 'cache'}", f"tracking.uri={mlflow_store(tmp_path / 'mlflow.db')}", "renderer=synthetic",
-            "region=synthetic_street", "model=tiny_segformer", "reference_model=tiny_segformer", f"generate.num_scenes={scenes}",
+            "region=synthetic_street", "model=demo_segformer", "reference_model=demo_segformer", f"generate.num_scenes={scenes}",
             "renderer.width=256", "renderer.height=128", FAST3, "metric.bootstrap.resamples=20", "plot.formats=[png]",
             "plot.dpi=40", "name=crash"]
 
@@ -452,7 +453,7 @@ def slow_args(tmp_path: Path, scenes: int = 100) -> list[str]:
 @pytest.fixture(scope="module")
 def slow_dataset(tmp_path_factory) -> Path:
     """The dataset of `slow_args`, generated once in-process: the kill and SIGTERM tests start their
-    child from a copy, so it is caught in pseudolabel/evaluate without generating 100 scenes each."""
+    child from a copy, so it is caught in pseudolabel/evaluate without generating the scenes each time."""
     from pairedgta.testing.cli import run_cli
 
     base = tmp_path_factory.mktemp("slow")
