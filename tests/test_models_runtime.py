@@ -154,6 +154,19 @@ def test_the_family_receives_the_parsed_runtime_options():
         build_segmenter("tiny_ddrnet", batch_size=-2)
 
 
+def test_speed_only_options_stay_out_of_the_stage_hash_and_amp_does_not():
+    """The runtime options say themselves which change only speed (one list, in RuntimeOptions): a run at
+    another batch size, memory layout or with torch.compile is a cache hit; one in bf16 is not."""
+    from pairedgta.models.runtime import SPEED_ONLY_KEYS
+
+    assert set(SPEED_ONLY_KEYS) == {"device", "batch_size", "channels_last", "compile"}
+    base = model_hash_config(model_config("tiny_ddrnet"))
+    for key, value in (("batch_size", 7), ("channels_last", True), ("compile", True)):
+        assert model_hash_config(model_config("tiny_ddrnet", **{key: value})) == base, key
+    assert model_hash_config({**model_config("tiny_ddrnet"), "device": "cuda"}) == base
+    assert model_hash_config(model_config("tiny_ddrnet", amp="bf16")) != base
+
+
 def test_a_runtime_option_is_set_on_the_command_line_without_a_plus():
     from pairedgta.__main__ import _open_mapping_overrides, mistyped_key
 

@@ -6,7 +6,7 @@ family, which passes it to `Segmenter`. Torch-free, so a cached run can check an
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping
 
 from pairedgta.errors import ConfigError
@@ -17,16 +17,21 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
+def _speed_only(default: Any) -> Any:
+    """An option that changes how fast a model runs, never its numbers: left out of the stage hashes."""
+    return field(default=default, metadata={"speed_only": True})
+
+
 @dataclass(frozen=True)
 class RuntimeOptions:
     """`device` comes from the run's top-level `device`; the others from the model config. `amp` changes the
-    numbers, so it enters the stage hashes; batch_size, channels_last and compile do not (RUNTIME_MODEL_KEYS)."""
+    numbers, so it enters the stage hashes; the options marked speed-only do not (SPEED_ONLY_KEYS)."""
 
-    device: str = "cpu"
-    batch_size: int = 4
+    device: str = _speed_only("cpu")
+    batch_size: int = _speed_only(4)
     amp: str | None = None
-    channels_last: bool = False
-    compile: bool = False
+    channels_last: bool = _speed_only(False)
+    compile: bool = _speed_only(False)
 
     def __post_init__(self) -> None:
         size = self.batch_size
@@ -47,6 +52,8 @@ class RuntimeOptions:
 
 # the options a model config may set (device is the run's, never a model's own key)
 MODEL_KEYS = tuple(f.name for f in fields(RuntimeOptions) if f.name != "device")
+# the keys a stage leaves out of its hash: two runs that differ only in these give the same numbers
+SPEED_ONLY_KEYS = tuple(f.name for f in fields(RuntimeOptions) if f.metadata.get("speed_only"))
 
 
 def split_runtime(cfg: Mapping[str, Any], device: str | None = None) -> tuple[dict[str, Any], RuntimeOptions]:

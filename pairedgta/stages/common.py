@@ -10,11 +10,10 @@ from typing import Any, Iterator, Protocol
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.models.runtime import SPEED_ONLY_KEYS
 from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")
-# model keys that change speed, not numbers: left out of cache hashes
-RUNTIME_MODEL_KEYS = ("device", "batch_size", "compile", "channels_last")
 
 
 @contextlib.contextmanager
@@ -102,7 +101,7 @@ def model_config_from_hash(hashed: dict[str, Any]) -> dict[str, Any]:
 
 
 def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
-    cfg = {k: v for k, v in model_cfg.items() if k not in RUNTIME_MODEL_KEYS}
+    cfg = {k: v for k, v in model_cfg.items() if k not in SPEED_ONLY_KEYS}
     fingerprint = _weights_fingerprint(model_cfg)
     if fingerprint:
         cfg[HASH_ONLY_MODEL_KEYS[0]] = fingerprint
