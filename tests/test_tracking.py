@@ -499,6 +499,16 @@ def test_a_failing_store_is_one_warning_in_the_runs_own_log(tmp_path, caplog):
     assert not t.enabled and t.ui_link() is None
 
 
+def test_the_child_imports_the_sql_store_only_for_a_database():
+    """A second of SQLAlchemy imports per run is spent where MLflow needs it: not against a server or a folder."""
+    from pairedgta.tracking.child import is_database_store
+
+    assert is_database_store("sqlite:///outputs/mlflow.db") and is_database_store("postgresql+psycopg2://u@/mlflow?host=/s")
+    assert is_database_store("mysql://u@db/mlflow")
+    assert not any(is_database_store(u) for u in ("http://127.0.0.1:5000", "https://mlflow.lab.org", "file:///tmp/mlruns",
+                                                  "/tmp/mlruns", "mlruns"))
+
+
 @pytest.mark.slow
 def test_the_child_ends_the_runs_killed_when_the_run_dies_and_the_next_run_ends_orphans(tmp_path):
     """End-of-file before `close` (kill -9 of the run): the child ends what is open KILLED. A run whose
