@@ -64,10 +64,14 @@ def test_four_jobs_at_once_lose_no_run_and_the_background_child_records_a_run(se
     spans = sorted(_log_span(log) for log in (tmp_path / "multirun").glob("*/pairedgta.log"))
     assert len(spans) == 4 and max(start for start, _ in spans) < min(end for _, end in spans), spans
 
-    # one run of the whole pipeline (its dataset cached by the sweep) through the default background child
-    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0"], tmp_path)
+    # one run of the whole pipeline (its dataset cached by the sweep) through the default background child: in a
+    # fresh interpreter (this one has imported MLflow above, and a run in it would log in-process), and the
+    # child's own timing line (hydra.verbose) shows that the child logged it
+    proc = run_cli(SMALL + [cache, f"tracking.uri={server.uri}", "name=one_run", "seed=0",
+                            "hydra.verbose=pairedgta.tracking"], tmp_path, subprocess_=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout + proc.stderr
+    assert "tracking child: MLflow import" in out, out[-2000:]
     assert "stopped before it had logged" not in out and "View run" not in out, out[-2000:]
     runs = _records(server.uri, "one_run")
     parents = [r for r in runs if not r.data.tags.get("mlflow.parentRunId")]
