@@ -168,9 +168,10 @@ def test_loco_mae_is_zero_on_a_line_and_known_otherwise():
 
 def test_permutation_p_value_is_small_for_the_target_itself_and_large_for_an_unrelated_order():
     y = np.array([[1.0, 2, 3, 4, 5], [5, 1, 2, 3, 4], [3, 5, 1, 2, 4]])
-    n = 2000
+    n = 2000  # >= 5! = 120: every permutation of the 5 models, applied to all three conditions at once
     p = permutation_pvalue(y.copy(), y, n, seed=0)
-    assert p <= 2 / (1 + n)
+    assert p == pytest.approx(1 / 120)  # only the identity orders every condition as the target
+    assert permutation_pvalue(y.copy(), y, 100, seed=0) <= 2 / 101  # fewer than 5!: random orders
     # Spearman exactly 0 in each condition (sum of squared rank differences 20)
     x = np.stack([np.array([2.0, 5, 3, 1, 4])[np.argsort(np.argsort(row))] for row in y])
     assert permutation_pvalue(x, y, 1, 0) > 0  # defined

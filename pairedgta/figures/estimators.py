@@ -127,7 +127,7 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float) -> str:
     text = [f"# Label-free estimators of robustness\n\nRanked: {int(first['n_models'])} models (the reference model "
             f"{', '.join(sorted(refs)) or '–'} is excluded: its pseudo-labels are what ξ counts), {int(first['n_groups'])} "
             f"scenes. Intervals: {confidence:.0%} percentile bootstrap over scenes, and over scenes and models. "
-            f"p: permutation test of the model order within each condition. DoC, ATC and clean GT mIoU use the clean "
+            f"p: permutation test of the model labels, one order applied to every condition (the joint null). DoC, ATC and clean GT mIoU use the clean "
             f"condition's ground truth; no estimator uses a label of an adverse condition.\n"]
     for t in TARGETS:
         part = stats[stats["target"] == t].set_index(["estimator", "scope"])

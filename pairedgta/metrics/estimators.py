@@ -22,12 +22,14 @@ methods assume); no estimator uses a label of an adverse condition.
 Statistics lead with the within-condition view: per adverse condition, Spearman and Kendall (tau-b)
 across the ranked models (every model but the reference, which would grade itself), and their mean over
 the conditions (`within_mean`) with a paired bootstrap interval over scenes, an interval that also
-resamples the models, and a permutation p-value against a random model order. Beside it, the correlation
+resamples the models, and a permutation p-value against a random model order (one order of the model labels
+for every condition: the joint null). Beside it, the correlation
 over every cell pooled (which mostly orders the conditions) and the mean absolute error of a linear map
 from estimator to target fitted on the other conditions (leave one condition out). Pure numpy/scipy: the
 caller reads the files (the per-group sums of evaluate and its argmax predictions)."""
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from dataclasses import dataclass
@@ -256,26 +258,35 @@ def within_condition(x: np.ndarray, y: np.ndarray, stat: Callable = spearman_row
 
 def permutation_pvalue(x: np.ndarray, y: np.ndarray, permutations: int, seed: int = 0,
                        stat: Callable = spearman_rows) -> float:
-    """x, y: C' x M (per condition, across models). One-sided p-value of the mean over conditions of the
-    rank correlation against a random model order: the estimator's values are permuted across models
-    independently within each condition; p = (1 + #{permuted mean >= observed}) / (1 + permutations)."""
+    """x, y: C' x M (per condition, across the same M models). One-sided p-value of the mean over conditions
+    of the rank correlation under the joint null: the model labels are permuted once and that permutation
+    is applied to every condition, since the same models appear under every condition and their values
+    correlate across conditions (shuffling each condition on its own makes the null too narrow: a shared
+    model effect and no association then rejects far more often than the nominal level).
+    Every permutation when M! <= `permutations` (exact: p = #{mean >= observed} / M!, the identity among
+    them); otherwise `permutations` random ones, p = (1 + #{permuted mean >= observed}) / (1 + permutations)."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     observed = float(np.mean(stat(x, y)))
     if not math.isfinite(observed) or permutations <= 0:
         return math.nan
-    rng = np.random.default_rng([int(seed), 2])
     n_cond, n_models = x.shape
+    exact = math.factorial(n_models) <= permutations
+    if exact:
+        orders = np.array(list(itertools.permutations(range(n_models))), dtype=np.int64)
+    else:
+        rng = np.random.default_rng([int(seed), 2])
+    total = len(orders) if exact else permutations
     hits, done = 0, 0
     chunk = max(1, 200_000 // max(1, n_cond * n_models))
-    while done < permutations:
-        n = min(chunk, permutations - done)
-        order = np.argsort(rng.random((n, n_cond, n_models)), axis=-1)
-        xp = np.take_along_axis(np.broadcast_to(x, (n, n_cond, n_models)), order, axis=-1)
+    while done < total:
+        n = min(chunk, total - done)
+        order = orders[done : done + n] if exact else np.argsort(rng.random((n, n_models)), axis=-1)
+        xp = x[:, order].transpose(1, 0, 2)             # n x C' x M: one order for every condition
         yp = np.broadcast_to(y, (n, n_cond, n_models))
         means = stat(xp.reshape(-1, n_models), yp.reshape(-1, n_models)).reshape(n, n_cond).mean(axis=1)
         hits += int(np.sum(means >= observed - 1e-12))
         done += n
-    return (1 + hits) / (1 + permutations)
+    return hits / total if exact else (1 + hits) / (1 + permutations)
 
 
 def loco_mae(x: np.ndarray, y: np.ndarray) -> dict[str, object]:
