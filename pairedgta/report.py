@@ -1,40 +1,58 @@
 """The table a run ends with: mean xi per model x adverse condition, read back from each evaluation's
 `summary.json` (a cached rerun reads JSON, no torch), the best model of each condition marked, as
-evaluation harnesses print their leaderboards."""
+evaluation harnesses print their leaderboards. The reference model, whose pseudo-labels xi counts, is
+graded on its own predictions: its row is shown last, labelled as the reference, and never marked."""
 from __future__ import annotations
 
 import json
 import math
 from pathlib import Path
 
+REFERENCE_TAG = " (reference)"
+
 
 def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: int = 9) -> list[str]:
     """Rows `model  value value ...`, one column per adverse condition (short names: Day-RAIN, ...),
-    the column's best marked `*`; [] when no evaluation has a summary."""
+    the column's best among the models other than the reference marked `*`; [] when no evaluation has a
+    summary. `reference`: the clean condition, left out of the columns."""
     means: dict[str, dict[str, float]] = {}
     teachers: set[str] = set()
+    own: set[str] = set()  # evaluations of the model whose pseudo-labels they are scored against
     for name, path in evaluations.items():
         summary = Path(path) / "summary.json"
         if summary.is_file():
             data = json.loads(summary.read_text())
-            teachers.add(str(data.get("reference_model")))
+            teacher = str(data.get("reference_model"))
+            teachers.add(teacher)
+            if str(data.get("model", name.rsplit("/", 1)[-1])) == teacher:
+                own.add(name)
             means[name] = {c: v for c, v in (data.get("xi_mean") or {}).items() if c != reference}
     conditions = list(dict.fromkeys(c for row in means.values() for c in row))
     if not conditions:
         return []
-    best = {c: max((row[c] for row in means.values() if _finite(row.get(c))), default=None) for c in conditions}
-    label = max(len("mean xi"), *(len(n) for n in means)) + 2
+    ranked = [n for n in means if n not in own]
+    marked = len(ranked) > 1
+    best = {c: max((means[n][c] for n in ranked if _finite(means[n].get(c))), default=None) for c in conditions}
+    order = ranked + [n for n in means if n in own]
+    label = max(len("mean xi"), *(len(n) + (len(REFERENCE_TAG) if n in own else 0) for n in means)) + 2
     cols = [max(width, len(c) + 1) for c in conditions]
     lines = ["mean xi".ljust(label) + "".join(c.rjust(w) for c, w in zip(conditions, cols))]
-    for name, row in means.items():
+    for name in order:
+        row = means[name]
         cells = []
         for c, w in zip(conditions, cols):
             v = row.get(c)
-            text = "-" if not _finite(v) else f"{v:.3f}" + ("*" if len(means) > 1 and v == best[c] else " ")
+            star = marked and name not in own and v == best[c]
+            text = "-" if not _finite(v) else f"{v:.3f}" + ("*" if star else " ")
             cells.append(text.rjust(w))
-        lines.append(name.ljust(label) + "".join(cells))
+        lines.append((name + (REFERENCE_TAG if name in own else "")).ljust(label) + "".join(cells))
     source = f"{', '.join(sorted(teachers))}'s pseudo-labels" + (f" on {reference}" if reference else "")
-    lines.append(f"(against {source}" + ("; * best per condition)" if len(means) > 1 else ")"))
+    notes = []
+    if marked:
+        notes.append("* best per condition" + (" among the other models" if own else ""))
+    if own:
+        notes.append("the reference grades its own pseudo-labels: not ranked")
+    lines.append(f"(against {source}" + "".join(f"; {n}" for n in notes) + ")")
     return lines
 
 

@@ -7,9 +7,10 @@ import math
 from pairedgta.report import xi_lines
 
 
-def _evaluation(folder, xi, teacher="ref"):
+def _evaluation(folder, xi, teacher="ref", model=None):
     folder.mkdir()
-    (folder / "summary.json").write_text(json.dumps({"reference_model": teacher, "xi_mean": xi}))
+    (folder / "summary.json").write_text(json.dumps({"reference_model": teacher, "xi_mean": xi,
+                                                     "model": model or folder.name}))
     return str(folder)
 
 
@@ -27,3 +28,21 @@ def test_one_model_has_no_marks_and_no_summary_no_table(tmp_path):
     lines = xi_lines({"a": _evaluation(tmp_path / "a", {"Day-RAIN": 0.5})})
     assert "*" not in "".join(lines[:2]) and lines[-1] == "(against ref's pseudo-labels)"
     assert xi_lines({"a": str(tmp_path / "missing")}) == []
+
+
+def test_the_reference_is_shown_as_the_reference_and_never_marked(tmp_path):
+    """The main job evaluates its reference model too: graded on its own pseudo-labels it would be the best
+    of nearly every column. Its row comes last, named the reference, without a star; the best is marked
+    among the others."""
+    evals = {"ref": _evaluation(tmp_path / "ref", {"Day-RAIN": 0.95, "Night-RAIN": 0.90}),
+             "a": _evaluation(tmp_path / "a", {"Day-RAIN": 0.61, "Night-RAIN": 0.20}),
+             "b": _evaluation(tmp_path / "b", {"Day-RAIN": 0.50, "Night-RAIN": 0.30})}
+    lines = xi_lines(evals, reference="Day-EXTRASUNNY")
+    assert lines[1].split() == ["a", "0.610*", "0.200"]
+    assert lines[2].split() == ["b", "0.500", "0.300*"]
+    assert lines[3].split() == ["ref", "(reference)", "0.950", "0.900"]
+    assert lines[4] == ("(against ref's pseudo-labels on Day-EXTRASUNNY; * best per condition among the other models; "
+                        "the reference grades its own pseudo-labels: not ranked)")
+    # the reference and one other model: nothing to rank, no star at all
+    lines = xi_lines({k: evals[k] for k in ("ref", "a")}, reference="Day-EXTRASUNNY")
+    assert "*" not in "".join(lines) and lines[2].split()[:2] == ["ref", "(reference)"]
