@@ -68,7 +68,7 @@ def main(cfg: DictConfig) -> None:
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix
         print(f"error: {exc}", file=sys.stderr)
-        log.error("%s", exc)
+        _to_log_files([f"error: {exc}"], logging.ERROR)
         if _in_sweep():  # the launcher carries it back to the sweep, which prints it as one line
             raise JobError(_job_line(exc)) from None
         sys.exit(2)
@@ -80,7 +80,7 @@ def main(cfg: DictConfig) -> None:
         if full is None:
             raise
         print(f"error: {full}", file=sys.stderr)
-        log.error("%s", full)
+        _to_log_files([f"error: {full}"], logging.ERROR)
         sys.exit(2)
     finally:
         release_all()
@@ -106,12 +106,13 @@ def main(cfg: DictConfig) -> None:
     _to_log_files(lines)
 
 
-def _to_log_files(lines: list[str]) -> None:
-    """The `results:` lines go to stdout bare (to copy a path) and into the job's log file(s), so the log
-    of a run says where its results are; logging them would print them twice on the console."""
+def _to_log_files(lines: list[str], level: int = logging.INFO) -> None:
+    """The `results:` lines go to stdout bare (to copy a path) and the one-line error to stderr; both also go
+    into the job's log file(s), so the log of a run says where its results are or why it stopped: logging
+    them would print them twice on the console."""
     handlers = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     for line in lines:
-        record = log.makeRecord(log.name, logging.INFO, __file__, 0, line, None, None)
+        record = log.makeRecord(log.name, level, __file__, 0, line, None, None)
         for h in handlers:
             h.handle(record)
 
@@ -171,7 +172,8 @@ def mistyped_key(argv: list[str]) -> str | None:
     (the chosen one: renderer=synthetic has other keys than blender) or the closest known key instead."""
     import difflib
 
-    from pairedgta.config_checks import BUILT_NODES, argv_choices, check_group_key, known_key_paths, open_key
+    from pairedgta.config_checks import (BUILT_NODES, argv_choices, check_group_key, check_package_key,
+                                         known_key_paths, open_key)
     from pairedgta.errors import ConfigError
 
     known: set[str] | None = None
@@ -186,6 +188,11 @@ def mistyped_key(argv: list[str]) -> str | None:
         if moved:
             return f"{moved} is now {MOVED_KEYS[moved]} (the camera group, pairedgta/conf/camera/); set that instead"
         choices = choices if choices is not None else argv_choices(argv)
+        try:  # a node an experiment's defaults add (`/dataset@acdc: acdc`): the keys of that option
+            if check_package_key(key, choices):
+                continue
+        except ConfigError as exc:
+            return str(exc)
         if key.split(".")[0] in choices and "." in key:
             try:  # the same check as a `+group.key`, against the option this command line chooses
                 check_group_key(key, choices)

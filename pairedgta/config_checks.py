@@ -318,6 +318,36 @@ def argv_choices(argv: list[str]) -> dict[str, str]:
     return {**choices, **{k: v for k, v in given.items() if k in choices}}
 
 
+def package_nodes(choices: dict[str, str]) -> dict[str, tuple[str, str]]:
+    """node -> (group, option) for the group options an experiment places under a name of its own
+    (`/dataset@acdc: acdc` makes the node `acdc`): their keys exist only once that experiment is chosen."""
+    out: dict[str, tuple[str, str]] = {}
+    for k, v in choices.items():
+        group, at, package = k.partition("@")
+        if at and package and not package.startswith("_"):
+            out[package] = (group, v)
+    return out
+
+
+def check_package_key(key: str, choices: dict[str, str]) -> bool:
+    """False when `key`'s first part is no package node of `choices`; True when it is one and `key` names a key
+    of that node's option file; a ConfigError naming the option's keys otherwise."""
+    node, _, rest = key.partition(".")
+    placed = package_nodes(choices).get(node)
+    if placed is None:
+        return False
+    group, option = placed
+    known = group_option_keys(group, option)
+    child = rest.split(".")[0]
+    if not rest or known is None or child in known:
+        return True
+    import difflib
+
+    close = difflib.get_close_matches(child, sorted(known), n=1, cutoff=0.6)
+    hint = f"did you mean {node}.{close[0]}?" if close else f"its keys are {', '.join(sorted(known))}"
+    raise ConfigError(f"{node}.{child} is not a key of {node} ({group}={option}); {hint}")
+
+
 def check_group_key(key: str, choices: dict[str, Any] | None) -> None:
     """`key` (e.g. renderer.colour) added to a closed group must be a key of the chosen option's file."""
     from pairedgta.configs import CONFIG_DIR

@@ -53,9 +53,10 @@ def serve(inp: Any, out: Any, import_s: float = 0.0) -> None:
             method, args, kwargs = pickle.load(inp)
             started = time.perf_counter()
         except (EOFError, pickle.UnpicklingError, OSError):
-            for _ in range(depth):
-                if tracker is not None:
+            if tracker is not None:
+                for _ in range(depth):
                     tracker.finish("KILLED")
+                tracker.close()  # a journal kept while the store failed: into the store, if it answers now
             return
         try:
             if method == "open":
@@ -74,6 +75,7 @@ def serve(inp: Any, out: Any, import_s: float = 0.0) -> None:
                 depth -= 1
                 tracker.finish(*args)
             elif method == "close":
+                tracker.close()
                 summary = {"enabled": tracker.enabled, "failed": tracker.failed, "log": collect.lines,
                            "experiment_id": getattr(tracker, "experiment_id", None), "ui_link": tracker.ui_link(),
                            "import_s": import_s, "store_s": store_s}

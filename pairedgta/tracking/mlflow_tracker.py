@@ -12,7 +12,9 @@ next tracker that opens the store (store.end_orphans).
 
 MLflow is a record, not the source of truth: the stage results live in the cache. A store that fails
 (locked, read-only, corrupt, full, unreachable) is retried for a few seconds (`guarded`); then the run
-goes on without MLflow after one warning that names the store, where the results are and the fix.
+goes on and keeps what it could not write in a journal beside the cache (pairedgta.tracking.journal), after
+one warning that names the store, the journal and the fix. The journal is written into the store at the end
+of the run if the store answers again, else by the next run that opens the store, before it ends orphans.
 """
 from __future__ import annotations
 
@@ -29,10 +31,11 @@ from typing import Any, Callable, Iterator, TypeVar
 
 from pairedgta.errors import ConfigError, Terminated
 from pairedgta.jsonio import dumps
+from pairedgta.tracking import journal as journals
 from pairedgta.tracking.naming import RUN_COLOR_TAG, TAG, model_run_color
 from pairedgta.tracking.recorder import hydra_record
-from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, owner_tags, probe_sqlite,
-                                      shorten_sqlite_waits, store_lock)
+from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, owner_tags, probe_server,
+                                      probe_sqlite, shorten_sqlite_waits, store_lock)
 
 log = logging.getLogger("pairedgta.tracking")
 
@@ -62,27 +65,37 @@ T = TypeVar("T")
 
 def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
     """Run a Tracker method with retries (RETRY_DELAYS_S, within RETRY_BUDGET_S); when the store keeps
-    failing, switch MLflow off for the rest of the run with one warning (the stages go on: their results
-    are in the cache)."""
+    failing, the rest of the run's record goes to a journal (this call included) with one warning; where no
+    journal can be kept, MLflow is switched off for the rest of the run. The stages go on either way: their
+    results are in the cache."""
     def wrap(method: Callable[..., T]) -> Callable[..., T | None]:
         @functools.wraps(method)
         def call(self: "Tracker", *args: Any, **kwargs: Any) -> T | None:
             start = time.monotonic()
-            for delay in (*RETRY_DELAYS_S, None):
-                if not self.enabled:
-                    return None
+            delays = iter((*RETRY_DELAYS_S, None))
+            while self.enabled:
                 try:
                     return method(self, *args, **kwargs)
                 except (KeyboardInterrupt, Terminated, ConfigError):
                     raise
                 except Exception as exc:  # sqlite, SQLAlchemy, HTTP, OSError: MLflow raises them all
-                    if delay is None or time.monotonic() - start + delay > RETRY_BUDGET_S:
+                    if self.journal is not None:  # the journal itself failed (a full disk): nothing to fall back on
                         self.give_up(what, exc)
                         return None
+                    delay = next(delays)
+                    if delay is None or time.monotonic() - start + delay > RETRY_BUDGET_S:
+                        if not self.to_journal(what, exc):
+                            self.give_up(what, exc)
+                            return None
+                        continue  # the same call once more, into the journal
                     time.sleep(delay)
             return None
         return call
     return wrap
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
 
 
 class Tracker:
@@ -110,15 +123,66 @@ class Tracker:
         self.results = str(results) if results is not None else "the cache"
         self.failed: str | None = None  # why MLflow was switched off mid-run
         self.nested_tags: dict[str, str] = {}  # tags every nested run of this invocation carries (a sweep's)
+        # where the record goes while the store refuses it: None until a call fails (then self.client is a
+        # journal.JournalClient); kept beside the cache (`results`), never without one
+        self.journal: journals.Journal | None = None
+        self._root = str(results) if results is not None else None
         if enabled:
             check_uri(uri)
             self._open()
 
     def close(self) -> None:
-        """Nothing to wait for: in-process calls are done when they return (a BackgroundTracker waits here)."""
+        """In-process calls are done when they return (a BackgroundTracker waits here); what a failing store
+        did not take is written into it now if it answers again, else left to the next run against it."""
+        if self.journal is None:
+            return
+        journal, self.journal = self.journal, None
+        try:
+            if journal.entries:
+                self._connect()
+                applied, skipped = journals.Replay(self.client, self._experiment_of, self._log_table).run(
+                    journal.path, journal._handle)
+                journals.discard(journal.path)
+                log.info("MLflow: the store %s answers again; the %d call(s) this run kept in %s while it failed are "
+                         "in it now%s", self.uri, applied, journal.path,
+                         f" ({skipped} refused by the store, see above)" if skipped else "")
+                self.failed = None
+            else:
+                journals.discard(journal.path)
+        except (KeyboardInterrupt, Terminated):
+            raise
+        except Exception as exc:
+            self.enabled = False  # no link to a store that does not hold the run yet
+            # said once as a warning when it first failed (with the journal's path): this is the outcome
+            log.info("MLflow store %s still fails at the end of the run (%s: %s); this run's record stays in %s and "
+                        "is written into the store when the next run opens it", self.uri, type(exc).__name__,
+                        _first_line(exc), journal.path)
+        finally:
+            journal.close()
+
+    def to_journal(self, what: str, exc: BaseException) -> bool:
+        """The store failed for good while `what`: the rest of the run's record goes to a journal beside the
+        cache. False where there is none to keep (no cache given, or it cannot be written)."""
+        if self._root is None:
+            return False
+        try:
+            self.journal = journals.Journal(self._root, self.uri, self.experiment)
+        except OSError as err:
+            log.debug("MLflow: no journal under %s (%s)", self._root, err)
+            return False
+        self.client = journals.JournalClient(self.journal)
+        reason = _first_line(exc)
+        self.failed = f"{what}: {type(exc).__name__}: {reason}"
+        log.warning("MLflow store %s failed while %s (%s: %s); the run goes on and keeps its record in %s, written "
+                    "into the store at the end of the run if it answers again, else when the next run opens it; its "
+                    "results are in %s; if the store stays unusable, fix it (permissions, free space, a lock another "
+                    "program holds, a corrupt database, a server that is down), or set tracking.uri= to another "
+                    "store or tracking.enabled=false", self.uri, what, type(exc).__name__, reason, self.journal.path,
+                    self.results)
+        return True
 
     def give_up(self, what: str, exc: BaseException) -> None:
-        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        reason = _first_line(exc)
         self.failed = f"{what}: {type(exc).__name__}: {reason}"
         log.warning("MLflow store %s failed while %s (%s: %s); the run goes on without it and its results are in %s; "
                     "fix the store (permissions, free space, a lock another program holds, a corrupt database), or "
@@ -143,6 +207,57 @@ class Tracker:
 
     @guarded("opening the experiment")
     def _open(self) -> None:
+        """The store, its experiment, then what earlier runs kept in journals for this store, then the runs
+        left RUNNING by processes that are gone (never one a journal still has to end)."""
+        if self.journal is not None:  # the store refused: this run's record starts in the journal
+            self.experiment_id = None
+            return
+        self._connect()
+        skip: set[str] = set()
+        for path in journals.pending(self._root, self.uri) if self._root is not None else []:
+            if not self._replay_pending(path):
+                skip |= journals.runs_of(path)
+        end_orphans(self.client, skip)
+
+    def _replay_pending(self, path: Path) -> bool:
+        """True when the journal at `path` is wholly in the store now (and removed)."""
+        replay = journals.Replay(self.client, self._experiment_of, self._log_table)
+        result = replay.run(path)
+        if result is None:
+            return False  # still being written by its live run, or replayed by another run right now
+        applied, skipped = result
+        header, _, _ = journals.read(path)
+        journals.discard(path)
+        if applied:
+            log.info("MLflow: %d call(s) that an earlier run (pid %s) kept in %s while the store failed are in the "
+                     "store now%s", applied, header.get("pid"), path, f" ({skipped} refused)" if skipped else "")
+        return True
+
+    def _experiment_of(self, name: str) -> str:
+        """The id of experiment `name` in this store, created (as `_connect` creates the run's) if missing."""
+        if name == self.experiment and getattr(self, "experiment_id", None) is not None:
+            return str(self.experiment_id)
+        with store_lock(self.uri):
+            found = self.client.get_experiment_by_name(name)
+            if found is not None:
+                return str(found.experiment_id)
+            try:
+                return str(self.client.create_experiment(name, artifact_location=artifact_location(self.uri, name),
+                                                         tags=dict([EXPERIMENT_KIND])))
+            except self.mlflow.exceptions.MlflowException:  # another job created it first
+                found = self.client.get_experiment_by_name(name)
+                if found is None:
+                    raise
+                return str(found.experiment_id)
+
+    def _log_table(self, frame: Any, artifact_file: str, run_id: str) -> None:
+        if isinstance(self.client, journals.JournalClient):
+            self.client.log_table(run_id, frame, artifact_file)
+        else:
+            self.mlflow.log_table(frame, artifact_file=artifact_file, run_id=run_id)
+
+    def _connect(self) -> None:
+        """Open the store and the run's experiment (raises what the store raises)."""
         # a local record: no usage telemetry sent out, and no Databricks-notebook probe (it imports
         # IPython, 0.25 s, on every run start); a user's own setting of either wins
         os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
@@ -151,7 +266,12 @@ class Tracker:
         os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
         if urllib.parse.urlparse(self.uri).scheme in ("", "file"):  # a folder store, chosen by the user:
             os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow 3.17 refuses it unless told
+        # a server that is down: MLflow retries each request for minutes (7 tries, backoff 2); the run's own
+        # retries and its journal cover an outage, so a request gives up within seconds
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "2")
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR", "1")
         shorten_sqlite_waits()
+        probe_server(self.uri)
         with store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)
         import mlflow
@@ -179,7 +299,6 @@ class Tracker:
                 except mlflow.exceptions.MlflowException:  # a concurrent job set it first (a server's unique key)
                     if EXPERIMENT_KIND[0] not in (self.client.get_experiment(self.experiment_id).tags or {}):
                         raise
-            end_orphans(self.client)
 
     def _context_tags(self) -> dict[str, str]:
         """What MLflow's start_run records about where a run comes from (user, source, git commit), read
@@ -337,7 +456,7 @@ class Tracker:
             return rid
         self.artifacts(paths, artifact_path)
         for artifact_file, frame in (tables or {}).items():
-            self.mlflow.log_table(frame, artifact_file=artifact_file, run_id=self._active())
+            self._log_table(frame, artifact_file, self._active())
         self._set_tags({f"{TAG}uploaded.{bundle}": "true"})
         return self.run_id()
 

@@ -83,6 +83,22 @@ def probe_sqlite(uri: str) -> None:
         conn.close()
 
 
+SERVER_WAIT_S = 2.0  # how long the probe waits for a tracking server to accept a connection
+
+
+def probe_server(uri: str) -> None:
+    """Raise ConnectionError within SERVER_WAIT_S when an http(s) tracking server does not accept a
+    connection (down, wrong port): MLflow would retry its first request for minutes."""
+    parsed = urlparse(str(uri))
+    if parsed.scheme not in ("http", "https") or not parsed.hostname:
+        return
+    port = parsed.port or (443 if parsed.scheme == "https" else 80)
+    try:
+        socket.create_connection((parsed.hostname, port), timeout=SERVER_WAIT_S).close()
+    except OSError as exc:
+        raise ConnectionError(f"no tracking server answers at {parsed.hostname}:{port} ({exc})") from None
+
+
 class _Reported(logging.Filter):
     """Drops MLflow's own warnings and errors (tracebacks included) about its store: the MLflow tracker
     retries those calls and, if they keep failing, says so in one line."""
@@ -141,8 +157,9 @@ def owner_tags(pid: int | None = None) -> dict[str, str]:
     return {PID_TAG: str(pid), HOST_TAG: socket.gethostname(), START_TAG: process_start(pid)}
 
 
-def end_orphans(client: Any) -> list[str]:
-    """End as KILLED every RUNNING run of `client`'s store whose owning process on this host is gone."""
+def end_orphans(client: Any, skip: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """End as KILLED every RUNNING run of `client`'s store whose owning process on this host is gone, but
+    those in `skip` (a journal not yet replayed still has to write their end)."""
     host = socket.gethostname()
     ended: list[str] = []
     try:
@@ -153,7 +170,7 @@ def end_orphans(client: Any) -> list[str]:
         return ended
     for r in runs:
         tags = r.data.tags
-        if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
+        if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit() or r.info.run_id in skip:
             continue
         if process_alive(int(tags[PID_TAG]), tags.get(START_TAG, "")):
             continue
