@@ -222,6 +222,7 @@ class RhoConfig:
     headline: Optional[str] = key("top_m")
     classes: Optional[list[str]] = key(None)
     clean_condition: Optional[str] = key(None)
+    min_frames: int = key(10, ok=lambda v: v >= 0, use="use an integer >= 0 (0 = any number of frames)")
 
 
 @dataclass(frozen=True)
@@ -234,6 +235,8 @@ class BootstrapConfig:
 @dataclass(frozen=True)
 class ValidityConfig:
     permutations: int = key(10000, ok=lambda v: v >= 0, use="use an integer >= 0 (0 = no permutation p-value)")
+    rpc_min_clean_miou: float = key(0.1, ok=lambda v: 0.0 <= v < 1.0,
+                                    use="use a clean mIoU in [0, 1): below it rPC is undefined (0 = no floor)")
 
 
 REFERENCE_SOURCES = ("pseudo_label", "ground_truth", "both")

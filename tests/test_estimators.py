@@ -362,3 +362,25 @@ def test_the_difference_to_xi_is_paired_on_the_same_resamples():
         if math.isfinite(row["spearman_minus_xi_ci_low"]):
             assert row["spearman_minus_xi_ci_low"] <= row["spearman_minus_xi_ci_high"]
     assert math.isnan(s.loc[("ac", "rpc", "pooled"), "spearman_minus_xi"])  # only the headline scope has it
+
+
+def test_a_one_class_predictor_has_no_rpc_and_leaves_only_the_rpc_rows():
+    """rPC below metric.validity.rpc_min_clean_miou is undefined (a one-class predictor would get 1.0): the
+    model is left out of the rPC rows (n_models 4, n_undefined 1) and kept in the adverse GT mIoU rows."""
+    import dataclasses
+
+    names = ["m0", "m1", "m2", "m3", "flat"]
+    groups, counts, agree, scored = _synthetic(names, n_groups=8)
+    cm = np.zeros_like(groups[-1].cm)
+    cm[:, :, :5, 0] = 200  # truth classes 0-4, everything predicted as 0: mIoU 0.04 under every condition
+    groups[-1] = dataclasses.replace(groups[-1], cm=cm)
+    cells, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=20, permutations=20,
+                           rpc_floor=0.1)
+    s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
+    assert (s.loc[("xi", "rpc", "within_mean"), "n_models"], s.loc[("xi", "rpc", "within_mean"), "n_undefined"]) == (4, 1)
+    assert s.loc[("xi", "gt_miou", "within_mean"), "n_models"] == 5
+    assert s.loc[("xi", "rpc", "A"), "n_cells"] == 4
+    flat = pd.DataFrame(cells).query("model == 'flat'")
+    assert flat["rpc"].isna().all() and np.allclose(flat["gt_miou"], 0.04)
+    _, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=0, permutations=0)
+    assert pd.DataFrame(stats).set_index(["estimator", "target", "scope"]).loc[("xi", "rpc", "within_mean"), "n_models"] == 5

@@ -247,8 +247,9 @@ def test_night_vs_acdc(work, acdc_root):
     md = (out / "rho_valid.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith("| ACDC | ACDC-night | tiny_segformer"))
     for cell, (cls, sel) in zip(row.strip("| ").split(" | ")[3:], [(c, s) for c in ("person", "car") for s in ("top_m", "nonzero")]):
-        v = acdc[(acdc.class_name == cls) & (acdc.selection == sel)].rho.item()
-        assert cell == ("–" if math.isnan(v) else f"{v:.3f}")
+        r = acdc[(acdc.class_name == cls) & (acdc.selection == sel)].iloc[0]
+        few = "\u2021" if r.n_frames < r.min_frames else ""  # below metric.rho.min_frames: no headline
+        assert cell == ("–" if math.isnan(r.rho) else f"{r.rho:.3f}") + f" (n={int(r.n_frames)}{few})"
 
     # ACDC's ground truth is the night frame's: IoU for ACDC-night only, never xi against the reference
     xi = pd.read_csv(ev / "xi.csv")

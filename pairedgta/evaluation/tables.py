@@ -177,14 +177,15 @@ def write_rho_valid(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> N
     rows = []
     for (cls, cond), g in counts.groupby(["class_name", "condition"], sort=False):
         for r in rho_valid_rows(g["clean_count"].to_numpy(), g["adv_count"].to_numpy(), s["selections"], s["m"],
-                                s["resamples"], s["confidence"], s["seed"], conv["rho_headline"]):
+                                s["resamples"], s["confidence"], s["seed"], conv["rho_headline"],
+                                conv.get("rho_min_frames", 0)):
             rows.append({"dataset": e.dataset, "model": e.model, "class_name": cls, "condition": cond, **r,
                          "convention": conv["name"]})
             summary["rho_valid"].setdefault(cond, {}).setdefault(r["selection"], {})[cls] = r["rho"]
             if r["headline"]:
                 summary["rho_valid_headline"].setdefault(cond, {})[cls] = r["rho"]
     pd.DataFrame(rows, columns=["dataset", "model", "class_name", "condition", "selection", "m", "n_frames", "rho",
-                                "ci_low", "ci_high", "headline", "convention"]).to_csv(out / RHO_VALID, index=False)
+                                "ci_low", "ci_high", "headline", "min_frames", "convention"]).to_csv(out / RHO_VALID, index=False)
 
 
 def write_gt_iou(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
@@ -224,7 +225,8 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
         return {}
     g, c = GroupCounts.from_arrays(model, arrays), EstimatorCounts.from_arrays(model, arrays)
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
-    values = model_values(g, c, np.ones((1, n)), clean, include, conv["absent"], conv["min_images"], conv["min_pixels"])
+    values = model_values(g, c, np.ones((1, n)), clean, include, conv["absent"], conv["min_images"], conv["min_pixels"],
+                          conv.get("rpc_min_clean_miou", 0.0))
     rows = {cond: {"model": model, "condition": cond,
                    **{k: float(v[0, i]) for k, v in values.items() if k != "atc_threshold"},
                    "atc_threshold": float(values["atc_threshold"][0])} for i, cond in enumerate(conditions)}

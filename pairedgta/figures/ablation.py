@@ -49,6 +49,8 @@ def ablation_frame(levels: list[Level], reference: str, classes: list[str], sele
                 v = lv.rho[(lv.rho["model"] == r.model) & (lv.rho["condition"] == r.condition)
                            & (lv.rho["class_name"] == cls) & (lv.rho["selection"] == selection)]["rho"]
                 row[f"rho_{selection}_{cls}"] = float(v.iloc[0]) if len(v) else math.nan
+                n = lv.rho.loc[v.index, "n_frames"] if "n_frames" in lv.rho else ()  # what each rho rests on
+                row[f"n_frames_{selection}_{cls}"] = float(n.iloc[0]) if len(n) else math.nan
             col = f"structure/{r.condition}"
             row["structure_agreement"] = (float(lv.validation[col].mean()) if lv.validation is not None
                                           and col in lv.validation.columns else math.nan)
@@ -98,11 +100,15 @@ def ablation_table(frame: pd.DataFrame, classes: list[str], selection: str, out:
     def f(v: float) -> str:
         return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
 
+    def n_text(n: float | None) -> str:  # how many frames a rho_valid rests on
+        return "" if n is None or (isinstance(n, float) and math.isnan(n)) else f" (n={int(n)})"
+
     header = ["Level", "jitter (m)", "jitter (°)", "resample p", "move (m)", "Model", "Condition", "mean ξ"]
     header += [f"ρ_valid {c}" for c in classes] + ["structure"]
     rows = [[r["label"], f"{r['camera_jitter_m']:g}", f"{r['camera_jitter_deg']:g}", f"{r['object_resample_prob']:g}",
              f"{r['object_move_m']:g}", model_display(r["model"]), condition_display(r["condition"]), f(r["xi_mean"])]
-            + [f(r[f"rho_{selection}_{c}"]) for c in classes] + [f(r["structure_agreement"])]
+            + [f(r[f"rho_{selection}_{c}"]) + n_text(r.get(f"n_frames_{selection}_{c}")) for c in classes]
+            + [f(r["structure_agreement"])]
             for r in frame.to_dict("records")]
     (out / f"{stem}.md").write_text(
         f"# Pairing ablation: mean \u03be, \u03c1_valid ({selection}) and pair structure agreement per pairing level\n\n"

@@ -64,7 +64,7 @@ def adverse_condition(adv_paths: pd.Series) -> str:
 
 
 def inputs_from_counts(df: pd.DataFrame, selections: list[str], m: int, resamples: int, confidence: float, seed: int,
-                       headline: str, convention: str) -> list[RankingInput]:
+                       headline: str, convention: str, min_frames: int = 0) -> list[RankingInput]:
     """One RankingInput per dataset_name: the frames in the plot stage's frame_counts schema and the
     rho_valid rows (every selection, bootstrap interval over the selected frames)."""
     inputs = []
@@ -75,7 +75,8 @@ def inputs_from_counts(df: pd.DataFrame, selections: list[str], m: int, resample
                                "adv_count": part["adv_count"]})
         rows = []
         for (model, cls), g in counts.groupby(["model", "class_name"], sort=False):
-            for r in rho_rows(g["clean_count"], g["adv_count"], selections, m, resamples, confidence, seed, headline):
+            for r in rho_rows(g["clean_count"], g["adv_count"], selections, m, resamples, confidence, seed, headline,
+                              min_frames):
                 rows.append({"dataset": dataset, "model": model, "class_name": cls, "condition": cond, **r,
                              "convention": convention})
         inputs.append(RankingInput(str(dataset), cond, counts.reset_index(drop=True), pd.DataFrame(rows)))
@@ -94,7 +95,7 @@ def _options(opts: FigureOptions) -> tuple[Path, dict[str, Any]]:
     boot = metric.get("bootstrap") or {}
     settings = {"selections": selections, "m": int(rho.get("m", 25)), "resamples": int(boot.get("resamples", 1000)),
                 "confidence": float(boot.get("confidence", 0.95)), "seed": int(boot.get("seed", 0)),
-                "headline": conv.rho_headline, "convention": conv.name,
+                "headline": conv.rho_headline, "convention": conv.name, "min_frames": conv.rho_min_frames,
                 "classes": list(plot.ranking.classes), "window": plot.ranking.window}
     return Path(str(plot.frame_counts_csv)), settings
 
@@ -119,7 +120,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         raise ConfigError(f"plot.ranking.classes: {unknown} not in {path.name}, which holds {present}; "
                           f"set plot.ranking.classes={present}")
     inputs = inputs_from_counts(df[df["target_class"].isin(classes)], s["selections"], s["m"], s["resamples"],
-                                s["confidence"], s["seed"], s["headline"], s["convention"])
+                                s["confidence"], s["seed"], s["headline"], s["convention"], s["min_frames"])
     files = ranking_figure(inputs, classes, s["window"], out, opts.formats, opts.dpi, stem="ranking",
                            selections=tuple(s["selections"]))
     files += rho_table(inputs, classes, out)

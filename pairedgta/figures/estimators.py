@@ -40,7 +40,8 @@ STATS = ("spearman", "kendall", "mae", "p_permutation")
 def settings(opts: FigureOptions) -> dict[str, Any]:
     metric, boot = opts.run.metric, opts.run.metric.bootstrap
     return {"permutations": metric.validity.permutations, "resamples": boot.resamples, "confidence": boot.confidence,
-            "seed": boot.seed, "reference_model": opts.run.reference_model}
+            "seed": boot.seed, "reference_model": opts.run.reference_model,
+            "rpc_min_clean_miou": metric.validity.rpc_min_clean_miou}
 
 
 def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
@@ -96,12 +97,12 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
     cells, stats = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
                            refs, conv.absent, s["resamples"], s["confidence"], s["seed"], s["permutations"],
-                           conv.min_images, conv.min_pixels)
+                           conv.min_images, conv.min_pixels, s["rpc_min_clean_miou"])
     cells_df, stats_df = pd.DataFrame(cells), pd.DataFrame(stats)
     cells_df["convention"] = stats_df["convention"] = conv.name
     cells_df.to_csv(out / "estimator_cells.csv", index=False)
     stats_df.to_csv(out / "estimators.csv", index=False)
-    (out / "estimators.md").write_text(markdown(stats_df, refs, s["confidence"]))
+    (out / "estimators.md").write_text(markdown(stats_df, refs, s["confidence"], cells_df, s["rpc_min_clean_miou"]))
     files = [out / "estimators.csv", out / "estimators.md", out / "estimator_cells.csv"]
     files += _figure(cells_df, stats_df, out, opts, s["confidence"])
     metrics: dict[str, float] = {}
@@ -121,9 +122,11 @@ def _ci(lo: float, hi: float) -> str:
     return "–" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{lo:.2f}, {hi:.2f}]"
 
 
-def markdown(stats: pd.DataFrame, refs: set[str], confidence: float) -> str:
+def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.DataFrame | None = None,
+             rpc_floor: float = 0.0) -> str:
     """One table per target: estimators sorted by their within-condition mean Spearman."""
     first = stats.iloc[0]
+    low = [] if cells is None else sorted(set(cells.loc[cells["gt_miou_clean"] < rpc_floor, "model"]))
     text = [f"# Label-free estimators of robustness\n\nRanked: {int(first['n_models'])} models (the reference model "
             f"{', '.join(sorted(refs)) or '–'} is excluded: its pseudo-labels are what ξ counts), {int(first['n_groups'])} "
             f"scenes. Intervals: {confidence:.0%} percentile bootstrap over scenes, and over scenes and models. "
@@ -142,7 +145,12 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float) -> str:
                           + _ci(w["spearman_minus_xi_ci_low"], w["spearman_minus_xi_ci_high"])),
                          _num(pooled["spearman"]), _num(loco["mae"], "{:.3f}")])
         base = part.loc[(order[0], "loco"), "mae_baseline"]
-        text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + markdown_table(
+        undefined = ""
+        if t == "rpc" and low:
+            undefined = (f"rPC is undefined for {', '.join(low)} (clean GT mIoU below metric.validity.rpc_min_clean_miou = "
+                         f"{rpc_floor:g}; a one-class predictor would get 1.0): left out of these rows, "
+                         f"{int(part.iloc[0]['n_models'])} models ranked; the adverse GT mIoU below keeps them.\n\n")
+        text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + undefined + markdown_table(
             ["estimator", "within-condition mean Spearman", "scene CI", "scene+model CI", "p",
              "minus ξ's [paired scene CI]", "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
             f"\n\\* uses clean ground truth. LOCO MAE of the no-information baseline (the training cells' mean "

@@ -106,13 +106,25 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
 
 
 def _rho_text(label: str, row) -> str:
-    """`non-zero 0.991 [0.977, 0.996]`: the value and its bootstrap interval over frames (none when the
-    bootstrap could not give one)."""
+    """`non-zero 0.991 [0.977, 0.996] n=40`: the value, its bootstrap interval over frames (none when the
+    bootstrap could not give one) and how many frames it rests on (marked below metric.rho.min_frames)."""
     text = f"{label} {row.rho:.3f}"
     lo, hi = getattr(row, "ci_low", math.nan), getattr(row, "ci_high", math.nan)
     if lo is not None and hi is not None and not (math.isnan(float(lo)) or math.isnan(float(hi))):
         text += f" [{float(lo):.2f}, {float(hi):.2f}]"
+    n = getattr(row, "n_frames", None)
+    if n is not None and not pd.isna(n):
+        text += f" n={int(n)}" + (FEW if _too_few(row) else "")
     return text
+
+
+FEW = "\u2021"  # double dagger: fewer frames than metric.rho.min_frames, no headline
+
+
+def _too_few(row) -> bool:
+    """Fewer frames than the row's `min_frames` (rho_valid.csv of evaluate VERSION >= 9; older rows: never)."""
+    n, least = getattr(row, "n_frames", None), getattr(row, "min_frames", None)
+    return n is not None and least is not None and not pd.isna(n) and not pd.isna(least) and int(n) < int(least)
 
 
 def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
@@ -133,7 +145,7 @@ def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
 
 def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: str = "rho_valid") -> list[Path]:
     """Every rho_valid of the shown condition per dataset, model, class and selection: CSV (with the
-    bootstrap interval and the number of frames) and a Markdown pivot."""
+    bootstrap interval and the number of frames) and a Markdown pivot, each value with its n_frames."""
     rows = []
     for inp in inputs:
         r = inp.rho[(inp.rho["condition"] == inp.condition) & inp.rho["class_name"].isin(classes)].copy()
@@ -145,16 +157,23 @@ def rho_table(inputs: list[RankingInput], classes: list[str], out: Path, stem: s
     table.to_csv(out / f"{stem}.csv", index=False)
     selections = list(dict.fromkeys(table["selection"]))
     header = ["Dataset", "Adverse", "Model"] + [f"{c} ({SELECTION_LABEL.get(s, s)})" for c in classes for s in selections]
-    md_rows = []
+    md_rows, few = [], False
     for (label, model), g in table.groupby(["dataset_label", "model"], sort=False):
         cells = []
         for c in classes:
             for s in selections:
-                v = g[(g["class_name"] == c) & (g["selection"] == s)]["rho"]
-                cells.append("–" if v.empty or math.isnan(float(v.iloc[0])) else f"{float(v.iloc[0]):.3f}")
+                v = g[(g["class_name"] == c) & (g["selection"] == s)]
+                if v.empty:
+                    cells.append("–")
+                    continue
+                row = next(v.itertuples())
+                n = "" if "n_frames" not in v or pd.isna(row.n_frames) else f" (n={int(row.n_frames)}{FEW if _too_few(row) else ''})"
+                few |= _too_few(row)
+                cells.append(("–" if math.isnan(float(row.rho)) else f"{float(row.rho):.3f}") + n)
         md_rows.append([str(label), condition_display(str(g["condition"].iloc[0])), model_display(str(model))] + cells)
     text = ("# \u03c1_valid (Spearman of clean vs adverse \u03c6 over the valid frames)\n\n"
-            + markdown_table(header, md_rows, ["l", "l", "l"] + ["r"] * (len(header) - 3)))
+            "n: the frames each value rests on" + (f"; {FEW} fewer than metric.rho.min_frames, no headline" if few else "")
+            + ".\n\n" + markdown_table(header, md_rows, ["l", "l", "l"] + ["r"] * (len(header) - 3)))
     (out / f"{stem}.md").write_text(text)
     return [out / f"{stem}.csv", out / f"{stem}.md"]
 

@@ -78,7 +78,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude)
     cells, corr = validity(models, clean, include, conv.absent, boot.resamples,
                            boot.confidence, boot.seed, conv.min_images,
-                           conv.min_pixels)
+                           conv.min_pixels, conv.rpc_min_clean_miou)
     cells_df, corr_df = pd.DataFrame(cells), pd.DataFrame(corr)
     cells_df["convention"] = corr_df["convention"] = conv.name
     files = []

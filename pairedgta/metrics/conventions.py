@@ -25,6 +25,8 @@ class Convention:
     rho_headline: str              # the rho_valid selection reported as the headline
     min_images: int = 0            # a class enters the mean only with reference pixels in >= min_images images
     min_pixels: int = 0            # ... and >= min_pixels reference pixels in all (0 and 0: every defined class)
+    rho_min_frames: int = 0        # a rho_valid is a headline only over >= this many frames (metric.rho.min_frames)
+    rpc_min_clean_miou: float = 0.0  # rPC is undefined below this clean GT mIoU (metric.validity.rpc_min_clean_miou)
 
     def supported(self, images, pixels):
         """Boolean mask over classes: enough support for the class-wise mean (images, pixels: per class)."""
@@ -80,4 +82,15 @@ def convention_from_config(metric: dict[str, Any], selections: list[str] | None 
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ConfigError(f"metric.{key}={value!r} is invalid; set it to an integer >= 0 (0 = no support rule)")
         support[key] = value
-    return Convention(name, absent, exclude, agreement, headline, **support)
+    min_frames = rho.get("min_frames", 0)
+    if min_frames is None:
+        min_frames = 0
+    if isinstance(min_frames, bool) or not isinstance(min_frames, int) or min_frames < 0:
+        raise ConfigError(f"metric.rho.min_frames={min_frames!r} is invalid; set it to an integer >= 0 (0 = any number)")
+    floor = (metric.get("validity") or {}).get("rpc_min_clean_miou", 0.0)
+    if floor is None:
+        floor = 0.0
+    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not 0.0 <= floor < 1.0:
+        raise ConfigError(f"metric.validity.rpc_min_clean_miou={floor!r} is invalid; set a clean mIoU in [0, 1) (0 = no floor)")
+    return Convention(name, absent, exclude, agreement, headline, **support, rho_min_frames=min_frames,
+                      rpc_min_clean_miou=float(floor))

@@ -38,7 +38,8 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from pairedgta.metrics.bootstrap import resample_weights
-from pairedgta.metrics.validity import GroupCounts, _interval, cell_measures, kendall_rows, spearman_rows, stack_passes
+from pairedgta.metrics.validity import (GroupCounts, _interval, cell_measures, defined_models, kendall_rows, spearman_rows,
+                                        stack_passes)
 
 ESTIMATORS = ("xi", "ac", "doc", "atc", "entropy", "gde", "self_agreement", "clean_miou")
 USES_CLEAN_LABELS = frozenset({"doc", "atc", "clean_miou"})  # clean ground truth; none uses adverse labels
@@ -46,7 +47,7 @@ TARGETS = ("rpc", "gt_miou")
 COUNT_ARRAYS = ("est_pixels", "est_conf_sum", "est_entropy_sum", "est_conf_hist", "est_agree_clean")
 ABSENT_CLASS = 255  # predictions.npz: every pixel of a condition's absent image
 MIN_RANKED = 4
-COLUMNS = ("estimator", "target", "scope", "n_models", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
+COLUMNS = ("estimator", "target", "scope", "n_models", "n_undefined", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
            "spearman_ci_high", "kendall", "kendall_ci_low", "kendall_ci_high", "spearman_model_ci_low",
            "spearman_model_ci_high", "kendall_model_ci_low", "kendall_model_ci_high", "p_permutation", "permutations",
            "mae", "mae_baseline", "spearman_minus_xi", "spearman_minus_xi_ci_low", "spearman_minus_xi_ci_high",
@@ -195,14 +196,16 @@ def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean: str, include: np.ndarray,
-                 absent: str = "nan", min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
+                 absent: str = "nan", min_images: int = 0, min_pixels: int = 0,
+                 rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
     """One model's estimators but GDE (which needs the others) and targets, R x C, plus `atc_threshold` (R):
-    what evaluate writes per model (`estimators.csv`) and the comparison stacks over models."""
+    what evaluate writes per model (`estimators.csv`) and the comparison stacks over models. rPC is
+    undefined below the clean-mIoU floor `rpc_floor` (`validity.cell_measures`)."""
     if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
         raise ValueError(f"model {g.model}: the estimator sums cover other groups, conditions or models")
     w = np.asarray(weights, float)
     c0 = g.conditions.index(clean)
-    cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels)
+    cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels, rpc_floor)
     ac = average_confidence(c, w)
     score, threshold = atc(c.conf_hist, g.cm, c0, w)
     return {"xi": cm["xi_mean"], "ac": ac, "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score,
@@ -213,7 +216,7 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
 
 def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray,
                      scored: np.ndarray, weights: np.ndarray, clean: str, include: np.ndarray, absent: str = "nan",
-                     min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
+                     min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
     """Every estimator and target, M x R x C, for group weights R x G (a row of ones = the data itself),
     plus `atc_threshold` (M x R). `agree`/`scored`: `pairwise_agreement` over the same models, in order."""
     if agree.shape[-1] != len(models) or agree.shape[0] != models[0].cm.shape[0]:
@@ -222,7 +225,7 @@ def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCo
     w = np.asarray(weights, float)
     out: dict[str, list[np.ndarray]] = {}
     for g, c in zip(models, counts):
-        for k, v in model_values(g, c, w, clean, include, absent, min_images, min_pixels).items():
+        for k, v in model_values(g, c, w, clean, include, absent, min_images, min_pixels, rpc_floor).items():
             out.setdefault(k, []).append(v)
     stacked = {k: np.stack(v) for k, v in out.items()}
     stacked["gde"] = gde(agree, scored, w)
@@ -330,14 +333,16 @@ def _mean_over_conditions(r: np.ndarray) -> np.ndarray:
 def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray, scored: np.ndarray,
             clean: str, include: np.ndarray, reference: Iterable[str] = (), absent: str = "nan",
             resamples: int = 1000, confidence: float = 0.95, seed: int = 0, permutations: int = 10000,
-            min_images: int = 0, min_pixels: int = 0) -> tuple[list[dict], list[dict]]:
+            min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> tuple[list[dict], list[dict]]:
     """-> (cells, stats). `models`/`counts`: every evaluated model (in the same order); the reference
     model(s) are left out of the ranking; `agree`/`scored` (`pairwise_agreement`) cover the ranked
     models, in their order. `cells`: one row per (ranked model, adverse condition) with every estimator,
     the ATC threshold and the targets. `stats`: one row per (estimator, target, scope), scope each adverse
     condition, `within_mean`, `pooled` or `loco` (see the module's docstring). The interval over scenes
     and models draws the models anew per resample but keeps each model's estimator values as computed
-    on the whole ranked set (GDE's other models included)."""
+    on the whole ranked set (GDE's other models included). A model whose target is undefined in some
+    adverse condition (rPC below the clean-mIoU floor `rpc_floor`) is left out of that target's rows
+    (`n_models`; `n_undefined` says how many were), its cells keep the NaN and the absolute target."""
     names = ranked_models([m.model for m in models], reference)
     if len(names) < MIN_RANKED:
         raise ValueError(f"{len(names)} ranked models ({', '.join(names) or 'none'}); at least {MIN_RANKED} are needed")
@@ -354,11 +359,10 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     adverse = [i for i, c in enumerate(conds) if c != clean]
     if len(adverse) < 2:
         raise ValueError("at least 2 adverse conditions are needed (the mean over conditions, leave one out)")
-    args = (clean, include, absent, min_images, min_pixels)
+    args = (clean, include, absent, min_images, min_pixels, rpc_floor)
     point = estimator_values(models, counts, agree, scored, np.ones((1, n)), *args)
     w = resample_weights(n, resamples, seed).astype(float)
     boot = estimator_values(models, counts, agree, scored, w, *args) if resamples > 0 else None
-    draws, enough = model_draws(len(models), max(resamples, 0), seed)
 
     cells = []
     for j, m in enumerate(models):
@@ -374,20 +378,26 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 
     stats = []
     within: dict[tuple[str, str], tuple[float, np.ndarray | None]] = {}  # (estimator, target) -> Spearman mean, R resamples
+    defined = {t: np.flatnonzero(defined_models(point[t][:, 0, adverse])) for t in TARGETS}
     for e in ESTIMATORS:
         for t in TARGETS:
-            base = {"estimator": e, "target": t, "n_models": len(models), "n_groups": n,
-                    "uses_clean_labels": e in USES_CLEAN_LABELS, "resamples": len(w), "confidence": confidence}
-            px, py = point[e][:, :, adverse], point[t][:, :, adverse]          # M x 1 x C'
+            sub = defined[t]                                                   # the models whose target is defined
+            if len(sub) < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
+                sub = np.arange(len(models))
+            draws, enough = model_draws(len(sub), max(resamples, 0), seed)
+            base = {"estimator": e, "target": t, "n_models": len(defined[t]), "n_undefined": len(models) - len(defined[t]),
+                    "n_groups": n, "uses_clean_labels": e in USES_CLEAN_LABELS, "resamples": len(w),
+                    "confidence": confidence}
+            px, py = point[e][sub][:, :, adverse], point[t][sub][:, :, adverse]          # M x 1 x C'
             bx = by = None
             if boot is not None:
-                bx, by = boot[e][:, :, adverse], boot[t][:, :, adverse]        # M x R x C'
+                bx, by = boot[e][sub][:, :, adverse], boot[t][sub][:, :, adverse]        # M x R x C'
             loco = loco_mae(px[:, 0], py[:, 0])
-            rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(models),
+            rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(sub),
                                    mae=loco["per_condition"][a], mae_baseline=loco["per_condition_baseline"][a])
                     for a, i in enumerate(adverse)}
-            mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(models) * len(adverse))
-            pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(models) * len(adverse))
+            mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
+            pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
             for name, fn in STATS:
                 p = within_condition(px, py, fn)[0]                                # C'
                 b = within_condition(bx, by, fn) if bx is not None else None        # R x C'
@@ -413,7 +423,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                 pooled.update({name: float(fn(flat_x, flat_y)[0]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
             mean["p_permutation"] = permutation_pvalue(px[:, 0].T, py[:, 0].T, permutations, seed)
             mean["permutations"] = permutations
-            loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(models) * len(adverse),
+            loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
                             mae=loco["mae"], mae_baseline=loco["mae_baseline"])
             stats += [{k: r.get(k, math.nan) for k in COLUMNS} for r in (*rows.values(), mean, pooled, loco_row)]
     # how far each estimator is from xi, on the same scene resamples (a paired interval of the difference)

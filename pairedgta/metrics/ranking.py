@@ -46,9 +46,11 @@ def rho_valid(clean_counts, adverse_counts, m: int = 25, selection: str = "top_m
 
 
 def rho_rows(clean_counts, adverse_counts, selections, m: int = 25, resamples: int = 1000, confidence: float = 0.95,
-             seed: int = 0, headline: str | None = None) -> list[dict]:
+             seed: int = 0, headline: str | None = None, min_frames: int = 0) -> list[dict]:
     """One row per selection: rho_valid over its frames with a percentile bootstrap interval over those
-    frames (`m` is recorded for top_m only). Shared by evaluate and the authors' per-frame counts."""
+    frames (`m` is recorded for top_m only). Shared by evaluate and the authors' per-frame counts.
+    `headline` is true for the headline selection only over at least `min_frames` frames: a Spearman of 2
+    or 3 frames is +-1 by chance, so such a value stays in the row, with its n_frames, but is no headline."""
     from pairedgta.metrics.bootstrap import drop_zero_width, spearman_ci
 
     clean = np.asarray(clean_counts, dtype=float)
@@ -59,5 +61,6 @@ def rho_rows(clean_counts, adverse_counts, selections, m: int = 25, resamples: i
         x, y = clean[idx], adverse[idx]
         lo, hi = drop_zero_width(*spearman_ci(x, y, resamples, confidence, seed))
         rows.append({"selection": sel, "m": m if sel == "top_m" else math.nan, "n_frames": len(idx),
-                     "rho": spearman(x, y), "ci_low": lo, "ci_high": hi, "headline": sel == headline})
+                     "rho": spearman(x, y), "ci_low": lo, "ci_high": hi,
+                     "headline": sel == headline and len(idx) >= min_frames, "min_frames": int(min_frames)})
     return rows

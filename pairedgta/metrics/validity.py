@@ -89,8 +89,11 @@ def supported(reference: np.ndarray, min_images: int = 0, min_pixels: int = 0) -
 
 
 def cell_measures(g: GroupCounts, weights: np.ndarray, clean: str, include: np.ndarray,
-                  absent: str, min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
-    """Every measure per (resample, condition) for group weights R x G (a row of ones = the data itself)."""
+                  absent: str, min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
+    """Every measure per (resample, condition) for group weights R x G (a row of ones = the data itself).
+    rPC is undefined (NaN) where the clean GT mIoU is below `rpc_floor` (metric.validity.rpc_min_clean_miou):
+    a model that predicts one class everywhere keeps its tiny mIoU under any shift, and its rPC of 1.0
+    would call it the most robust of all."""
     w = np.asarray(weights, float)
     ci = g.conditions.index(clean)
     cm = np.einsum("rg,gcij->rcij", w, g.cm)
@@ -105,8 +108,16 @@ def cell_measures(g: GroupCounts, weights: np.ndarray, clean: str, include: np.n
     }
     out["gt_miou_clean"] = np.repeat(out["gt_miou"][:, ci : ci + 1], len(g.conditions), axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out["rpc"] = out["gt_miou"] / out["gt_miou_clean"]
+        rpc = out["gt_miou"] / out["gt_miou_clean"]
+    out["rpc"] = np.where(out["gt_miou_clean"] >= rpc_floor, rpc, np.nan) if rpc_floor > 0 else rpc
     return out
+
+
+def defined_models(values: np.ndarray) -> np.ndarray:
+    """M x C' point values (one resample) -> which models have a defined value in every cell: a target
+    undefined for a model (rPC below the clean-mIoU floor) leaves that model out of the correlations with
+    it, rather than making every correlation undefined."""
+    return np.isfinite(np.asarray(values, float)).all(axis=-1)
 
 
 def _rank(x: np.ndarray) -> np.ndarray:
@@ -155,11 +166,12 @@ def _interval(boot: np.ndarray, confidence: float) -> tuple[float, float, int]:
 
 def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent: str = "nan",
              resamples: int = 1000, confidence: float = 0.95, seed: int = 0, min_images: int = 0,
-             min_pixels: int = 0) -> tuple[list[dict], list[dict]]:
+             min_pixels: int = 0, rpc_floor: float = 0.0) -> tuple[list[dict], list[dict]]:
     """-> (cells, correlations). `cells`: one row per (model, adverse condition) with every measure and
     its bootstrap interval. `correlations`: Spearman and Kendall between label-free mean xi and each
     target (rPC, GT mIoU, xi against GT) across models within each adverse condition, and over every
-    cell pooled, each with a paired bootstrap interval over groups."""
+    cell pooled, each with a paired bootstrap interval over groups; over the models whose target is defined
+    in the scope's cells (`n_models`; `n_undefined` left out, e.g. rPC below `rpc_floor`)."""
     if not models:
         return [], []
     conds = models[0].conditions
@@ -175,7 +187,7 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     if clean not in conds:
         raise ValueError(f"the clean condition {clean} was not evaluated")
     adverse = [i for i, c in enumerate(conds) if c != clean]
-    support = (min_images, min_pixels)
+    support = (min_images, min_pixels, rpc_floor)
     point = [cell_measures(m, np.ones((1, n)), clean, include, absent, *support) for m in models]
     w = resample_weights(n, resamples, seed).astype(float)
     boot = [cell_measures(m, w, clean, include, absent, *support) for m in models]
@@ -194,11 +206,16 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     scopes = [(conds[i], [i]) for i in adverse] + [("pooled", adverse)]
     for scope, idx in scopes:
         for target in TARGETS:
-            x = pstack["xi_mean"][:, 0, idx].T.reshape(1, -1)   # condition-major: cells of the scope
-            y = pstack[target][:, 0, idx].T.reshape(1, -1)
-            bx = stack["xi_mean"][:, :, idx].transpose(1, 2, 0).reshape(len(w), -1)
-            by = stack[target][:, :, idx].transpose(1, 2, 0).reshape(len(w), -1)
-            row = {"scope": scope, "target": target, "n_models": len(models), "n_cells": x.shape[1], "n_groups": n}
+            keep = defined_models(pstack[target][:, 0, idx])
+            n_defined = int(keep.sum())
+            if n_defined < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
+                keep = np.ones_like(keep)
+            x = pstack["xi_mean"][keep][:, 0, idx].T.reshape(1, -1)   # condition-major: cells of the scope
+            y = pstack[target][keep][:, 0, idx].T.reshape(1, -1)
+            bx = stack["xi_mean"][keep][:, :, idx].transpose(1, 2, 0).reshape(len(w), x.shape[1])
+            by = stack[target][keep][:, :, idx].transpose(1, 2, 0).reshape(len(w), x.shape[1])
+            row = {"scope": scope, "target": target, "n_models": n_defined, "n_undefined": len(models) - n_defined,
+                   "n_cells": x.shape[1], "n_groups": n}
             for name, fn in (("spearman", spearman_rows), ("kendall", kendall_rows)):
                 lo, hi, defined = _interval(fn(bx, by), confidence)
                 row.update({name: float(fn(x, y)[0]), f"{name}_ci_low": lo, f"{name}_ci_high": hi,
@@ -209,4 +226,4 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
 
 
 __all__ = ["GroupCounts", "concat_groups", "stack_passes", "cell_measures", "validity", "spearman_rows", "kendall_rows", "miou",
-           "mean_xi", "supported", "MEASURES", "TARGETS"]
+           "mean_xi", "supported", "defined_models", "MEASURES", "TARGETS"]
