@@ -53,3 +53,99 @@ def test_the_joint_permutation_test_is_exact_for_a_few_models():
     hits = sum(spearman_rows(x[:, list(o)], y).mean() >= -1e-12 for o in itertools.permutations(range(4)))
     assert permutation_pvalue(x, y, 1000) == pytest.approx(hits / 24)
     assert permutation_pvalue(x, y, 0) != permutation_pvalue(x, y, 0)  # no permutations: NaN
+
+
+def test_holm_by_hand():
+    from pairedgta.metrics.inference import holm
+
+    # sorted 0.005, 0.01, 0.03, 0.04 of m = 4: x4 = 0.02, x3 = 0.03, x2 = 0.06, x1 = 0.04 -> monotone 0.06
+    got = holm([0.01, 0.04, 0.03, np.nan, 0.005])
+    np.testing.assert_allclose(got, [0.03, 0.06, 0.06, np.nan, 0.02], equal_nan=True)
+    assert np.isnan(holm([np.nan, np.nan])).all() and holm([0.6, 0.7]).tolist() == [1.0, 1.0]
+
+
+def test_bca_reduces_to_the_percentile_interval_and_its_p_value_by_hand():
+    """Resamples -0.50, -0.49, ..., 1.49 (200 values), point 0.495: half the resamples lie below it, so
+    z0 = 0; no jackknife, a = 0: the interval is the percentile one and the p-value of H0: 0 is twice the
+    share below 0 (50 values, and 0 itself counted half): 2 x 50.5 / 200 = 0.505."""
+    from pairedgta.metrics.inference import bca_interval, bca_pvalue
+
+    boot = np.arange(-50, 150) / 100
+    lo, hi = bca_interval(boot, 0.495, (), 0.9)
+    assert (lo, hi) == pytest.approx((np.quantile(boot, 0.05), np.quantile(boot, 0.95)))
+    assert bca_pvalue(boot, 0.495) == pytest.approx(0.505)
+    assert bca_pvalue(boot, 0.495, null=-2.0) == pytest.approx(2 * 0.5 / 200)  # beyond every resample: the floor
+    # no variation, too few defined resamples or an undefined point: no interval, no p
+    assert np.isnan(bca_interval(np.zeros(50), 0.0)).all() and np.isnan(bca_pvalue(np.zeros(50), 0.0))
+    assert np.isnan(bca_interval(np.r_[boot[:10], np.full(190, np.nan)], 0.0)).all()
+    assert np.isnan(bca_interval(boot, np.nan)).all()
+
+
+def test_the_acceleration_by_hand():
+    from pairedgta.metrics.inference import acceleration
+
+    jk = np.array([1.0, 2.0, 4.0])   # mean 7/3; d = mean - jk = 4/3, 1/3, -5/3
+    d = 7 / 3 - jk
+    assert acceleration([jk]) == pytest.approx(np.sum(d ** 3) / (6 * np.sum(d ** 2) ** 1.5))
+    # two units: U = (n - 1) d per unit, weighted by 1/n^3 and 1/n^2
+    jk2 = np.array([0.0, 1.0])
+    u1, u2 = 2 * d, 1 * (0.5 - jk2)
+    want = (np.sum(u1 ** 3) / 27 + np.sum(u2 ** 3) / 8) / (6 * (np.sum(u1 ** 2) / 9 + np.sum(u2 ** 2) / 4) ** 1.5)
+    assert acceleration([jk, jk2]) == pytest.approx(want)
+    assert acceleration([np.ones(5)]) == 0.0 and acceleration([np.array([np.nan, 1.0])]) == 0.0
+
+
+def test_bca_agrees_with_scipy_on_a_skewed_statistic():
+    """The variance of 40 exponential draws: BCa from 20,000 resamples here and in scipy.stats.bootstrap
+    (its own resamples) agree to within a few percent of the interval's width."""
+    from scipy.stats import bootstrap
+
+    from pairedgta.metrics.inference import bca_interval
+
+    rng = np.random.default_rng(7)
+    x = rng.exponential(size=40)
+    idx = rng.integers(0, 40, size=(20000, 40))
+    boot = x[idx].var(axis=1, ddof=1)
+    jk = np.array([np.delete(x, i).var(ddof=1) for i in range(40)])
+    lo, hi = bca_interval(boot, float(x.var(ddof=1)), [jk], 0.95)
+    ref = bootstrap((x,), lambda s, axis=-1: np.var(s, ddof=1, axis=axis), n_resamples=20000, method="BCa",
+                    confidence_level=0.95, random_state=1).confidence_interval
+    width = ref.high - ref.low
+    assert abs(lo - ref.low) < 0.05 * width and abs(hi - ref.high) < 0.05 * width
+    # the percentile interval sits lower: BCa moves it toward the skew
+    assert hi > np.quantile(boot, 0.975)
+
+
+def test_differences_are_paired_on_the_same_scene_and_model_draws():
+    """AC and 1 - entropy are the same numbers in this synthetic zoo (entropy sums = pixels - confidence sums):
+    drawn together, their difference is 0 on every resample, so it has no interval and no p (a zero width
+    would be a certainty). Any difference from independent draws would vary. The Holm columns adjust the
+    family of one target: p_holm >= p, and equal to Holm of the family's raw p."""
+    import sys
+    from pathlib import Path
+
+    import pandas as pd
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_estimators import K, _synthetic
+
+    from pairedgta.metrics.estimators import ESTIMATORS, compare
+    from pairedgta.metrics.inference import holm
+
+    groups, counts, agree, scored = _synthetic([f"m{i}" for i in range(6)], n_groups=10, seed=11)
+    _, stats, pairs = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=200, permutations=100)
+    pairs = pd.DataFrame(pairs).set_index(["target", "estimator_a", "estimator_b"])
+    same = pairs.loc[("rpc", "ac", "entropy")]
+    assert same["difference"] == 0 and np.isnan(same["ci_low"]) and np.isnan(same["p"])
+    assert len(pairs) == 2 * len(ESTIMATORS) * (len(ESTIMATORS) - 1) // 2
+    for t in ("rpc", "gt_miou"):
+        part = pairs.loc[t]
+        np.testing.assert_allclose(part["p_holm"], holm(part["p"]), equal_nan=True)
+        s = pd.DataFrame(stats).query("scope == 'within_mean' and target == @t").set_index("estimator")
+        np.testing.assert_allclose(s["p_minus_xi_holm"], holm(s["p_minus_xi"]), equal_nan=True)
+        np.testing.assert_allclose(s["p_permutation_holm"], holm(s["p_permutation"]), equal_nan=True)
+        assert (s["p_permutation_holm"].dropna() >= s["p_permutation"].dropna() - 1e-12).all()
+        # the difference to xi is the same number as xi's pair row, with the sign of estimator - xi
+        for e in ESTIMATORS[1:]:
+            assert s.loc[e, "spearman_minus_xi"] == pytest.approx(-part.loc[("xi", e), "difference"])
+            assert s.loc[e, "p_minus_xi"] == pytest.approx(part.loc[("xi", e), "p"], nan_ok=True)

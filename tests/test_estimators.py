@@ -220,7 +220,7 @@ def test_compare_excludes_the_reference_and_writes_every_scope():
     keep = [names.index(n) for n in ranked_models(names, {"ref"})]
     assert ranked_models(names, {"ref"}) == ["m0", "m1", "m2", "m3"]
     sub = np.ix_(range(agree.shape[0]), range(agree.shape[1]), keep, keep)
-    cells, stats = compare(groups, counts, agree[sub], scored[sub], "clean", np.ones(K, bool), reference={"ref"},
+    cells, stats, _ = compare(groups, counts, agree[sub], scored[sub], "clean", np.ones(K, bool), reference={"ref"},
                            resamples=100, permutations=200)
     cells, stats = pd.DataFrame(cells), pd.DataFrame(stats)
     assert set(cells["model"]) == {"m0", "m1", "m2", "m3"} and len(cells) == 4 * 3
@@ -240,19 +240,26 @@ def test_compare_excludes_the_reference_and_writes_every_scope():
                 permutations=10)
 
 
-def test_resampling_models_widens_the_interval_of_a_few_models():
-    names = ["m0", "m1", "m2", "m3"]
-    groups, counts, agree, scored = _synthetic(names, seed=3)
-    _, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=300, permutations=50)
+def test_resampling_models_gives_an_interval_where_the_scenes_cannot():
+    """Every scene alike (group 0 copied): resampling scenes cannot move anything, so the interval that holds
+    the zoo fixed is none (NaN, never a zero width), while the one that also draws the models still varies:
+    it answers for models like these, not for these six alone."""
+    import dataclasses
+
+    names = [f"m{i}" for i in range(6)]
+    groups, counts, agree, scored = _synthetic(names, n_groups=6, seed=3)
+    same = lambda a: np.repeat(np.asarray(a)[:1], len(a), axis=0)  # noqa: E731
+    groups = [dataclasses.replace(g, **{f: same(getattr(g, f)) for f in ("pl_retained", "pl_reference", "gt_retained",
+                                                                        "gt_reference", "cm")}) for g in groups]
+    counts = [dataclasses.replace(c, **{f: same(getattr(c, f)) for f in ("pixels", "conf_sum", "entropy_sum", "conf_hist",
+                                                                        "agree_clean")}) for c in counts]
+    agree, scored = same(agree), same(scored)
+    _, stats, _ = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=300, permutations=50)
     s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
-    widths = []
-    for e in ("xi", "ac", "entropy", "atc"):
+    for e in ("xi", "ac", "clean_miou"):
         row = s.loc[(e, "rpc", "within_mean")]
-        scene = row["spearman_ci_high"] - row["spearman_ci_low"]
-        model = row["spearman_model_ci_high"] - row["spearman_model_ci_low"]
-        assert math.isfinite(model)
-        widths.append((model, scene if math.isfinite(scene) else 0.0))
-    assert all(m >= sc for m, sc in widths) and any(m > sc for m, sc in widths)
+        assert math.isnan(row["spearman_ci_low"]) and math.isnan(row["spearman_ci_high"])
+        assert row["spearman_model_ci_low"] < row["spearman_model_ci_high"]
     idx, enough = model_draws(3, 2000, 0)
     assert idx.shape == (2000, 3) and 0.1 < enough.mean() < 0.5  # 3! / 27 of the draws hold all three
 
@@ -289,12 +296,13 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
            "convention": "strict", "absent": "nan", "min_images": 0, "min_pixels": 0,  # no support rule on 4 groups
            "bootstrap": {"resamples": 40, "confidence": 0.9, "seed": 0}, "validity": {"permutations": 100}}}
     files, metrics = draw([p], out, FigureOptions(["png"], 40, schema.parse(cfg)))
-    assert {f.name for f in files} == {"estimators.csv", "estimators.md", "estimator_cells.csv", "estimators.png"}
+    assert {f.name for f in files} == {"estimators.csv", "estimators.md", "estimator_cells.csv", "estimator_pairs.csv",
+                                       "estimators.png"}
     cells = pd.read_csv(out / "estimator_cells.csv")
     assert "demo_segformer" not in set(cells["model"]) and len(cells) == 4 * 2  # the pass's reference is left out
     md = (out / "estimators.md").read_text()
     assert "pooled over conditions (mostly orders the conditions)" in md and "demo_segformer is excluded" in md
-    assert "90% percentile bootstrap" in md
+    assert "Intervals at 90%: the percentile bootstrap over scenes" in md and "BCa over scenes and models" in md
     assert "validity/xi/rpc/spearman/within_mean" in metrics and "validity/gde/gt_miou/mae/loco" in metrics
     assert "validity/atc/rpc/p_permutation/within_mean" in metrics and "validity/ac/rpc/kendall/A" in metrics
     assert not any(k.endswith("/p_permutation/pooled") for k in metrics)
@@ -352,7 +360,7 @@ def test_the_difference_to_xi_is_paired_on_the_same_resamples():
     resamples; xi minus itself is 0 and gets no interval (a zero-width interval is no certainty)."""
     names = ["m0", "m1", "m2", "m3", "m4"]
     groups, counts, agree, scored = _synthetic(names, seed=5)
-    _, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=200, permutations=20)
+    _, stats, _ = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=200, permutations=20)
     s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
     xi = s.loc[("xi", "rpc", "within_mean")]
     assert xi["spearman_minus_xi"] == 0.0 and math.isnan(xi["spearman_minus_xi_ci_low"])
@@ -374,7 +382,7 @@ def test_a_one_class_predictor_has_no_rpc_and_leaves_only_the_rpc_rows():
     cm = np.zeros_like(groups[-1].cm)
     cm[:, :, :5, 0] = 200  # truth classes 0-4, everything predicted as 0: mIoU 0.04 under every condition
     groups[-1] = dataclasses.replace(groups[-1], cm=cm)
-    cells, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=20, permutations=20,
+    cells, stats, _ = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=20, permutations=20,
                            rpc_floor=0.1)
     s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
     assert (s.loc[("xi", "rpc", "within_mean"), "n_models"], s.loc[("xi", "rpc", "within_mean"), "n_undefined"]) == (4, 1)
@@ -382,5 +390,5 @@ def test_a_one_class_predictor_has_no_rpc_and_leaves_only_the_rpc_rows():
     assert s.loc[("xi", "rpc", "A"), "n_cells"] == 4
     flat = pd.DataFrame(cells).query("model == 'flat'")
     assert flat["rpc"].isna().all() and np.allclose(flat["gt_miou"], 0.04)
-    _, stats = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=0, permutations=0)
+    _, stats, _ = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=0, permutations=0)
     assert pd.DataFrame(stats).set_index(["estimator", "target", "scope"]).loc[("xi", "rpc", "within_mean"), "n_models"] == 5

@@ -27,14 +27,14 @@ from pairedgta.figures.inputs import Passes
 from pairedgta.figures.validity import FIX, evaluated_on_every_pass, references
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
-from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, TARGETS, USES_CLEAN_LABELS,
+from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, PAIR_COLUMNS, TARGETS, USES_CLEAN_LABELS,
                                           EstimatorCounts, compare, concat_counts, pairwise_agreement, ranked_models)
 from pairedgta.metrics.validity import GroupCounts, concat_groups
 
 NAMES = {"xi": "ξ (label-free)", "ac": "AC", "doc": "DoC", "atc": "ATC", "entropy": "1 − entropy", "gde": "GDE",
          "self_agreement": "self-agreement", "clean_miou": "clean GT mIoU"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
-STATS = ("spearman", "kendall", "mae", "p_permutation")
+STATS = ("spearman", "kendall", "mae", "p_permutation", "p_permutation_holm", "p_minus_xi_holm")
 
 
 def settings(opts: FigureOptions) -> dict[str, Any]:
@@ -95,15 +95,16 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     s = settings(opts)
     clean = opts.run.metric.rho.clean_condition or passes[0].grid.reference
     agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
-    cells, stats = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
+    cells, stats, pairs = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
                            refs, conv.absent, s["resamples"], s["confidence"], s["seed"], s["permutations"],
                            conv.min_images, conv.min_pixels, s["rpc_min_clean_miou"])
-    cells_df, stats_df = pd.DataFrame(cells), pd.DataFrame(stats)
-    cells_df["convention"] = stats_df["convention"] = conv.name
+    cells_df, stats_df, pairs_df = pd.DataFrame(cells), pd.DataFrame(stats), pd.DataFrame(pairs, columns=PAIR_COLUMNS)
+    cells_df["convention"] = stats_df["convention"] = pairs_df["convention"] = conv.name
     cells_df.to_csv(out / "estimator_cells.csv", index=False)
     stats_df.to_csv(out / "estimators.csv", index=False)
+    pairs_df.to_csv(out / "estimator_pairs.csv", index=False)
     (out / "estimators.md").write_text(markdown(stats_df, refs, s["confidence"], cells_df, s["rpc_min_clean_miou"]))
-    files = [out / "estimators.csv", out / "estimators.md", out / "estimator_cells.csv"]
+    files = [out / "estimators.csv", out / "estimators.md", out / "estimator_cells.csv", out / "estimator_pairs.csv"]
     files += _figure(cells_df, stats_df, out, opts, s["confidence"])
     metrics: dict[str, float] = {}
     for row in stats_df.to_dict("records"):
@@ -129,9 +130,13 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
     low = [] if cells is None else sorted(set(cells.loc[cells["gt_miou_clean"] < rpc_floor, "model"]))
     text = [f"# Label-free estimators of robustness\n\nRanked: {int(first['n_models'])} models (the reference model "
             f"{', '.join(sorted(refs)) or '–'} is excluded: its pseudo-labels are what ξ counts), {int(first['n_groups'])} "
-            f"scenes. Intervals: {confidence:.0%} percentile bootstrap over scenes, and over scenes and models. "
-            f"p: permutation test of the model labels, one order applied to every condition (the joint null). DoC, ATC and clean GT mIoU use the clean "
-            f"condition's ground truth; no estimator uses a label of an adverse condition.\n"]
+            f"scenes. Intervals at {confidence:.0%}: the percentile bootstrap over scenes (the models held fixed: a "
+            f"statement about these models only), and BCa over scenes and models drawn together, the same draws for "
+            f"every estimator, so that a difference of two is paired in both. p: permutation test of the model labels, "
+            f"one order applied to every condition (the joint null); p of − ξ: the paired BCa interval inverted "
+            f"(H0: no difference). Holm: adjusted over the estimators of one target. DoC, ATC and clean GT mIoU use "
+            f"the clean condition's ground truth; no estimator uses a label of an adverse condition. Every pair of "
+            f"estimators: estimator_pairs.csv.\n"]
     for t in TARGETS:
         part = stats[stats["target"] == t].set_index(["estimator", "scope"])
         order = sorted(ESTIMATORS, key=lambda e: -np.nan_to_num(part.loc[(e, "within_mean"), "spearman"], nan=-9))
@@ -141,8 +146,11 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
             rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else ""), _num(w["spearman"]),
                          _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
                          _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
+                         _num(w["p_permutation_holm"], "{:.4f}"),
                          ("–" if e == "xi" else f"{w['spearman_minus_xi']:+.2f} "
                           + _ci(w["spearman_minus_xi_ci_low"], w["spearman_minus_xi_ci_high"])),
+                         "–" if e == "xi" else _num(w["p_minus_xi"], "{:.3f}"),
+                         "–" if e == "xi" else _num(w["p_minus_xi_holm"], "{:.3f}"),
                          _num(pooled["spearman"]), _num(loco["mae"], "{:.3f}")])
         base = part.loc[(order[0], "loco"), "mae_baseline"]
         undefined = ""
@@ -151,8 +159,9 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
                          f"{rpc_floor:g}; a one-class predictor would get 1.0): left out of these rows, "
                          f"{int(part.iloc[0]['n_models'])} models ranked; the adverse GT mIoU below keeps them.\n\n")
         text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + undefined + markdown_table(
-            ["estimator", "within-condition mean Spearman", "scene CI", "scene+model CI", "p",
-             "minus ξ's [paired scene CI]", "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
+            ["estimator", "within-condition mean Spearman", "scene CI", "scene+model BCa CI", "p", "p Holm",
+             "minus ξ's [paired scene+model BCa CI]", "p", "p Holm",
+             "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
             f"\n\\* uses clean ground truth. LOCO MAE of the no-information baseline (the training cells' mean "
             f"{TARGET_TEXT[t]}): {_num(base, '{:.3f}')}.\n")
     return "".join(text)
@@ -173,12 +182,13 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
         bx = axes.flat[-1]
         part = stats[(stats["target"] == "rpc") & (stats["scope"] == "within_mean")].sort_values("spearman")
         y = np.arange(len(part))
-        for offset, kind, color, label in ((0.15, "", "black", "scenes"), (-0.15, "_model", "0.55", "scenes + models")):
+        for offset, kind, color, label in ((0.15, "", "black", "bootstrap over scenes"),
+                                           (-0.15, "_model", "0.55", "BCa over scenes + models")):
             v = part["spearman"].to_numpy(float)
             lo, hi = part[f"spearman{kind}_ci_low"].to_numpy(float), part[f"spearman{kind}_ci_high"].to_numpy(float)
             has = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(v)
             bx.errorbar(v[has], (y + offset)[has], xerr=[v[has] - lo[has], hi[has] - v[has]], fmt="o", color=color, ms=3,
-                        capsize=1.5, lw=0.8, label=f"{level:.0%} bootstrap over {label}")
+                        capsize=1.5, lw=0.8, label=f"{level:.0%} {label}")
             bx.plot(v[~has], (y + offset)[~has], "o", mfc="none", mec=color, ms=3.5, mew=0.8,
                     label="no interval" if (~has).any() else None)
         bx.axvline(0, color="0.6", lw=0.6)

@@ -21,12 +21,14 @@ methods assume); no estimator uses a label of an adverse condition.
 
 Statistics lead with the within-condition view: per adverse condition, Spearman and Kendall (tau-b)
 across the ranked models (every model but the reference, which would grade itself), and their mean over
-the conditions (`within_mean`) with a paired bootstrap interval over scenes, an interval that also
-resamples the models, and a permutation p-value against a random model order (one order of the model labels
-for every condition: the joint null). Beside it, the correlation
-over every cell pooled (which mostly orders the conditions) and the mean absolute error of a linear map
-from estimator to target fitted on the other conditions (leave one condition out). Pure numpy/scipy: the
-caller reads the files (the per-group sums of evaluate and its argmax predictions)."""
+the conditions (`within_mean`) with a paired bootstrap interval over scenes (the zoo held fixed), a BCa
+interval over scenes and models drawn together (`pairedgta.metrics.inference`), and a permutation p-value
+against a random model order (one order of the model labels for every condition: the joint null). The
+difference of every two estimators (to xi in `stats`, all pairs in `pairs`) is paired on the same scene
+and model draws, with a BCa interval and p-value, Holm-adjusted over the estimators of one target. Beside
+it, the correlation over every cell pooled (which mostly orders the conditions) and the mean absolute error
+of a linear map from estimator to target fitted on the other conditions (leave one condition out). Pure
+numpy/scipy: the caller reads the files (the per-group sums of evaluate and its argmax predictions)."""
 from __future__ import annotations
 
 import itertools
@@ -38,6 +40,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from pairedgta.metrics.bootstrap import resample_weights
+from pairedgta.metrics.inference import bca_interval, bca_pvalue, holm
 from pairedgta.metrics.validity import (GroupCounts, _interval, cell_measures, defined_models, kendall_rows, spearman_rows,
                                         stack_passes)
 
@@ -50,8 +53,9 @@ MIN_RANKED = 4
 COLUMNS = ("estimator", "target", "scope", "n_models", "n_undefined", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
            "spearman_ci_high", "kendall", "kendall_ci_low", "kendall_ci_high", "spearman_model_ci_low",
            "spearman_model_ci_high", "kendall_model_ci_low", "kendall_model_ci_high", "p_permutation", "permutations",
-           "mae", "mae_baseline", "spearman_minus_xi", "spearman_minus_xi_ci_low", "spearman_minus_xi_ci_high",
-           "uses_clean_labels", "resamples", "confidence")  # of compare's `stats`
+           "p_permutation_holm", "mae", "mae_baseline", "spearman_minus_xi", "spearman_minus_xi_ci_low",
+           "spearman_minus_xi_ci_high", "p_minus_xi", "p_minus_xi_holm", "uses_clean_labels", "resamples",
+           "confidence")  # of compare's `stats`
 STATS: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = (
     ("spearman", spearman_rows), ("kendall", kendall_rows))
 
@@ -330,19 +334,63 @@ def _mean_over_conditions(r: np.ndarray) -> np.ndarray:
     return np.mean(r, axis=-1)
 
 
+def drop_one_model(x: np.ndarray, y: np.ndarray, stat: Callable = spearman_rows) -> np.ndarray:
+    """x, y: M x C' (models, conditions) -> M: the mean over conditions of the rank correlation across the
+    models but one, each left out in turn (the models' jackknife, for the BCa acceleration)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    m, c = x.shape
+    if m < 3:
+        return np.full(m, np.nan)
+    rest = np.array([np.delete(np.arange(m), i) for i in range(m)])          # M x (M - 1)
+    xs, ys = x[rest].transpose(0, 2, 1), y[rest].transpose(0, 2, 1)           # M x C' x (M - 1)
+    return stat(xs.reshape(-1, m - 1), ys.reshape(-1, m - 1)).reshape(m, c).mean(axis=1)
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """A statistic with what its interval needs: the point value, its resamples over scenes and models
+    together (one draw of each per resample, shared by every estimator) and its jackknife per unit
+    (leave one scene out, leave one model out). Differences of two keep the pairing: the same resamples
+    and the same jackknife deletions."""
+
+    point: float
+    joint: np.ndarray | None
+    jackknives: tuple[np.ndarray, ...] = ()
+
+    def __sub__(self, other: "Resampled") -> "Resampled":
+        joint = None if self.joint is None or other.joint is None else self.joint - other.joint
+        return Resampled(self.point - other.point, joint, tuple(a - b for a, b in zip(self.jackknives, other.jackknives)))
+
+    def interval(self, confidence: float) -> tuple[float, float]:
+        return (math.nan, math.nan) if self.joint is None else bca_interval(self.joint, self.point, self.jackknives, confidence)
+
+    def pvalue(self, null: float = 0.0) -> float:
+        return math.nan if self.joint is None else bca_pvalue(self.joint, self.point, self.jackknives, null)
+
+
+PAIR_COLUMNS = ("target", "estimator_a", "estimator_b", "n_models", "n_groups", "spearman_a", "spearman_b", "difference",
+                "ci_low", "ci_high", "p", "p_holm", "resamples", "confidence")  # of compare's `pairs`
+
+
 def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray, scored: np.ndarray,
             clean: str, include: np.ndarray, reference: Iterable[str] = (), absent: str = "nan",
             resamples: int = 1000, confidence: float = 0.95, seed: int = 0, permutations: int = 10000,
-            min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> tuple[list[dict], list[dict]]:
-    """-> (cells, stats). `models`/`counts`: every evaluated model (in the same order); the reference
+            min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> tuple[list[dict], list[dict], list[dict]]:
+    """-> (cells, stats, pairs). `models`/`counts`: every evaluated model (in the same order); the reference
     model(s) are left out of the ranking; `agree`/`scored` (`pairwise_agreement`) cover the ranked
     models, in their order. `cells`: one row per (ranked model, adverse condition) with every estimator,
     the ATC threshold and the targets. `stats`: one row per (estimator, target, scope), scope each adverse
-    condition, `within_mean`, `pooled` or `loco` (see the module's docstring). The interval over scenes
-    and models draws the models anew per resample but keeps each model's estimator values as computed
-    on the whole ranked set (GDE's other models included). A model whose target is undefined in some
-    adverse condition (rPC below the clean-mIoU floor `rpc_floor`) is left out of that target's rows
-    (`n_models`; `n_undefined` says how many were), its cells keep the NaN and the absolute target."""
+    condition, `within_mean`, `pooled` or `loco` (see the module's docstring). `pairs`: per target, the
+    difference of the within-condition mean Spearman of every two estimators (PAIR_COLUMNS).
+
+    Intervals of `within_mean` over scenes and models (`*_model_ci_*`, the paired differences to xi and
+    between estimators) are BCa over resamples that draw the scenes and the models at once, the same draws
+    for every estimator, with the acceleration from leaving one scene and one model out; their p-values
+    invert the same interval, and Holm's adjustment is over the estimator family of one target (`_holm`
+    beside each raw p). A drawn model keeps its estimator values as computed on the whole ranked set (the
+    committee's other models included). A model whose target is undefined in some adverse condition (rPC
+    below the clean-mIoU floor `rpc_floor`) is left out of that target's rows (`n_models`; `n_undefined`
+    says how many were), its cells keep the NaN and the absolute target."""
     names = ranked_models([m.model for m in models], reference)
     if len(names) < MIN_RANKED:
         raise ValueError(f"{len(names)} ranked models ({', '.join(names) or 'none'}); at least {MIN_RANKED} are needed")
@@ -361,8 +409,10 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
         raise ValueError("at least 2 adverse conditions are needed (the mean over conditions, leave one out)")
     args = (clean, include, absent, min_images, min_pixels, rpc_floor)
     point = estimator_values(models, counts, agree, scored, np.ones((1, n)), *args)
-    w = resample_weights(n, resamples, seed).astype(float)
-    boot = estimator_values(models, counts, agree, scored, w, *args) if resamples > 0 else None
+    w = resample_weights(n, max(resamples, 0), seed).astype(float).reshape(max(resamples, 0), n)
+    boot = estimator_values(models, counts, agree, scored, w, *args) if len(w) else None
+    # leave one scene out: the scenes' jackknife of every estimator and target
+    jack = estimator_values(models, counts, agree, scored, 1.0 - np.eye(n), *args) if len(w) and n >= 3 else None
 
     cells = []
     for j, m in enumerate(models):
@@ -376,66 +426,89 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     def interval(b: np.ndarray | None) -> tuple[float, float]:
         return _interval(b, confidence)[:2] if b is not None and b.size else (math.nan, math.nan)
 
-    stats = []
-    within: dict[tuple[str, str], tuple[float, np.ndarray | None]] = {}  # (estimator, target) -> Spearman mean, R resamples
+    rows_of: dict[tuple[str, str], list[dict]] = {}
+    pairs: list[dict] = []
     defined = {t: np.flatnonzero(defined_models(point[t][:, 0, adverse])) for t in TARGETS}
-    for e in ESTIMATORS:
-        for t in TARGETS:
-            sub = defined[t]                                                   # the models whose target is defined
-            if len(sub) < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
-                sub = np.arange(len(models))
-            draws, enough = model_draws(len(sub), max(resamples, 0), seed)
+    for t in TARGETS:
+        sub = defined[t]                                                   # the models whose target is defined
+        if len(sub) < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
+            sub = np.arange(len(models))
+        draws, enough = model_draws(len(sub), len(w), seed)
+        within: dict[str, Resampled] = {}
+        means: dict[str, dict] = {}
+        for e in ESTIMATORS:
             base = {"estimator": e, "target": t, "n_models": len(defined[t]), "n_undefined": len(models) - len(defined[t]),
                     "n_groups": n, "uses_clean_labels": e in USES_CLEAN_LABELS, "resamples": len(w),
                     "confidence": confidence}
-            px, py = point[e][sub][:, :, adverse], point[t][sub][:, :, adverse]          # M x 1 x C'
-            bx = by = None
+            px, py = point[e][sub][:, 0][:, adverse], point[t][sub][:, 0][:, adverse]    # M x C'
+            bx = by = jx = jy = None
             if boot is not None:
                 bx, by = boot[e][sub][:, :, adverse], boot[t][sub][:, :, adverse]        # M x R x C'
-            loco = loco_mae(px[:, 0], py[:, 0])
+            if jack is not None:
+                jx, jy = jack[e][sub][:, :, adverse], jack[t][sub][:, :, adverse]        # M x G x C'
+            loco = loco_mae(px, py)
             rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(sub),
                                    mae=loco["per_condition"][a], mae_baseline=loco["per_condition_baseline"][a])
                     for a, i in enumerate(adverse)}
             mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
             pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
             for name, fn in STATS:
-                p = within_condition(px, py, fn)[0]                                # C'
-                b = within_condition(bx, by, fn) if bx is not None else None        # R x C'
+                p = within_condition(px[:, None], py[:, None], fn)[0]                     # C'
+                b = within_condition(bx, by, fn) if bx is not None else None              # R x C', scenes only
                 for a, i in enumerate(adverse):
                     lo, hi = interval(None if b is None else b[:, a])
                     rows[conds[i]].update({name: float(p[a]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
                 lo, hi = interval(None if b is None else _mean_over_conditions(b))
                 mean.update({name: float(np.mean(p)), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
-                if name == "spearman":
-                    within[e, t] = (float(np.mean(p)), None if b is None else _mean_over_conditions(b))
-                bm = None
-                if bx is not None:
-                    bm = _mean_over_conditions(within_condition(bx, by, fn, draws))
-                    bm = np.where(enough, bm, np.nan)
-                lo, hi = interval(bm)
+                joint = None
+                if bx is not None:   # scenes and models drawn together
+                    joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, fn, draws)), np.nan)
+                jackknives = () if jx is None else (_mean_over_conditions(within_condition(jx, jy, fn)),
+                                                    drop_one_model(px, py, fn))
+                stat = Resampled(float(np.mean(p)), joint, jackknives)
+                lo, hi = stat.interval(confidence)
                 mean.update({f"{name}_model_ci_low": lo, f"{name}_model_ci_high": hi})
-                flat_x = px[:, 0].T.reshape(1, -1)
-                flat_y = py[:, 0].T.reshape(1, -1)
+                if name == "spearman":
+                    within[e] = stat
                 bp = None
                 if bx is not None:
                     bp = fn(bx.transpose(1, 2, 0).reshape(len(w), -1), by.transpose(1, 2, 0).reshape(len(w), -1))
                 lo, hi = interval(bp)
-                pooled.update({name: float(fn(flat_x, flat_y)[0]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
-            mean["p_permutation"] = permutation_pvalue(px[:, 0].T, py[:, 0].T, permutations, seed)
+                pooled.update({name: float(fn(px.T.reshape(1, -1), py.T.reshape(1, -1))[0]),
+                               f"{name}_ci_low": lo, f"{name}_ci_high": hi})
+            mean["p_permutation"] = permutation_pvalue(px.T, py.T, permutations, seed)
             mean["permutations"] = permutations
             loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
                             mae=loco["mae"], mae_baseline=loco["mae_baseline"])
-            stats += [{k: r.get(k, math.nan) for k in COLUMNS} for r in (*rows.values(), mean, pooled, loco_row)]
-    # how far each estimator is from xi, on the same scene resamples (a paired interval of the difference)
-    for row in stats:
-        if row["scope"] == "within_mean" and ("xi", row["target"]) in within:
-            (pe, be), (px, bx) = within[row["estimator"], row["target"]], within["xi", row["target"]]
-            lo, hi = interval(None if be is None or bx is None else be - bx)
-            row.update(spearman_minus_xi=pe - px, spearman_minus_xi_ci_low=lo, spearman_minus_xi_ci_high=hi)
-    return cells, stats
+            means[e] = mean
+            rows_of[e, t] = [*rows.values(), mean, pooled, loco_row]
+        # the family of one target: every estimator's association (permutation p), every difference to xi
+        for e, h in zip(ESTIMATORS, holm([means[e]["p_permutation"] for e in ESTIMATORS])):
+            means[e]["p_permutation_holm"] = h
+        for e in ESTIMATORS:
+            d = within[e] - within["xi"]    # xi - xi: 0 on every resample, no interval and no p (not a certainty)
+            lo, hi = d.interval(confidence)
+            means[e].update(spearman_minus_xi=d.point, spearman_minus_xi_ci_low=lo, spearman_minus_xi_ci_high=hi,
+                            p_minus_xi=d.pvalue())
+        for e, h in zip(ESTIMATORS, holm([means[e]["p_minus_xi"] for e in ESTIMATORS])):
+            means[e]["p_minus_xi_holm"] = h
+        family = []
+        for a, ea in enumerate(ESTIMATORS):
+            for eb in ESTIMATORS[a + 1:]:
+                d = within[ea] - within[eb]
+                lo, hi = d.interval(confidence)
+                family.append({"target": t, "estimator_a": ea, "estimator_b": eb, "n_models": len(defined[t]),
+                               "n_groups": n, "spearman_a": within[ea].point, "spearman_b": within[eb].point,
+                               "difference": d.point, "ci_low": lo, "ci_high": hi, "p": d.pvalue(),
+                               "resamples": len(w), "confidence": confidence})
+        for row, h in zip(family, holm([r["p"] for r in family])):
+            row["p_holm"] = h
+        pairs += [{k: r.get(k, math.nan) for k in PAIR_COLUMNS} for r in family]
+    stats = [{k: r.get(k, math.nan) for k in COLUMNS} for e in ESTIMATORS for t in TARGETS for r in rows_of[e, t]]
+    return cells, stats, pairs
 
 
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
            "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
            "pairwise_agreement", "gde", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
-           "permutation_pvalue", "loco_mae", "compare"]
+           "permutation_pvalue", "loco_mae", "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
