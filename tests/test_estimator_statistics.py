@@ -149,3 +149,63 @@ def test_differences_are_paired_on_the_same_scene_and_model_draws():
         for e in ESTIMATORS[1:]:
             assert s.loc[e, "spearman_minus_xi"] == pytest.approx(-part.loc[("xi", e), "difference"])
             assert s.loc[e, "p_minus_xi"] == pytest.approx(part.loc[("xi", e), "p"], nan_ok=True)
+
+
+PAPER_ADVERSE = ["Day-RAIN", "Day-FOGGY", "Sunset-EXTRASUNNY", "Sunset-RAIN", "Sunset-FOGGY", "Night-EXTRASUNNY",
+                 "Night-RAIN", "Night-FOGGY"]
+
+
+def test_illumination_folds_of_the_paper_grid():
+    from pairedgta.metrics.estimators import illumination_folds
+
+    assert illumination_folds(PAPER_ADVERSE) == {"Day": [0, 1], "Sunset": [2, 3, 4], "Night": [5, 6, 7]}
+    assert illumination_folds(["fog_0.5", "fog_1.0"]) == {}          # a ladder: no time of day
+    assert illumination_folds(["Night-RAIN", "Night-FOGGY"]) == {}   # one illumination: nothing to leave out
+
+
+def test_leaving_an_illumination_out_removes_the_sibling_conditions_from_the_fit():
+    """y = x under Day and Sunset, y = x - 0.5 at night. Left out with its sibling night conditions, night is
+    predicted from the day/sunset line y = x: an error of exactly 0.5 on every night cell. Leaving one
+    night condition out keeps its siblings in the fit, which pulls the line toward them: a smaller error."""
+    from pairedgta.metrics.estimators import holdout_mae, illumination_folds, loco_mae
+
+    rng = np.random.default_rng(0)
+    x = rng.random((5, 8))
+    night = np.array([c.startswith("Night") for c in PAPER_ADVERSE])
+    y = x - 0.5 * night
+    folds = list(illumination_folds(PAPER_ADVERSE).values())
+    out = holdout_mae(x[None], y[None], folds)
+    assert out["per_fold"][0, 2] == pytest.approx(0.5)
+    loco = loco_mae(x, y)
+    assert np.nanmean(loco["per_condition"][night]) < 0.5 and out["mae"][0] > loco["mae"]
+    # the vectorised fit is the same as one least-squares fit per resample
+    xs, ys = rng.random((3, 4, 8)), rng.random((3, 4, 8))
+    got = holdout_mae(xs, ys, folds)
+    for r in range(3):
+        train = [i for i in range(8) if i not in folds[0]]
+        b, a = np.polyfit(xs[r][:, train].ravel(), ys[r][:, train].ravel(), 1)
+        want = np.abs(a + b * xs[r][:, folds[0]] - ys[r][:, folds[0]]).mean()
+        assert got["per_fold"][r, 0] == pytest.approx(want)
+
+
+def test_loco_and_loio_maes_come_with_intervals():
+    import sys
+    from pathlib import Path
+
+    import pandas as pd
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_estimators import K, _synthetic
+
+    from pairedgta.metrics.estimators import compare
+
+    conds = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Sunset-RAIN", "Night-EXTRASUNNY", "Night-RAIN")
+    groups, counts, agree, scored = _synthetic([f"m{i}" for i in range(6)], n_groups=10, seed=2, conds=conds)
+    _, stats, _ = compare(groups, counts, agree, scored, "Day-EXTRASUNNY", np.ones(K, bool), resamples=200,
+                          permutations=20)
+    s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
+    assert {"loco", "loio", "loio_Day", "loio_Sunset", "loio_Night"} <= set(s.index.get_level_values("scope"))
+    for scope in ("loco", "loio", "loio_Night", "Night-RAIN"):
+        row = s.loc[("xi", "rpc", scope)]
+        assert row["mae_ci_low"] < row["mae_ci_high"] and row["mae_baseline_ci_low"] < row["mae_baseline_ci_high"]
+    assert s.loc[("xi", "rpc", "loio_Day"), "n_conditions"] == 1 and s.loc[("xi", "rpc", "loio_Night"), "n_conditions"] == 2

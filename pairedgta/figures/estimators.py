@@ -119,8 +119,15 @@ def _num(v: float, fmt: str = "{:.2f}") -> str:
     return "–" if v is None or not math.isfinite(v) else fmt.format(v)
 
 
-def _ci(lo: float, hi: float) -> str:
-    return "–" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{lo:.2f}, {hi:.2f}]"
+def _mae(row: pd.Series | None, key: str = "mae") -> str:
+    """`0.052 [0.041, 0.066]`; – where the grid has no such hold-out (one illumination, a ladder)."""
+    if row is None:
+        return "–"
+    return _num(row[key], "{:.3f}") + " " + _ci(row[f"{key}_ci_low"], row[f"{key}_ci_high"], "{:.3f}")
+
+
+def _ci(lo: float, hi: float, fmt: str = "{:.2f}") -> str:
+    return "–" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{fmt.format(lo)}, {fmt.format(hi)}]"
 
 
 def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.DataFrame | None = None,
@@ -143,6 +150,7 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
         rows = []
         for e in order:
             w, pooled, loco = part.loc[(e, "within_mean")], part.loc[(e, "pooled")], part.loc[(e, "loco")]
+            loio = part.loc[(e, "loio")] if (e, "loio") in part.index else None
             rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else ""), _num(w["spearman"]),
                          _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
                          _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
@@ -151,8 +159,7 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
                           + _ci(w["spearman_minus_xi_ci_low"], w["spearman_minus_xi_ci_high"])),
                          "–" if e == "xi" else _num(w["p_minus_xi"], "{:.3f}"),
                          "–" if e == "xi" else _num(w["p_minus_xi_holm"], "{:.3f}"),
-                         _num(pooled["spearman"]), _num(loco["mae"], "{:.3f}")])
-        base = part.loc[(order[0], "loco"), "mae_baseline"]
+                         _num(pooled["spearman"]), _mae(loco), _mae(loio)])
         undefined = ""
         if t == "rpc" and low:
             undefined = (f"rPC is undefined for {', '.join(low)} (clean GT mIoU below metric.validity.rpc_min_clean_miou = "
@@ -161,9 +168,13 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
         text.append(f"\n## Target: {TARGET_TEXT[t]}\n\n" + undefined + markdown_table(
             ["estimator", "within-condition mean Spearman", "scene CI", "scene+model BCa CI", "p", "p Holm",
              "minus ξ's [paired scene+model BCa CI]", "p", "p Holm",
-             "pooled over conditions (mostly orders the conditions)", "LOCO MAE"], rows) +
-            f"\n\\* uses clean ground truth. LOCO MAE of the no-information baseline (the training cells' mean "
-            f"{TARGET_TEXT[t]}): {_num(base, '{:.3f}')}.\n")
+             "pooled over conditions (mostly orders the conditions)", "LOCO MAE [CI]", "LOIO MAE [CI]"], rows) +
+            f"\n\\* uses clean ground truth. MAE of {TARGET_TEXT[t]} predicted by a line fitted on the other "
+            f"conditions: leave one condition out (LOCO; a sibling condition of the same time of day stays in the fit) "
+            f"and leave one illumination out (LOIO: Day, Sunset, Night; the transfer test), each with its BCa "
+            f"interval over scenes and models. No-information baseline (the training cells' mean {TARGET_TEXT[t]}): "
+            f"LOCO {_mae(part.loc[(order[0], 'loco')], 'mae_baseline')}, LOIO "
+            f"{_mae(part.loc[(order[0], 'loio')] if (order[0], 'loio') in part.index else None, 'mae_baseline')}.\n")
     return "".join(text)
 
 

@@ -27,7 +27,9 @@ against a random model order (one order of the model labels for every condition:
 difference of every two estimators (to xi in `stats`, all pairs in `pairs`) is paired on the same scene
 and model draws, with a BCa interval and p-value, Holm-adjusted over the estimators of one target. Beside
 it, the correlation over every cell pooled (which mostly orders the conditions) and the mean absolute error
-of a linear map from estimator to target fitted on the other conditions (leave one condition out). Pure
+of a linear map from estimator to target fitted on the other conditions: leave one condition out, and
+leave one illumination out (Day / Sunset / Night: no sibling condition of the same time of day in the fit,
+the honest transfer test), each MAE with a BCa interval over scenes and models. Pure
 numpy/scipy: the caller reads the files (the per-group sums of evaluate and its argmax predictions)."""
 from __future__ import annotations
 
@@ -53,7 +55,8 @@ MIN_RANKED = 4
 COLUMNS = ("estimator", "target", "scope", "n_models", "n_undefined", "n_conditions", "n_cells", "n_groups", "spearman", "spearman_ci_low",
            "spearman_ci_high", "kendall", "kendall_ci_low", "kendall_ci_high", "spearman_model_ci_low",
            "spearman_model_ci_high", "kendall_model_ci_low", "kendall_model_ci_high", "p_permutation", "permutations",
-           "p_permutation_holm", "mae", "mae_baseline", "spearman_minus_xi", "spearman_minus_xi_ci_low",
+           "p_permutation_holm", "mae", "mae_ci_low", "mae_ci_high", "mae_baseline", "mae_baseline_ci_low",
+           "mae_baseline_ci_high", "spearman_minus_xi", "spearman_minus_xi_ci_low",
            "spearman_minus_xi_ci_high", "p_minus_xi", "p_minus_xi_holm", "uses_clean_labels", "resamples",
            "confidence")  # of compare's `stats`
 STATS: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = (
@@ -296,37 +299,108 @@ def permutation_pvalue(x: np.ndarray, y: np.ndarray, permutations: int, seed: in
     return hits / total if exact else (1 + hits) / (1 + permutations)
 
 
+def illumination(condition: str) -> str | None:
+    """The time of day of a grid condition (`Day-RAIN` -> `Day`), None for names of another form (a ladder's
+    `fog_0.5`)."""
+    time, sep, _ = str(condition).partition("-")
+    return time if sep and time else None
+
+
+def illumination_folds(conditions: Sequence[str]) -> dict[str, list[int]]:
+    """Positions of the conditions per illumination (Day / Sunset / Night), in order of appearance; {} where
+    a condition has no illumination or fewer than two illuminations are present (nothing to leave out)."""
+    folds: dict[str, list[int]] = {}
+    for i, c in enumerate(conditions):
+        time = illumination(c)
+        if time is None:
+            return {}
+        folds.setdefault(time, []).append(i)
+    return folds if len(folds) >= 2 else {}
+
+
+def holdout_mae(x: np.ndarray, y: np.ndarray, folds: Sequence[Sequence[int]]) -> dict[str, np.ndarray]:
+    """x, y: R x M x C' (resamples, models, adverse conditions). For each fold (the positions of the
+    conditions held out together), y = a + b x is fitted by least squares on the cells of the other
+    conditions and evaluated on the held-out cells; the baseline predicts the training cells' mean target.
+    -> `mae`, `mae_baseline` (R: over every held-out cell of every fold) and `per_fold`,
+    `per_fold_baseline` (R x F). A fold with fewer than 2 training cells or no held-out cell is NaN and out
+    of the totals; where the training x do not vary, the fit is the mean."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    n_res, n_cond = x.shape[0], x.shape[-1]
+    per, per_base = np.full((n_res, len(folds)), np.nan), np.full((n_res, len(folds)), np.nan)
+    err_sum, base_sum, cells = np.zeros(n_res), np.zeros(n_res), np.zeros(n_res)
+    for f, held in enumerate(folds):
+        train = np.setdiff1d(np.arange(n_cond), held)
+        xt, yt = x[:, :, train].reshape(n_res, -1), y[:, :, train].reshape(n_res, -1)
+        ok = np.isfinite(xt) & np.isfinite(yt)
+        count = ok.sum(axis=1)
+        xt, yt = np.where(ok, xt, 0.0), np.where(ok, yt, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mx, my = xt.sum(1) / count, yt.sum(1) / count
+            dx = np.where(ok, xt - mx[:, None], 0.0)
+            sxx, sxy = (dx * dx).sum(1), (dx * (yt - my[:, None])).sum(1)
+            spread = np.where(ok, xt, -np.inf).max(1) - np.where(ok, xt, np.inf).min(1)
+            b = np.where(spread > 1e-12, sxy / np.where(sxx > 0, sxx, 1.0), 0.0)
+        a = my - b * mx
+        xh, yh = x[:, :, list(held)].reshape(n_res, -1), y[:, :, list(held)].reshape(n_res, -1)
+        okh = np.isfinite(xh) & np.isfinite(yh)
+        nh = okh.sum(axis=1)
+        err = np.where(okh, np.abs(a[:, None] + b[:, None] * np.where(okh, xh, 0) - np.where(okh, yh, 0)), 0.0).sum(1)
+        base = np.where(okh, np.abs(my[:, None] - np.where(okh, yh, 0)), 0.0).sum(1)
+        use = (count >= 2) & (nh > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per[:, f] = np.where(use, err / nh, np.nan)
+            per_base[:, f] = np.where(use, base / nh, np.nan)
+        err_sum += np.where(use, err, 0.0)
+        base_sum += np.where(use, base, 0.0)
+        cells += np.where(use, nh, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mae = np.where(cells > 0, err_sum / np.where(cells > 0, cells, 1), np.nan)
+        mae_base = np.where(cells > 0, base_sum / np.where(cells > 0, cells, 1), np.nan)
+    return {"mae": mae, "mae_baseline": mae_base, "per_fold": per, "per_fold_baseline": per_base}
+
+
 def loco_mae(x: np.ndarray, y: np.ndarray) -> dict[str, object]:
     """Leave one condition out: x, y are M x C' (cells of the ranked models under each adverse condition).
     For each held-out condition, y = a + b x is fitted by least squares on the other conditions' cells and
     evaluated on the held-out cells; the baseline predicts the training cells' mean target. -> `mae` and
     `mae_baseline` (over every held-out cell), `per_condition` and `per_condition_baseline` (C')."""
     x, y = np.asarray(x, float), np.asarray(y, float)
-    n_cond = x.shape[1]
-    errors, base_errors, per, per_base = [], [], np.full(n_cond, np.nan), np.full(n_cond, np.nan)
-    for h in range(n_cond):
-        train = np.arange(n_cond) != h
-        xt, yt = x[:, train].ravel(), y[:, train].ravel()
-        ok = np.isfinite(xt) & np.isfinite(yt)
-        xh, yh = x[:, h], y[:, h]
-        okh = np.isfinite(xh) & np.isfinite(yh)
-        if ok.sum() < 2 or not okh.any():
-            continue
-        xt, yt = xt[ok], yt[ok]
-        mean_y = float(yt.mean())
-        if np.ptp(xt) <= 1e-12:   # no slope to fit: the mean
-            a, b = mean_y, 0.0
-        else:
-            b = float(np.sum((xt - xt.mean()) * (yt - mean_y)) / np.sum((xt - xt.mean()) ** 2))
-            a = mean_y - b * float(xt.mean())
-        err = np.abs(a + b * xh[okh] - yh[okh])
-        base = np.abs(mean_y - yh[okh])
-        per[h], per_base[h] = float(err.mean()), float(base.mean())
-        errors.append(err)
-        base_errors.append(base)
-    mae = float(np.concatenate(errors).mean()) if errors else math.nan
-    mae_base = float(np.concatenate(base_errors).mean()) if base_errors else math.nan
-    return {"mae": mae, "mae_baseline": mae_base, "per_condition": per, "per_condition_baseline": per_base}
+    out = holdout_mae(x[None], y[None], [[i] for i in range(x.shape[1])])
+    return {"mae": float(out["mae"][0]), "mae_baseline": float(out["mae_baseline"][0]),
+            "per_condition": out["per_fold"][0], "per_condition_baseline": out["per_fold_baseline"][0]}
+
+
+def mae_with_intervals(px: np.ndarray, py: np.ndarray, bx: np.ndarray | None, by: np.ndarray | None,
+                       jx: np.ndarray | None, jy: np.ndarray | None, draws: np.ndarray | None,
+                       folds: Sequence[Sequence[int]], confidence: float) -> dict[str, list[tuple[float, float, float]]]:
+    """`holdout_mae` of the data with a BCa interval over scenes and models drawn together (the resample's
+    scene weights give bx, by: M x R x C'; `draws`, R x M, its models) and the jackknife of both units
+    (jx, jy: M x G x C', leave one scene out; and leave one model out, its cells gone from fit and test).
+    -> `mae`, `mae_baseline`: [(value, low, high)]; `per_fold`, `per_fold_baseline`: one per fold."""
+    point = holdout_mae(px[None], py[None], folds)
+    joint = jack_scene = jack_model = None
+    if bx is not None and draws is not None:
+        pick = lambda a: np.take_along_axis(np.moveaxis(a, 0, 1), draws[:, :, None], axis=1)  # noqa: E731
+        joint = holdout_mae(pick(bx), pick(by), folds)
+    if jx is not None:
+        jack_scene = holdout_mae(np.moveaxis(jx, 0, 1), np.moveaxis(jy, 0, 1), folds)
+        m = px.shape[0]
+        rest = np.array([np.delete(np.arange(m), i) for i in range(m)])
+        jack_model = holdout_mae(px[rest], py[rest], folds)
+    out: dict[str, list[tuple[float, float, float]]] = {}
+    for key in ("mae", "mae_baseline", "per_fold", "per_fold_baseline"):
+        values = point[key][0]
+        columns = [values] if np.ndim(values) == 0 else list(values)
+        rows = []
+        for f, v in enumerate(columns):
+            def col(r: dict | None) -> np.ndarray | None:
+                return None if r is None else (r[key] if r[key].ndim == 1 else r[key][:, f])
+            jks = tuple(j for j in (col(jack_scene), col(jack_model)) if j is not None)
+            stat = Resampled(float(v), col(joint), jks)
+            rows.append((float(v), *stat.interval(confidence)))
+        out[key] = rows
+    return out
 
 
 def _mean_over_conditions(r: np.ndarray) -> np.ndarray:
@@ -368,6 +442,11 @@ class Resampled:
         return math.nan if self.joint is None else bca_pvalue(self.joint, self.point, self.jackknives, null)
 
 
+def _mae_columns(mae: tuple[float, float, float], base: tuple[float, float, float]) -> dict[str, float]:
+    return {"mae": mae[0], "mae_ci_low": mae[1], "mae_ci_high": mae[2], "mae_baseline": base[0],
+            "mae_baseline_ci_low": base[1], "mae_baseline_ci_high": base[2]}
+
+
 PAIR_COLUMNS = ("target", "estimator_a", "estimator_b", "n_models", "n_groups", "spearman_a", "spearman_b", "difference",
                 "ci_low", "ci_high", "p", "p_holm", "resamples", "confidence")  # of compare's `pairs`
 
@@ -380,7 +459,9 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     model(s) are left out of the ranking; `agree`/`scored` (`pairwise_agreement`) cover the ranked
     models, in their order. `cells`: one row per (ranked model, adverse condition) with every estimator,
     the ATC threshold and the targets. `stats`: one row per (estimator, target, scope), scope each adverse
-    condition, `within_mean`, `pooled` or `loco` (see the module's docstring). `pairs`: per target, the
+    condition, `within_mean`, `pooled`, `loco` (leave one condition out), `loio` (leave one illumination
+    out: Day, Sunset, Night, where the grid names them) and `loio_<illumination>` (that fold alone); every
+    MAE with its BCa interval over scenes and models (see the module's docstring). `pairs`: per target, the
     difference of the within-condition mean Spearman of every two estimators (PAIR_COLUMNS).
 
     Intervals of `within_mean` over scenes and models (`*_model_ci_*`, the paired differences to xi and
@@ -429,6 +510,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     rows_of: dict[tuple[str, str], list[dict]] = {}
     pairs: list[dict] = []
     defined = {t: np.flatnonzero(defined_models(point[t][:, 0, adverse])) for t in TARGETS}
+    by_light = illumination_folds([conds[i] for i in adverse])   # leave one illumination out, where there are two
     for t in TARGETS:
         sub = defined[t]                                                   # the models whose target is defined
         if len(sub) < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
@@ -446,10 +528,19 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                 bx, by = boot[e][sub][:, :, adverse], boot[t][sub][:, :, adverse]        # M x R x C'
             if jack is not None:
                 jx, jy = jack[e][sub][:, :, adverse], jack[t][sub][:, :, adverse]        # M x G x C'
-            loco = loco_mae(px, py)
+            loco = mae_with_intervals(px, py, bx, by, jx, jy, draws, [[a] for a in range(len(adverse))], confidence)
             rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(sub),
-                                   mae=loco["per_condition"][a], mae_baseline=loco["per_condition_baseline"][a])
+                                   **_mae_columns(loco["per_fold"][a], loco["per_fold_baseline"][a]))
                     for a, i in enumerate(adverse)}
+            holdouts = [dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
+                             **_mae_columns(loco["mae"][0], loco["mae_baseline"][0]))]
+            if by_light:
+                loio = mae_with_intervals(px, py, bx, by, jx, jy, draws, list(by_light.values()), confidence)
+                holdouts.append(dict(base, scope="loio", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
+                                     **_mae_columns(loio["mae"][0], loio["mae_baseline"][0])))
+                holdouts += [dict(base, scope=f"loio_{light}", n_conditions=len(held), n_cells=len(sub) * len(held),
+                                  **_mae_columns(loio["per_fold"][f], loio["per_fold_baseline"][f]))
+                             for f, (light, held) in enumerate(by_light.items())]
             mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
             pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
             for name, fn in STATS:
@@ -478,10 +569,8 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                                f"{name}_ci_low": lo, f"{name}_ci_high": hi})
             mean["p_permutation"] = permutation_pvalue(px.T, py.T, permutations, seed)
             mean["permutations"] = permutations
-            loco_row = dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
-                            mae=loco["mae"], mae_baseline=loco["mae_baseline"])
             means[e] = mean
-            rows_of[e, t] = [*rows.values(), mean, pooled, loco_row]
+            rows_of[e, t] = [*rows.values(), mean, pooled, *holdouts]
         # the family of one target: every estimator's association (permutation p), every difference to xi
         for e, h in zip(ESTIMATORS, holm([means[e]["p_permutation"] for e in ESTIMATORS])):
             means[e]["p_permutation_holm"] = h
@@ -511,4 +600,5 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
            "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
            "pairwise_agreement", "gde", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
-           "permutation_pvalue", "loco_mae", "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
+           "permutation_pvalue", "illumination", "illumination_folds", "holdout_mae", "loco_mae", "mae_with_intervals",
+           "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
