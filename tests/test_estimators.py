@@ -13,7 +13,7 @@ import pytest
 from pairedgta import schema
 from pairedgta.errors import ConfigError
 from pairedgta.metrics.estimators import (ESTIMATORS, TARGETS, EstimatorCounts, atc, atc_threshold, compare,
-                                          estimator_values, gde, loco_mae, model_draws, pairwise_agreement,
+                                          estimator_values, committee_agreement, loco_mae, model_draws, pairwise_agreement,
                                           permutation_pvalue, ranked_models)
 from pairedgta.metrics.validity import GroupCounts
 
@@ -113,6 +113,11 @@ def test_ac_entropy_doc_self_agreement_and_clean_miou_by_hand():
     np.testing.assert_allclose(v["gt_miou"][0, 0], [0.6, 1 / 3, 1 / 7])
     np.testing.assert_allclose(v["rpc"][0, 0], [1.0, (1 / 3) / 0.6, (1 / 7) / 0.6])
     np.testing.assert_allclose(v["xi"][0, 0], [1.0, 0.8, 0.5])
+    # relative versions: divided by the clean value (xi 1.0 clean here; AC 0.9)
+    np.testing.assert_allclose(v["xi_rel"][0, 0], [1.0, 0.8, 0.5])
+    np.testing.assert_allclose(v["ac_rel"][0, 0], [1.0, 0.725 / 0.9, 0.5 / 0.9])
+    # the baseline: clean GT mIoU 0.6 times the self-agreement
+    np.testing.assert_allclose(v["clean_miou_x_self_agreement"][0, 0], [0.6, 0.6 * 0.7, 0.6 * 0.5])
     # ATC: accuracy 6/8, every pixel at 0.90x: the threshold lies above them, nothing is above it
     np.testing.assert_allclose(v["atc_threshold"][0], [0.901, 0.901])
     np.testing.assert_allclose(v["atc"][0, 0], [0.0, 0.0, 0.0])
@@ -126,7 +131,7 @@ def _write_predictions(path: Path, groups: list[np.ndarray], conds=("clean", "A"
     return path / "predictions.npz"
 
 
-def test_gde_is_the_mean_agreement_with_the_other_models(tmp_path):
+def test_committee_agreement_is_the_mean_agreement_with_the_other_models(tmp_path):
     zeros, half, other = np.zeros((2, 2, 4)), np.zeros((2, 2, 4)), np.zeros((2, 2, 4))
     half[:, 1, :] = 1    # agrees with `zeros` on half the pixels
     other[:, 0, :] = 1   # agrees with `zeros` on the other half, with `half` nowhere
@@ -139,7 +144,7 @@ def test_gde_is_the_mean_agreement_with_the_other_models(tmp_path):
     assert agree.shape == (2, 2, 3, 3)
     assert agree[0, 1, 0, 1] == 4 and scored[0, 1, 0, 1] == 8 and agree[0, 1, 1, 2] == 0
     assert scored[1, 1].sum() == 0 and agree[1, 0, 0, 1] == 8  # the absent image scores nothing
-    v = gde(agree, scored, np.ones((1, 2)))
+    v = committee_agreement(agree, scored, np.ones((1, 2)))
     np.testing.assert_allclose(v[:, 0, 1], [0.5, 0.25, 0.25])
     # clean: group 0 as A, group 1 all agree: (4 + 8) / 16 with each other model
     np.testing.assert_allclose(v[:, 0, 0], [0.75, (12 / 16 + 8 / 16) / 2, (12 / 16 + 8 / 16) / 2])
@@ -303,12 +308,12 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     md = (out / "estimators.md").read_text()
     assert "pooled over conditions (mostly orders the conditions)" in md and "demo_segformer is excluded" in md
     assert "Intervals at 90%: the percentile bootstrap over scenes" in md and "BCa over scenes and models" in md
-    assert "validity/xi/rpc/spearman/within_mean" in metrics and "validity/gde/gt_miou/mae/loco" in metrics
+    assert "validity/xi/rpc/spearman/within_mean" in metrics and "validity/committee_agreement/gt_miou/mae/loco" in metrics
     assert "validity/atc/rpc/p_permutation/within_mean" in metrics and "validity/ac/rpc/kendall/A" in metrics
     assert not any(k.endswith("/p_permutation/pooled") for k in metrics)
     assert all(k.count("/") == 4 and math.isfinite(v) for k, v in metrics.items())
-    # GDE from the predictions files is in the cells
-    assert cells["gde"].between(0, 1).all()
+    # the committee agreement from the predictions files is in the cells
+    assert cells["committee_agreement"].between(0, 1).all()
 
     # a model evaluated before the estimator sums, or without predictions: one line naming the fix
     (tmp_path / "eval" / "m4" / "predictions.npz").unlink()
@@ -364,7 +369,7 @@ def test_the_difference_to_xi_is_paired_on_the_same_resamples():
     s = pd.DataFrame(stats).set_index(["estimator", "target", "scope"])
     xi = s.loc[("xi", "rpc", "within_mean")]
     assert xi["spearman_minus_xi"] == 0.0 and math.isnan(xi["spearman_minus_xi_ci_low"])
-    for e in ("ac", "self_agreement", "gde"):
+    for e in ("ac", "self_agreement", "committee_agreement"):
         row = s.loc[(e, "rpc", "within_mean")]
         assert row["spearman_minus_xi"] == pytest.approx(row["spearman"] - xi["spearman"])
         if math.isfinite(row["spearman_minus_xi_ci_low"]):

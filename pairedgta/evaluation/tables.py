@@ -213,7 +213,8 @@ def write_gt_iou(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None
 def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any],
                      arrays: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     """estimators.csv: per condition the label-free estimators of this model (pairedgta.metrics.estimators;
-    GDE needs the other models and is computed where they meet, the `estimators` figure) beside xi and the
+    the committee agreement and ALine need the other models and are computed where they meet, the `estimators`
+    figure) beside xi and the
     ground-truth targets where labels exist. AC, entropy and plain agreement use no label; DoC, ATC and the
     clean mIoU use the clean condition's ground truth, as their methods use labelled source data."""
     from pairedgta.metrics.estimators import EstimatorCounts, model_values
@@ -276,7 +277,7 @@ def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: li
 
 def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
     """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
-    absent), so that estimators comparing models pixel by pixel (agreement between models, GDE) need no
+    absent), so that estimators comparing models pixel by pixel (agreement between models, ALine) need no
     second inference pass. Label maps compress well: a few kB per image."""
     arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
                                      "conditions": np.array(conditions, dtype=str)}

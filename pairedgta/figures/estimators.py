@@ -2,7 +2,8 @@
 
 Reads each model's per-group sums (`e.group_counts()`, evaluate's `est_*` arrays) and argmax predictions
 (`predictions.npz`, for the agreement between models), and compares label-free estimators of robustness
-(pairedgta.metrics.estimators: xi, AC, DoC, ATC, entropy, GDE, self-agreement, clean mIoU) as judges of
+(pairedgta.metrics.estimators: xi, AC, DoC, ATC, their relative versions, entropy, committee agreement,
+self-agreement, clean mIoU and clean mIoU x self-agreement) as judges of
 rPC and adverse GT mIoU across the models other than the reference. Writes estimators.csv (one row per
 estimator, target and scope), estimators.md (the headline tables), estimator_cells.csv (one row per model
 and condition) and a figure: each estimator against rPC, and the within-condition mean Spearman of each
@@ -31,8 +32,10 @@ from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, 
                                           EstimatorCounts, compare, concat_counts, pairwise_agreement, ranked_models)
 from pairedgta.metrics.validity import GroupCounts, concat_groups
 
-NAMES = {"xi": "ξ (label-free)", "ac": "AC", "doc": "DoC", "atc": "ATC", "entropy": "1 − entropy", "gde": "GDE",
-         "self_agreement": "self-agreement", "clean_miou": "clean GT mIoU"}
+NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel": "relative AC", "doc": "DoC",
+         "atc": "ATC", "atc_rel": "relative ATC", "entropy": "1 − entropy",
+         "committee_agreement": "committee agreement (not GDE)", "self_agreement": "self-agreement",
+         "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
 STATS = ("spearman", "kendall", "mae", "p_permutation", "p_permutation_holm", "p_minus_xi_holm")
 
@@ -67,7 +70,7 @@ def agreement(models: list[GroupCounts], paths: dict[str, list[Path]], n_passes:
             for m in models:
                 path = paths[m.model][k] / "predictions.npz"
                 if not path.is_file():
-                    raise ConfigError(f"plot.figures: estimators needs {path} (the argmax predictions, for GDE); {FIX}")
+                    raise ConfigError(f"plot.figures: estimators needs {path} (the argmax predictions, for the agreement between models); {FIX}")
                 z = stack.enter_context(np.load(path, allow_pickle=False))
                 ids = [str(g) for g in z["group_id"]]
                 n = len(ids)
@@ -182,13 +185,17 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
     conds = list(dict.fromkeys(cells["condition"]))
     colors = plt.get_cmap("tab10")
     with paper_style():
-        fig, axes = plt.subplots(3, 3, figsize=(TEXT_WIDTH, 6.6))
+        columns = 4
+        rows = -(-(len(ESTIMATORS) + 1) // columns)  # a scatter per estimator, then the intervals
+        fig, axes = plt.subplots(rows, columns, figsize=(TEXT_WIDTH, 1.75 * rows + 0.5))
+        for ax in axes.flat[len(ESTIMATORS):-1]:
+            ax.axis("off")
         for ax, e in zip(axes.flat, ESTIMATORS):
             for i, c in enumerate(conds):
                 part = cells[cells["condition"] == c]
                 ax.scatter(part["rpc"], part[e], color=colors(i % 10), s=10, edgecolor="black", linewidth=0.2,
                            label=condition_display(c))
-            ax.set_title(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""))
+            ax.set_title(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""), fontsize=6)
             ax.set_xlabel("rPC")
         bx = axes.flat[-1]
         part = stats[(stats["target"] == "rpc") & (stats["scope"] == "within_mean")].sort_values("spearman")
@@ -198,7 +205,9 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
             v = part["spearman"].to_numpy(float)
             lo, hi = part[f"spearman{kind}_ci_low"].to_numpy(float), part[f"spearman{kind}_ci_high"].to_numpy(float)
             has = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(v)
-            bx.errorbar(v[has], (y + offset)[has], xerr=[v[has] - lo[has], hi[has] - v[has]], fmt="o", color=color, ms=3,
+            # a BCa interval need not hold the point (a strongly biased statistic): never a negative bar
+            err = [np.maximum(v[has] - lo[has], 0), np.maximum(hi[has] - v[has], 0)]
+            bx.errorbar(v[has], (y + offset)[has], xerr=err, fmt="o", color=color, ms=3,
                         capsize=1.5, lw=0.8, label=f"{level:.0%} {label}")
             bx.plot(v[~has], (y + offset)[~has], "o", mfc="none", mec=color, ms=3.5, mew=0.8,
                     label="no interval" if (~has).any() else None)

@@ -5,19 +5,24 @@ robust model. Each is checked, as `pairedgta.metrics.validity` checks xi, agains
 embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mIoU.
 
 - `xi`: label-free mean xi against the reference model's pseudo-labels (`validity.cell_measures`).
+- `xi_rel`, `ac_rel`, `atc_rel`: the relative versions, xi, AC and ATC under the condition divided by their
+  clean value: a prediction of rPC, which divides the clean quality away as they do.
 - `ac`: average confidence, the mean max-softmax probability (Hendrycks & Gimpel, ICLR 2017).
 - `doc`: difference of confidences (Guillory et al., ICCV 2021): clean GT mIoU + AC(adverse) - AC(clean).
 - `atc`: average thresholded confidence (Garg et al., ICLR 2022, max-confidence score): the threshold t is
   the smallest histogram edge at which the clean share of pixels with confidence >= t is at most the clean
   pixel accuracy; the estimate is the adverse share of pixels with confidence >= t.
 - `entropy`: one minus the mean normalised predictive entropy H(p) / log K.
-- `gde`: agreement with the other models (Jiang et al., ICLR 2022; Baek et al., NeurIPS 2022): the mean over
-  the other ranked models of the share of pixels on which the two predictions agree.
+- `committee_agreement`: the mean over the other ranked models (other architectures and recipes) of the share
+  of pixels on which the two predictions agree. Not GDE (Jiang et al., ICLR 2022), which is the agreement of
+  two runs of one recipe differing in the seed only: the zoo has no such pair.
 - `self_agreement`: the share of pixels predicted as on the clean image of the same scene.
 - `clean_miou`: the clean GT mIoU alone (accuracy on the line, Miller et al., ICML 2021).
+- `clean_miou_x_self_agreement`: the clean GT mIoU times the self-agreement, the baseline that carries the
+  clean quality (as xi does) into the plainest label-free measure of change.
 
-`doc`, `atc` and `clean_miou` use the clean condition's ground truth (the labelled source data these
-methods assume); no estimator uses a label of an adverse condition.
+`doc`, `atc`, `atc_rel`, `clean_miou` and `clean_miou_x_self_agreement` use the clean condition's ground
+truth (the labelled source data these methods assume); no estimator uses a label of an adverse condition.
 
 Statistics lead with the within-condition view: per adverse condition, Spearman and Kendall (tau-b)
 across the ranked models (every model but the reference, which would grade itself), and their mean over
@@ -46,8 +51,10 @@ from pairedgta.metrics.inference import bca_interval, bca_pvalue, holm
 from pairedgta.metrics.validity import (GroupCounts, _interval, cell_measures, defined_models, kendall_rows, spearman_rows,
                                         stack_passes)
 
-ESTIMATORS = ("xi", "ac", "doc", "atc", "entropy", "gde", "self_agreement", "clean_miou")
-USES_CLEAN_LABELS = frozenset({"doc", "atc", "clean_miou"})  # clean ground truth; none uses adverse labels
+ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "committee_agreement",
+              "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
+# clean ground truth; none uses adverse labels
+USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "clean_miou", "clean_miou_x_self_agreement"})
 TARGETS = ("rpc", "gt_miou")
 COUNT_ARRAYS = ("est_pixels", "est_conf_sum", "est_entropy_sum", "est_conf_hist", "est_agree_clean")
 ABSENT_CLASS = 255  # predictions.npz: every pixel of a condition's absent image
@@ -192,8 +199,9 @@ def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: in
     return agree, scored
 
 
-def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """M x R x C: per model the mean over the other models of the pooled pixel agreement share."""
+def committee_agreement(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """M x R x C: per model the mean over the other models of the pooled pixel agreement share (a committee
+    of other architectures, not GDE's second seed of the same recipe)."""
     share = _ratio(_weigh(w, agree), _weigh(w, scored))   # R x C x M x M
     m_count = share.shape[-1]
     share = np.where(np.eye(m_count, dtype=bool), np.nan, share)
@@ -205,7 +213,8 @@ def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) -> np.ndarray:
 def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean: str, include: np.ndarray,
                  absent: str = "nan", min_images: int = 0, min_pixels: int = 0,
                  rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
-    """One model's estimators but GDE (which needs the others) and targets, R x C, plus `atc_threshold` (R):
+    """One model's estimators but those that need the other models (committee agreement, ALine) and the
+    targets, R x C, plus `atc_threshold` (R):
     what evaluate writes per model (`estimators.csv`) and the comparison stacks over models. rPC is
     undefined below the clean-mIoU floor `rpc_floor` (`validity.cell_measures`)."""
     if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
@@ -215,10 +224,18 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
     cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels, rpc_floor)
     ac = average_confidence(c, w)
     score, threshold = atc(c.conf_hist, g.cm, c0, w)
-    return {"xi": cm["xi_mean"], "ac": ac, "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score,
-            "entropy": entropy_score(c, w), "self_agreement": self_agreement(c, w),
-            "clean_miou": cm["gt_miou_clean"], "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
+    agreement = self_agreement(c, w)
+    return {"xi": cm["xi_mean"], "xi_rel": relative(cm["xi_mean"], c0), "ac": ac, "ac_rel": relative(ac, c0),
+            "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score, "atc_rel": relative(score, c0),
+            "entropy": entropy_score(c, w), "self_agreement": agreement, "clean_miou": cm["gt_miou_clean"],
+            "clean_miou_x_self_agreement": cm["gt_miou_clean"] * agreement, "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
             "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
+
+
+def relative(values: np.ndarray, clean: int) -> np.ndarray:
+    """R x C values divided by their clean column (NaN where that is 0 or undefined)."""
+    values = np.asarray(values, float)
+    return _ratio(values, np.broadcast_to(values[:, clean : clean + 1], values.shape))
 
 
 def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray,
@@ -235,7 +252,7 @@ def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCo
         for k, v in model_values(g, c, w, clean, include, absent, min_images, min_pixels, rpc_floor).items():
             out.setdefault(k, []).append(v)
     stacked = {k: np.stack(v) for k, v in out.items()}
-    stacked["gde"] = gde(agree, scored, w)
+    stacked["committee_agreement"] = committee_agreement(agree, scored, w)
     return stacked
 
 
@@ -599,6 +616,6 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
            "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
-           "pairwise_agreement", "gde", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
+           "pairwise_agreement", "committee_agreement", "relative", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
            "permutation_pvalue", "illumination", "illumination_folds", "holdout_mae", "loco_mae", "mae_with_intervals",
            "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
