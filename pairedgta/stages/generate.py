@@ -31,7 +31,7 @@ from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, scene_files, transmittance_file, transmittance_png
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError, reason
 from pairedgta.jsonio import write_json
-from pairedgta.render import Renderer, build_renderer
+from pairedgta.render import Renderer, build_renderer, renderer_versions
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region, region_for_scene
@@ -45,6 +45,7 @@ VERSION = "7"  # 2: descriptors carry the ambient population; 3: per-town ground
 # 5: analytic fog by default, and clear skies lit by the sun (the fog box no longer shadows it);
 # 6: conditions in physical units (visibility, rain rate) and a transmittance map per condition;
 # 7: the camera model (`camera` group), night light at realistic power, haze that replaces the sky
+# (the renderer's own version, e.g. blender_version, is part of the key beside VERSION: hash_config)
 TIMING_COLUMNS = [
     "location_id", "scene_id", "x", "y", "scene_sampling_time", "semantic_scene_construction_time",
     "condition_wise_rendering_time", "pipeline_time", "overhead_time", "total_time", "retries",
@@ -125,6 +126,9 @@ def hash_config(run: RunConfig, grid: ConditionGrid) -> dict[str, Any]:
     return {
         "generate": gen, "renderer": renderer, "region": run.region,
         "conditions": [c.to_dict() for c in grid], "reference": grid.reference,
+        # the backend's own version (blender_version): another Blender draws other pixels, so another entry; the
+        # manifest's config records it. A backend without one (synthetic, deepgtav) hashes as before
+        **renderer_versions(run.renderer.get("backend")),
     }
 
 
@@ -382,7 +386,7 @@ def write_index(out: Path, run: RunConfig, grid: ConditionGrid, n: int, connect:
     index = {
         "conditions": grid.names, "reference": grid.reference, "renderer": run.renderer.get("backend"),
         "width": run.renderer.get("width"), "height": run.renderer.get("height"),
-        "scenes": scenes, "dropped_invalid": dropped,
+        "scenes": scenes, "dropped_invalid": dropped, **renderer_versions(run.renderer.get("backend")),
     }
     write_json(out / INDEX, index)
     return {"num_scenes": len(scenes), "dropped_invalid": dropped}

@@ -56,17 +56,58 @@ def quiet_cuda_probe(active: bool):
                 sys.stdout.flush()
 
 
+# Blender as a Python module (the bpy wheels on PyPI) exists for one Python per Blender release: the releases
+# this project renders with, by the Python they need (pyproject.toml installs the one that fits)
+BPY_FOR_PYTHON = {"3.11": "5.0.1", "3.13": "5.3"}
+
+
+def running_python() -> str:
+    return f"{sys.version_info.major}.{sys.version_info.minor}"
+
+
+def bpy_unavailable(python: str | None = None) -> str:
+    """The one line that says why renderer=blender cannot run on this interpreter, and what to do instead."""
+    python = python or running_python()
+    have = " and ".join(f"Python {py} (bpy {v})" for py, v in BPY_FOR_PYTHON.items())
+    if python in BPY_FOR_PYTHON:
+        return (f"renderer=blender needs Blender as a Python module (bpy), which is not installed; install the project "
+                f"as README says (pip install -e \".[dev]\" -c constraints.txt installs bpy {BPY_FOR_PYTHON[python]} on "
+                f"Python {python}), or use renderer=synthetic")
+    return (f"renderer=blender needs Blender as a Python module (bpy), which exists for {have} only, not for this "
+            f"Python {python}; install the project on one of those, or try the tool here with renderer=synthetic")
+
+
+def blender_version() -> str:
+    """The version of the installed Blender module ("5.0.1"), read from its package metadata without importing it
+    (bpy takes seconds to import); a bpy that pip did not install is asked itself. ConfigError (one line, naming
+    the Pythons that have bpy) where there is none."""
+    import importlib.metadata
+    import importlib.util
+
+    try:
+        return importlib.metadata.version("bpy")
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    try:
+        found = importlib.util.find_spec("bpy") is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise ConfigError(bpy_unavailable())
+    return ".".join(str(v) for v in import_bpy().app.version)
+
+
+def renderer_versions() -> dict[str, str]:
+    """What the blender backend draws its pixels with, for the generate stage's key and manifest."""
+    return {"blender_version": blender_version()}
+
+
 def import_bpy():
     """bpy, imported on first use so that the package (and its numpy helpers) imports without it."""
     try:
         import bpy
     except ImportError as exc:
-        ver = f"{sys.version_info.major}.{sys.version_info.minor}"
-        hint = "" if ver == "3.11" else f" (bpy 5.0 wheels need Python 3.11; this is Python {ver})"
-        raise RendererError(
-            f"renderer.backend=blender needs the bpy module ({exc}){hint}; "
-            "install it with: pip install bpy==5.0.1 'numpy<2'"
-        ) from None
+        raise RendererError(f"{bpy_unavailable()} ({exc})") from None
     return bpy
 
 
@@ -141,4 +182,5 @@ def enable_gpu(bpy) -> None:
     raise ConfigError("renderer.device=GPU but Cycles finds no GPU on this machine; set renderer.device=CPU")
 
 
-__all__ = ["configure_cycles", "enable_gpu", "import_bpy", "quiet_cuda_probe", "quiet_stdout"]
+__all__ = ["BPY_FOR_PYTHON", "blender_version", "bpy_unavailable", "configure_cycles", "enable_gpu", "import_bpy",
+           "quiet_cuda_probe", "quiet_stdout", "renderer_versions"]
