@@ -72,6 +72,28 @@ def test_atc_weights_pick_the_groups():
     assert t[0] == pytest.approx(0.651)
 
 
+def test_atc_fits_its_threshold_on_held_out_clean_scenes():
+    """Group 0: clean confidences 0.95, 0.85, 0.75, 0.65 with accuracy 3/4 (threshold 0.651 on its own);
+    group 1: four clean pixels at 0.95 with accuracy 1/2 (threshold 0.951). Adverse: group 0 at 0.70, 0.60,
+    0.50, 0.90; group 1 at 0.10 three times and 0.96. Held out, group 0 is scored with group 1's threshold
+    (nothing >= 0.951) and group 1 with group 0's (0.96 >= 0.651): ATC = (0 + 1) / 8; on the clean images
+    (0 + 4) / 8, so relative ATC 1/4. Fitted on the test scenes themselves (accuracy 5/8, threshold 0.851)
+    it would be 2/8."""
+    from pairedgta.metrics.estimators import atc_held_out
+
+    hist = np.concatenate([_hist([[950, 850, 750, 650], [700, 600, 500, 900]]),
+                           _hist([[950, 950, 950, 950], [100, 100, 100, 960]])])
+    cm = np.zeros((2, 2, K, K), np.int64)
+    cm[0, 0] = _cm({(0, 0): 3, (1, 0): 1})
+    cm[1, 0] = _cm({(0, 0): 2, (1, 0): 2})
+    score, t = atc_held_out(hist, cm, 0, np.ones((1, 2)))
+    np.testing.assert_allclose(score[0], [0.5, 0.125])
+    assert t[0] == pytest.approx((0.651 + 0.951) / 2)
+    assert atc(hist, cm, 0, np.ones((1, 2)))[0][0, 1] == pytest.approx(0.25)  # in-sample, for contrast
+    # one group: no held-out scene to fit on
+    assert np.isnan(atc_held_out(hist[:1], cm[:1], 0, np.ones((1, 1)))[0]).all()
+
+
 def _counts(model: str = "m", clean_cm: np.ndarray | None = None) -> tuple[GroupCounts, EstimatorCounts]:
     """Two groups, conditions clean, A, B; every sum hand-chosen (see the test below)."""
     cm = np.zeros((2, 3, K, K), np.int64)
@@ -118,9 +140,11 @@ def test_ac_entropy_doc_self_agreement_and_clean_miou_by_hand():
     np.testing.assert_allclose(v["ac_rel"][0, 0], [1.0, 0.725 / 0.9, 0.5 / 0.9])
     # the baseline: clean GT mIoU 0.6 times the self-agreement
     np.testing.assert_allclose(v["clean_miou_x_self_agreement"][0, 0], [0.6, 0.6 * 0.7, 0.6 * 0.5])
-    # ATC: accuracy 6/8, every pixel at 0.90x: the threshold lies above them, nothing is above it
-    np.testing.assert_allclose(v["atc_threshold"][0], [0.901, 0.901])
+    # ATC: accuracy 6/8 in each group, every pixel at 0.90x: each group's threshold, fitted on the other
+    # group's clean image, lies above them, nothing is above it. Group 0 alone has no other group to fit on.
+    np.testing.assert_allclose(v["atc_threshold"][0], [0.901, np.nan])
     np.testing.assert_allclose(v["atc"][0, 0], [0.0, 0.0, 0.0])
+    assert np.isnan(v["atc"][0, 1]).all()
 
 
 def _write_predictions(path: Path, groups: list[np.ndarray], conds=("clean", "A")) -> Path:

@@ -122,9 +122,11 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
     assert adv["entropy"] == pytest.approx(1 - 8 / 20)
     assert adv["clean_miou"] == pytest.approx(0.625) and adv["gt_miou"] == pytest.approx(0.3)
     assert adv["doc"] == pytest.approx(0.625 + 0.5 - 0.85)
-    # ATC: clean accuracy 0.8; the clean confidences are 0.95 (half) and 0.75 (half), so the share >= t is
-    # <= 0.8 first at t = 0.751 (only the 0.95 half above it); adverse pixels at 0.70 and 0.30: none above
-    assert adv["atc_threshold"] == pytest.approx(0.751) and adv["atc"] == pytest.approx(0.0)
+    # ATC, its threshold fitted on the other (held-out) scene's clean image, accuracy 0.8 in each: group 0 is
+    # scored with group 1's threshold (clean pixels all at 0.75: 0.751), group 1 with group 0's (all at 0.95:
+    # 0.951); the mean threshold 0.851. Adverse pixels at 0.70 and 0.30: none above either
+    assert adv["atc_threshold"] == pytest.approx(0.851) and adv["atc"] == pytest.approx(0.0)
+    assert adv["atc_rel"] == pytest.approx(0.0) and adv["ac_rel"] == pytest.approx(0.5 / 0.85)
     import pandas as pd
 
     table = pd.read_csv(tmp_path / "estimators.csv")

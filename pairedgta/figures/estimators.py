@@ -122,6 +122,18 @@ def _num(v: float, fmt: str = "{:.2f}") -> str:
     return "–" if v is None or not math.isfinite(v) else fmt.format(v)
 
 
+def _atc_pixels(cells: pd.DataFrame | None) -> str:
+    """Where ATC's clean accuracy (labelled pixels) and its confidence shares (every pixel) cover different
+    pixels, a sentence that says by how much; nothing where they are the same pixels."""
+    if cells is None or "atc_labelled_share" not in cells:
+        return ""
+    share = cells["atc_labelled_share"].dropna()
+    if share.empty or share.min() >= 1 - 1e-9:
+        return ""
+    return (f" Its clean accuracy counts the labelled pixels, {share.min():.1%}–{share.max():.1%} of all, its "
+            f"confidence shares every pixel: not the same pixels here.")
+
+
 def _mae(row: pd.Series | None, key: str = "mae") -> str:
     """`0.052 [0.041, 0.066]`; – where the grid has no such hold-out (one illumination, a ladder)."""
     if row is None:
@@ -146,7 +158,8 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
             f"one order applied to every condition (the joint null); p of − ξ: the paired BCa interval inverted "
             f"(H0: no difference). Holm: adjusted over the estimators of one target. DoC, ATC and clean GT mIoU use "
             f"the clean condition's ground truth; no estimator uses a label of an adverse condition. Every pair of "
-            f"estimators: estimator_pairs.csv.\n"]
+            f"estimators: estimator_pairs.csv. ATC's threshold is fitted on held-out clean scenes (the scenes in two "
+            f"halves, each scored with the threshold of the other half's clean images).{_atc_pixels(cells)}\n"]
     for t in TARGETS:
         part = stats[stats["target"] == t].set_index(["estimator", "scope"])
         order = sorted(ESTIMATORS, key=lambda e: -np.nan_to_num(part.loc[(e, "within_mean"), "spearman"], nan=-9))

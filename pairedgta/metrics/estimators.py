@@ -11,7 +11,9 @@ embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mI
 - `doc`: difference of confidences (Guillory et al., ICCV 2021): clean GT mIoU + AC(adverse) - AC(clean).
 - `atc`: average thresholded confidence (Garg et al., ICLR 2022, max-confidence score): the threshold t is
   the smallest histogram edge at which the clean share of pixels with confidence >= t is at most the clean
-  pixel accuracy; the estimate is the adverse share of pixels with confidence >= t.
+  pixel accuracy, fitted on held-out clean scenes (the scenes split in two; each half scored with the other
+  half's threshold); the estimate is the adverse share of pixels with confidence >= t. The share counts
+  every pixel, the accuracy the labelled ones (`atc_labelled_share` in the cells says how far they differ).
 - `entropy`: one minus the mean normalised predictive entropy H(p) / log K.
 - `committee_agreement`: the mean over the other ranked models (other architectures and recipes) of the share
   of pixels on which the two predictions agree. Not GDE (Jiang et al., ICLR 2022), which is the agreement of
@@ -150,16 +152,52 @@ def _tails(h: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cumsum(h[..., ::-1], axis=-1)[..., ::-1], np.zeros(h.shape[:-1] + (1,), h.dtype)], axis=-1)
 
 
-def atc(hist: np.ndarray, cm: np.ndarray, clean: int, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def atc(hist: np.ndarray, cm: np.ndarray, clean: int, w: np.ndarray,
+        fit: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """-> (ATC per (resample, condition), threshold per resample), from G x C x B confidence histograms
-    and the clean condition's G x C x K x K confusion matrices (its pixel accuracy)."""
-    w = np.asarray(w, float)
-    tails = _tails(np.asarray(hist))                      # G x C x (B + 1), per group: cheap to weigh at one edge
-    bins = tails.shape[-1] - 1
-    k = atc_threshold(_weigh(w, np.asarray(hist)[:, clean]), pixel_accuracy(np.asarray(cm)[:, clean : clean + 1], w)[:, 0])
+    and the clean condition's G x C x K x K confusion matrices (its pixel accuracy). The threshold is fitted
+    on the clean images of the groups weighted by `fit` (R x G; default `w`, the groups scored)."""
+    above, total, k = _atc_parts(hist, cm, clean, w, w if fit is None else fit)
+    bins = np.asarray(hist).shape[-1]
+    return np.where(k[:, None] >= 0, _ratio(above, total), np.nan), np.where(k >= 0, k / bins, np.nan)
+
+
+def _atc_parts(hist: np.ndarray, cm: np.ndarray, clean: int, w: np.ndarray,
+               fit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> (pixels at or above the threshold, pixels, R x C, of the groups weighted by `w`; the threshold's
+    edge index k per resample, fitted on the clean images weighted by `fit`, -1 where undefined)."""
+    w, fit = np.asarray(w, float), np.asarray(fit, float)
+    hist = np.asarray(hist)
+    tails = _tails(hist)                      # G x C x (B + 1), per group: cheap to weigh at one edge
+    k = atc_threshold(_weigh(fit, hist[:, clean]), pixel_accuracy(np.asarray(cm)[:, clean : clean + 1], fit)[:, 0])
     above = np.einsum("rg,gcr->rc", w, tails[:, :, np.maximum(k, 0)].astype(float))  # R x C
-    score = _ratio(above, _weigh(w, tails[..., 0]))
-    return np.where(k[:, None] >= 0, score, np.nan), np.where(k >= 0, k / bins, np.nan)
+    return above, _weigh(w, tails[..., 0]), k
+
+
+ATC_FOLDS = 2
+
+
+def atc_held_out(hist: np.ndarray, cm: np.ndarray, clean: int, w: np.ndarray,
+                 folds: int = ATC_FOLDS) -> tuple[np.ndarray, np.ndarray]:
+    """ATC with its threshold fitted on held-out clean scenes, as Garg et al. fit it on held-out labelled
+    source data: the groups are split into `folds` by position (group g in fold g mod folds), and each
+    fold's images are scored with the threshold fitted on the clean images of the other folds, never on
+    their own scenes. -> (ATC per (resample, condition), the mean of the folds' thresholds per resample);
+    NaN where a fold's threshold is undefined (a resample that drew none of the other folds' groups)."""
+    w = np.asarray(w, float)
+    n = np.asarray(hist).shape[0]
+    bins = np.asarray(hist).shape[-1]
+    if n < folds:
+        return np.full((len(w), np.asarray(hist).shape[1]), np.nan), np.full(len(w), np.nan)
+    fold = np.arange(n) % folds
+    above, total, thresholds = 0.0, 0.0, []
+    for f in range(folds):
+        own = (fold == f).astype(float)
+        a, t, k = _atc_parts(hist, cm, clean, w * own, w * (1 - own))
+        above = above + np.where(k[:, None] >= 0, a, np.nan)
+        total = total + t
+        thresholds.append(np.where(k >= 0, k / bins, np.nan))
+    return _ratio(above, total), np.mean(thresholds, axis=0)
 
 
 def pairwise_agreement(sources: Sequence[Mapping[str, np.ndarray]], n_groups: int,
@@ -214,7 +252,7 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
                  absent: str = "nan", min_images: int = 0, min_pixels: int = 0,
                  rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
     """One model's estimators but those that need the other models (committee agreement, ALine) and the
-    targets, R x C, plus `atc_threshold` (R):
+    targets, R x C, plus `atc_threshold` (R: the mean of the held-out folds' thresholds):
     what evaluate writes per model (`estimators.csv`) and the comparison stacks over models. rPC is
     undefined below the clean-mIoU floor `rpc_floor` (`validity.cell_measures`)."""
     if c.model != g.model or c.conditions != g.conditions or c.pixels.shape[0] != g.cm.shape[0]:
@@ -223,7 +261,7 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
     c0 = g.conditions.index(clean)
     cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels, rpc_floor)
     ac = average_confidence(c, w)
-    score, threshold = atc(c.conf_hist, g.cm, c0, w)
+    score, threshold = atc_held_out(c.conf_hist, g.cm, c0, w)
     agreement = self_agreement(c, w)
     return {"xi": cm["xi_mean"], "xi_rel": relative(cm["xi_mean"], c0), "ac": ac, "ac_rel": relative(ac, c0),
             "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score, "atc_rel": relative(score, c0),
@@ -503,6 +541,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     if clean not in conds:
         raise ValueError(f"the clean condition {clean} was not evaluated")
     adverse = [i for i, c in enumerate(conds) if c != clean]
+    c0 = conds.index(clean)
     if len(adverse) < 2:
         raise ValueError("at least 2 adverse conditions are needed (the mean over conditions, leave one out)")
     args = (clean, include, absent, min_images, min_pixels, rpc_floor)
@@ -518,6 +557,8 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
             row: dict = {"model": m.model, "condition": conds[i], "n_groups": n}
             row.update({k: float(point[k][j, 0, i]) for k in ESTIMATORS})
             row["atc_threshold"] = float(point["atc_threshold"][j, 0])
+            # ATC's accuracy counts the labelled pixels, its confidence shares every pixel: how far they differ
+            row["atc_labelled_share"] = float(_ratio(np.asarray(m.cm[:, c0]).sum(), np.asarray(counts[j].pixels[:, c0]).sum()))
             row.update({k: float(point[k][j, 0, i]) for k in (*TARGETS, "gt_miou_clean")})
             cells.append(row)
 
@@ -615,7 +656,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 
 
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
-           "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc",
+           "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc", "atc_held_out", "ATC_FOLDS",
            "pairwise_agreement", "committee_agreement", "relative", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
            "permutation_pvalue", "illumination", "illumination_folds", "holdout_mae", "loco_mae", "mae_with_intervals",
            "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
