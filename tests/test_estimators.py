@@ -421,3 +421,54 @@ def test_a_one_class_predictor_has_no_rpc_and_leaves_only_the_rpc_rows():
     assert flat["rpc"].isna().all() and np.allclose(flat["gt_miou"], 0.04)
     _, stats, _ = compare(groups, counts, agree, scored, "clean", np.ones(K, bool), resamples=0, permutations=0)
     assert pd.DataFrame(stats).set_index(["estimator", "target", "scope"]).loc[("xi", "rpc", "within_mean"), "n_models"] == 5
+
+
+def _agreement_arrays(clean_shares: dict, adverse_shares: dict, m: int = 3, n: int = 10 ** 6):
+    """1 group, conditions clean and A: pair (i, j) agrees on the given share of n pixels."""
+    scored = np.full((1, 2, m, m), n, np.int64)
+    agree = np.zeros_like(scored)
+    for c, shares in enumerate((clean_shares, adverse_shares)):
+        for i in range(m):
+            agree[0, c, i, i] = n
+        for (i, j), v in shares.items():
+            agree[0, c, i, j] = agree[0, c, j, i] = round(v * n)
+    return agree, scored
+
+
+def test_aline_s_and_d_by_hand():
+    """Three models. On a line (probit agr_A = 0.8 probit agr_clean - 0.3 for every pair) ALine-S and ALine-D
+    both carry each clean accuracy along it: Phi(0.8 probit acc - 0.3). Off the line, ALine-D solves the three
+    pair equations exactly: with r_ij = probit agr_A + a ((probit acc_i + probit acc_j) / 2 - probit
+    agr_clean), u_0 = r01 + r02 - r12, u_1 = r01 - r02 + r12, u_2 = -r01 + r02 + r12 (the inverse of the
+    halves matrix), a the least-squares slope of the pairs."""
+    from scipy.stats import norm
+
+    from pairedgta.metrics.estimators import aline
+
+    acc = np.array([[0.92], [0.85], [0.80]])                      # M x R clean pixel accuracy
+    clean = {(0, 1): 0.90, (0, 2): 0.80, (1, 2): 0.85}
+    on_line = {k: float(norm.cdf(0.8 * norm.ppf(v) - 0.3)) for k, v in clean.items()}
+    agree, scored = _agreement_arrays(clean, on_line)
+    s, d = aline(agree, scored, acc, 0, np.ones((1, 1)))
+    want = norm.cdf(0.8 * norm.ppf(acc[:, 0]) - 0.3)
+    np.testing.assert_allclose(s[:, 0, 1], want, atol=1e-5)
+    np.testing.assert_allclose(d[:, 0, 1], want, atol=1e-5)
+    np.testing.assert_allclose(s[:, 0, 0], acc[:, 0], atol=1e-5)  # the clean condition: its own line, y = x
+
+    off = {(0, 1): 0.70, (0, 2): 0.50, (1, 2): 0.66}
+    agree, scored = _agreement_arrays(clean, off)
+    s, d = aline(agree, scored, acc, 0, np.ones((1, 1)))
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    x = np.array([norm.ppf(clean[p]) for p in pairs])
+    y = np.array([norm.ppf(off[p]) for p in pairs])
+    a, b = np.polyfit(x, y, 1)
+    np.testing.assert_allclose(s[:, 0, 1], norm.cdf(a * norm.ppf(acc[:, 0]) + b), atol=1e-5)
+    pa = norm.ppf(acc[:, 0])
+    r = {p: norm.ppf(off[p]) + a * ((pa[p[0]] + pa[p[1]]) / 2 - norm.ppf(clean[p])) for p in pairs}
+    u = [r[0, 1] + r[0, 2] - r[1, 2], r[0, 1] - r[0, 2] + r[1, 2], -r[0, 1] + r[0, 2] + r[1, 2]]
+    np.testing.assert_allclose(d[:, 0, 1], norm.cdf(u), atol=1e-5)
+    # every pair agreeing alike on the clean image: no line to fit, no estimate
+    flat = {k: 0.9 for k in clean}
+    agree, scored = _agreement_arrays(flat, off)
+    s, d = aline(agree, scored, acc, 0, np.ones((1, 1)))
+    assert np.isnan(s[:, 0, 1]).all() and np.isnan(d[:, 0, 1]).all()

@@ -3,7 +3,7 @@
 Reads each model's per-group sums (`e.group_counts()`, evaluate's `est_*` arrays) and argmax predictions
 (`predictions.npz`, for the agreement between models), and compares label-free estimators of robustness
 (pairedgta.metrics.estimators: xi, AC, DoC, ATC, their relative versions, entropy, committee agreement,
-self-agreement, clean mIoU and clean mIoU x self-agreement) as judges of
+ALine-S and ALine-D, self-agreement, clean mIoU and clean mIoU x self-agreement) as judges of
 rPC and adverse GT mIoU across the models other than the reference. Writes estimators.csv (one row per
 estimator, target and scope), estimators.md (the headline tables), estimator_cells.csv (one row per model
 and condition) and a figure: each estimator against rPC, and the within-condition mean Spearman of each
@@ -34,7 +34,8 @@ from pairedgta.metrics.validity import GroupCounts, concat_groups
 
 NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel": "relative AC", "doc": "DoC",
          "atc": "ATC", "atc_rel": "relative ATC", "entropy": "1 − entropy",
-         "committee_agreement": "committee agreement (not GDE)", "self_agreement": "self-agreement",
+         "committee_agreement": "committee agreement (not GDE)", "aline_s": "ALine-S (pixel acc.)",
+         "aline_d": "ALine-D (pixel acc.)", "self_agreement": "self-agreement",
          "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
 STATS = ("spearman", "kendall", "mae", "p_permutation", "p_permutation_holm", "p_minus_xi_holm")

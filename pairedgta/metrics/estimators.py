@@ -18,13 +18,21 @@ embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mI
 - `committee_agreement`: the mean over the other ranked models (other architectures and recipes) of the share
   of pixels on which the two predictions agree. Not GDE (Jiang et al., ICLR 2022), which is the agreement of
   two runs of one recipe differing in the seed only: the zoo has no such pair.
+- `aline_s`, `aline_d`: agreement-on-the-line (Baek et al., NeurIPS 2022) on pixels: across the ranked
+  models, the probit of each pair's pixel agreement under the condition is fitted as a line of its probit on
+  the clean image (least squares over the pairs, per condition). ALine-S carries each model's probit clean
+  pixel accuracy along that line; ALine-D solves, by least squares over all pairs at once, for the adverse
+  accuracies u with (u_i + u_j) / 2 = probit agr_adv(i, j) + slope ((probit acc_i + probit acc_j) / 2 -
+  probit agr_clean(i, j)). Both estimate adverse *pixel accuracy* (the quantity agreement is the analogue
+  of), not mIoU.
 - `self_agreement`: the share of pixels predicted as on the clean image of the same scene.
 - `clean_miou`: the clean GT mIoU alone (accuracy on the line, Miller et al., ICML 2021).
 - `clean_miou_x_self_agreement`: the clean GT mIoU times the self-agreement, the baseline that carries the
   clean quality (as xi does) into the plainest label-free measure of change.
 
-`doc`, `atc`, `atc_rel`, `clean_miou` and `clean_miou_x_self_agreement` use the clean condition's ground
-truth (the labelled source data these methods assume); no estimator uses a label of an adverse condition.
+`doc`, `atc`, `atc_rel`, `aline_s`, `aline_d`, `clean_miou` and `clean_miou_x_self_agreement` use the clean
+condition's ground truth (the labelled source data these methods assume); no estimator uses a label of an
+adverse condition.
 
 Statistics lead with the within-condition view: per adverse condition, Spearman and Kendall (tau-b)
 across the ranked models (every model but the reference, which would grade itself), and their mean over
@@ -54,9 +62,11 @@ from pairedgta.metrics.validity import (GroupCounts, _interval, cell_measures, d
                                         stack_passes)
 
 ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "committee_agreement",
-              "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
+              "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
 # clean ground truth; none uses adverse labels
-USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "clean_miou", "clean_miou_x_self_agreement"})
+USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "aline_s", "aline_d", "clean_miou",
+                               "clean_miou_x_self_agreement"})
+PROBIT_EPS = 1e-6  # shares are clipped to [eps, 1 - eps] before the probit: identical maps agree on all pixels
 TARGETS = ("rpc", "gt_miou")
 COUNT_ARRAYS = ("est_pixels", "est_conf_sum", "est_entropy_sum", "est_conf_hist", "est_agree_clean")
 ABSENT_CLASS = 255  # predictions.npz: every pixel of a condition's absent image
@@ -248,6 +258,44 @@ def committee_agreement(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) ->
         return np.moveaxis(np.nanmean(share, axis=-1), -1, 0)
 
 
+def _probit(p: np.ndarray) -> np.ndarray:
+    from scipy.special import ndtri
+
+    return ndtri(np.clip(np.asarray(p, float), PROBIT_EPS, 1 - PROBIT_EPS))
+
+
+def aline(agree: np.ndarray, scored: np.ndarray, accuracy: np.ndarray, clean: int,
+          w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ALine-S and ALine-D (module docstring), each M x R x C, from the pairwise pixel agreement of the M
+    models (`pairwise_agreement`: G x C x M x M), their clean pixel accuracy (M x R) and group weights R x G.
+    NaN where the pairs' clean agreements do not vary (no line to fit) or a pair's agreement is undefined."""
+    from scipy.special import ndtr
+
+    share = _ratio(_weigh(w, agree), _weigh(w, scored))            # R x C x M x M
+    m = share.shape[-1]
+    i, j = np.triu_indices(m, k=1)
+    x = _probit(share[:, clean, i, j])[:, None, :]                  # R x 1 x P: the clean (ID) agreements
+    y = _probit(share[:, :, i, j])                                  # R x C x P: under each condition
+    x = np.broadcast_to(x, y.shape)
+    ok = np.isfinite(x) & np.isfinite(y)
+    count = ok.sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = np.where(ok, x, 0).sum(-1) / count
+        my = np.where(ok, y, 0).sum(-1) / count
+        dx = np.where(ok, x - mx[..., None], 0)
+        sxx, sxy = (dx * dx).sum(-1), (dx * np.where(ok, y - my[..., None], 0)).sum(-1)
+        slope = np.where((count >= 2) & (sxx > 1e-12), sxy / np.where(sxx > 0, sxx, 1), np.nan)   # R x C
+    bias = my - slope * mx
+    acc = _probit(accuracy)                                          # M x R
+    aline_s = ndtr(slope[None] * acc[:, :, None] + bias[None])       # M x R x C
+    design = np.zeros((len(i), m))
+    design[np.arange(len(i)), i] = design[np.arange(len(i)), j] = 0.5
+    solve = np.linalg.pinv(design)                                   # M x P: least squares over the pairs
+    rhs = y + slope[..., None] * ((acc.T[:, i] + acc.T[:, j])[:, None, :] / 2 - x)   # R x C x P
+    aline_d = ndtr(np.moveaxis(rhs @ solve.T, -1, 0))                # M x R x C (NaN where a pair is undefined)
+    return aline_s, aline_d
+
+
 def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean: str, include: np.ndarray,
                  absent: str = "nan", min_images: int = 0, min_pixels: int = 0,
                  rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
@@ -291,6 +339,9 @@ def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCo
             out.setdefault(k, []).append(v)
     stacked = {k: np.stack(v) for k, v in out.items()}
     stacked["committee_agreement"] = committee_agreement(agree, scored, w)
+    c0 = models[0].conditions.index(clean)
+    accuracy = np.stack([pixel_accuracy(np.asarray(g.cm)[:, c0 : c0 + 1], w)[:, 0] for g in models])   # M x R
+    stacked["aline_s"], stacked["aline_d"] = aline(agree, scored, accuracy, c0, w)
     return stacked
 
 
@@ -657,6 +708,6 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
 
 __all__ = ["ESTIMATORS", "USES_CLEAN_LABELS", "TARGETS", "COUNT_ARRAYS", "COLUMNS", "MIN_RANKED", "EstimatorCounts", "concat_counts",
            "average_confidence", "entropy_score", "self_agreement", "pixel_accuracy", "atc_threshold", "atc", "atc_held_out", "ATC_FOLDS",
-           "pairwise_agreement", "committee_agreement", "relative", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
+           "pairwise_agreement", "committee_agreement", "aline", "PROBIT_EPS", "relative", "model_values", "estimator_values", "ranked_models", "model_draws", "within_condition",
            "permutation_pvalue", "illumination", "illumination_folds", "holdout_mae", "loco_mae", "mae_with_intervals",
            "drop_one_model", "Resampled", "PAIR_COLUMNS", "compare"]
