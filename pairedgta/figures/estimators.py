@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -200,18 +201,19 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
     colors = plt.get_cmap("tab10")
     with paper_style():
         columns = 4
-        rows = -(-(len(ESTIMATORS) + 1) // columns)  # a scatter per estimator, then the intervals
-        fig, axes = plt.subplots(rows, columns, figsize=(TEXT_WIDTH, 1.75 * rows + 0.5))
-        for ax in axes.flat[len(ESTIMATORS):-1]:
-            ax.axis("off")
-        for ax, e in zip(axes.flat, ESTIMATORS):
+        rows = -(-len(ESTIMATORS) // columns)  # a scatter per estimator; below them, the intervals
+        fig = plt.figure(figsize=(TEXT_WIDTH, 1.6 * rows + 0.22 * len(ESTIMATORS) + 0.8))
+        grid = fig.add_gridspec(rows + 1, columns, height_ratios=[1.0] * rows + [0.14 * len(ESTIMATORS)])
+        axes = [fig.add_subplot(grid[k // columns, k % columns]) for k in range(len(ESTIMATORS))]
+        for ax, e in zip(axes, ESTIMATORS):
             for i, c in enumerate(conds):
                 part = cells[cells["condition"] == c]
                 ax.scatter(part["rpc"], part[e], color=colors(i % 10), s=10, edgecolor="black", linewidth=0.2,
                            label=condition_display(c))
-            ax.set_title(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""), fontsize=6)
+            # short lines: a long title would make tight_layout spread the columns apart
+            ax.set_title(textwrap.fill(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""), 26), fontsize=6)
             ax.set_xlabel("rPC")
-        bx = axes.flat[-1]
+        bx = fig.add_subplot(grid[rows, :])
         part = stats[(stats["target"] == "rpc") & (stats["scope"] == "within_mean")].sort_values("spearman")
         y = np.arange(len(part))
         for offset, kind, color, label in ((0.15, "", "black", "bootstrap over scenes"),
@@ -232,7 +234,7 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
         bx.set_xlabel("mean within-condition Spearman with rPC")
         bx.set_title(f"{int(part['n_models'].iloc[0])} models, {int(part['n_groups'].iloc[0])} scenes")
         handles, labels = [], []
-        for ax in (axes.flat[0], bx):  # the conditions' colours, then the two intervals
+        for ax in (axes[0], bx):  # the conditions' colours, then the two intervals
             h, lab = ax.get_legend_handles_labels()
             handles += h
             labels += lab

@@ -32,7 +32,7 @@ if TYPE_CHECKING:  # planning imports this module when it plans
     from pairedgta.stages.planning import PassResult
 
 log = logging.getLogger("pairedgta.plot")
-VERSION = "11"  # 11: the reference model is not ranked (xi_models, table1_xi), the estimators' permutation test under the joint null; 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
+VERSION = "12"  # 12: issue 49's estimator statistics (BCa over scenes and models, paired differences, Holm, leave one illumination out, ALine, held-out ATC, committee agreement, estimator_pairs.csv), n_frames in every rho table, rPC undefined below its floor; 11: the reference model is not ranked (xi_models, table1_xi), the estimators' permutation test under the joint null; 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
 # 7: rho intervals in the ranking titles, >= 1200 px wide; unsupported xi cells marked; 8: paper Means of printed cells, half up
 class Figures(StageResult):
     """The plot stage's entry: figure files and the numbers they show."""
