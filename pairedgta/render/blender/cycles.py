@@ -158,6 +158,11 @@ def configure_cycles(bpy, *, width: int, height: int, samples: int, device: str,
     if threads:
         r.threads = threads
     r.dither_intensity = 0.0
+    # the fog compositor on the CPU, as 5.0 does by default: 5.1 and later default to the GPU compositor, which
+    # opens an EGL context through Mesa (two "EGL Error (0x3009): EGL_BAD_MATCH" lines on a machine without a
+    # display), loads Mesa's LLVM into the process, and the LLVM in triton (imported by torch's compiler, which
+    # transformers imports) then crashes it: a segmentation fault when the pseudolabel stage starts
+    r.compositor_device = "CPU"
     r.use_file_extension = True
     try:
         sc.view_settings.view_transform = view_transform
