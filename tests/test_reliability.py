@@ -610,13 +610,13 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     from pairedgta.models.base import Segmenter
 
     seen: list[int] = []
-    original = Segmenter.predict_proba
+    original = Segmenter._forward
 
     def spy(self, images):
         seen.append(torch.get_num_threads())
         return original(self, images)
 
-    monkeypatch.setattr(Segmenter, "predict_proba", spy)  # under predict and predict_with_entropy alike
+    monkeypatch.setattr(Segmenter, "_forward", spy)  # every forward: predict_maps, predict and predict_proba alike
     outputs = []
     for ambient in (1, 2):
         torch.set_num_threads(ambient)

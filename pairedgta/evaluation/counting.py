@@ -2,7 +2,12 @@
 and reference pixels per class (xi), the confusion matrix against ground truth (IoU), the agreement
 counts, the prediction mass phi per class (rho_valid) and the label-free estimators' sums. Plain numbers
 only (a shard job's partial sums are lists of these), never the predictions' probabilities, so memory
-does not grow with the image size times the number of images."""
+does not grow with the image size times the number of images.
+
+The reductions run where the model runs (`reductions.group_reductions`, torch on the CPU or a GPU); what
+crosses to the host per group is the uint8 label maps and those counts, copied without waiting for the device.
+On a GPU the groups are pipelined: group g+1's images are copied to the device (a side stream, pinned memory)
+while group g computes, and group g-1's results are read on the host meanwhile."""
 from __future__ import annotations
 
 from typing import Any
@@ -10,15 +15,146 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
+from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.datasets import LabelMaps, PairedDataset
 from pairedgta.errors import DataError
-from pairedgta.evaluation.inputs import GroupInputs, load_groups
-from pairedgta.metrics import pixel_agreement, prediction_mass_from_labels, reference_consistency_counts
-from pairedgta.metrics.segmentation import confusion_counts
+from pairedgta.evaluation import reductions
+from pairedgta.evaluation.inputs import GroupInputs, load_groups, pack_group
+from pairedgta.evaluation.reductions import CONF_BINS
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 PSEUDO_LABEL, GT = "pseudo_label", "ground_truth"  # the reference sources xi is measured against
-CONF_BINS = 1000  # the max-probability histogram ATC's threshold is read from: edges k / 1000
+
+
+def _device(segmenter: Any) -> Any:
+    return getattr(segmenter, "device", None) or torch.device("cpu")
+
+
+def stage_inputs(packed: dict[str, Any], device: Any) -> dict[str, Any]:
+    """A packed group's tensors (`inputs.pack_group`) on `device`; on a GPU on a side stream, so the copy
+    overlaps the forward of the group before, with an event the compute stream waits for before using them."""
+    from pairedgta.models.base import to_device
+
+    tensors = {k: v for k, v in packed.items() if isinstance(v, torch.Tensor)}
+    if device.type != "cuda":
+        return {**packed, **{k: to_device(v, device) for k, v in tensors.items()}}
+    stream = _copy_stream(device)
+    with torch.cuda.stream(stream):
+        moved = {k: to_device(v, device) for k, v in tensors.items()}
+        ready = torch.cuda.Event()
+        ready.record(stream)
+    return {**packed, **moved, "_ready": ready}
+
+
+_STREAMS: dict[Any, Any] = {}
+
+
+def _copy_stream(device: Any) -> Any:
+    if device not in _STREAMS:
+        _STREAMS[device] = torch.cuda.Stream(device)
+    return _STREAMS[device]
+
+
+def _use(inputs: dict[str, Any]) -> None:
+    """Make the compute stream wait for the side stream's copy, and keep the copied tensors' memory from being
+    reused before the compute stream is done with them."""
+    ready = inputs.pop("_ready", None)
+    if ready is None:
+        return
+    stream = torch.cuda.current_stream()
+    stream.wait_event(ready)
+    for v in inputs.values():
+        if isinstance(v, torch.Tensor) and v.is_cuda:
+            v.record_stream(stream)
+
+
+def _maps(segmenter: Any, images: Any, batch: int) -> tuple[Any, Any, Any]:
+    """labels (uint8), max probability and normalised entropy of the N images, N x H x W on the model's device,
+    in forward batches of `batch` (the same batches as ever, so the same numbers on the CPU)."""
+    labels, conf, entropy = [], [], []
+    for start in range(0, images.shape[0], batch):
+        chunk = images[start : start + batch]
+        if hasattr(segmenter, "predict_maps"):
+            m = segmenter.predict_maps(chunk, entropy=True)
+            lab, c, e = m.labels, m.confidence, m.entropy
+        else:  # a stand-in with only predict_with_entropy (the tests' fixed segmenters): host tensors
+            lab, c, e = segmenter.predict_with_entropy(chunk.numpy() if isinstance(chunk, torch.Tensor) else chunk)
+            lab, c, e = torch.as_tensor(lab).to(torch.uint8), torch.as_tensor(c), torch.as_tensor(e)
+        labels.append(lab)
+        conf.append(c)
+        entropy.append(e)
+    cat = (lambda xs: xs[0] if len(xs) == 1 else torch.cat(xs, dim=0))
+    return cat(labels), cat(conf), cat(entropy)
+
+
+class GroupJob:
+    """One group's reductions, launched on the device; `result()` reads them on the host (waiting, on a GPU,
+    only for this group's copies) and writes the dict `group_counts` returns."""
+
+    def __init__(self, item: dict[str, Any], inputs: dict[str, Any], segmenter: Any, s: dict[str, Any],
+                 use_pl: bool, batch: int, model: str, dataset_name: str) -> None:
+        self.item, self.s, self.use_pl, self.model, self.dataset_name = item, s, use_pl, model, dataset_name
+        present = item["present"]
+        self.clean = present.index(s["clean"])
+        self.has_target = inputs["has_target"]
+        self.has_gt = inputs["gt"] is not None
+        with torch.inference_mode():
+            _use(inputs)
+            labels, conf, entropy = _maps(segmenter, inputs["images"], batch)
+            on = (lambda t: None if t is None else t.to(labels.device))  # there already, but for a stand-in model
+            out = reductions.group_reductions(labels, conf, entropy, self.clean, on(inputs["pseudo"]),
+                                              on(inputs["targets"]), on(inputs["visible"]), s["tau_mass"],
+                                              on(inputs["gt"]), use_pl)
+            out["pred"] = labels
+            self.copy = reductions.HostCopy(out)
+
+    def result(self) -> dict[str, Any]:
+        r = self.copy.get()
+        item, s, present, clean = self.item, self.s, self.item["present"], self.clean
+        gid = item["group_id"]
+        h, w = r["pred"].shape[1:]
+        out: dict[str, Any] = {"group_id": gid, "xi": {}, "cm": {}, "agreement": [], "counts": [], "estimators": {},
+                               "pred": {}}
+        targets = [i for i in range(len(present)) if self.has_target[i]]
+        for i, c in enumerate(present):
+            if self.use_pl:
+                counts = r["xi_pl"][i]
+                out["xi"][f"{PSEUDO_LABEL}|{c}"] = [counts[:, 1].tolist(), counts.sum(axis=1).tolist()]
+            if self.has_gt:
+                counts = r["xi_gt"][i]
+                out["xi"][f"{GT}|{c}"] = [counts[:, 1].tolist(), counts.sum(axis=1).tolist()]
+            if i in targets:
+                out["cm"][c] = r["cm"][i].tolist()
+            valid, agree_ref, agree_clean = (int(v) for v in r["agreement"][i])
+            out["agreement"].append({
+                "model": self.model, "condition": c, "pair_id": gid, "valid_pixels": valid,
+                "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
+            })
+            if i != clean:
+                clean_mass, adv_mass = r["clean_mass"][i], r["adv_mass"][i]
+                for k in s["class_ids"]:
+                    out["counts"].append({
+                        "dataset": self.dataset_name, "model": self.model, "class_name": CLASS_NAMES[k], "pair_id": gid,
+                        "condition": c, "clean_count": int(clean_mass[k]), "adv_count": int(adv_mass[k]),
+                    })
+            out["estimators"][c] = {
+                "pixels": int(h * w), "conf_sum": reductions.ordered_sum(r["conf_blocks"][i]),
+                "entropy_sum": reductions.ordered_sum(r["entropy_blocks"][i]),
+                "conf_hist": r["conf_hist"][i].tolist(), "agree_clean": int(r["agree_clean"][i])}
+            out["pred"][c] = np.array(r["pred"][i], dtype=np.uint8)  # own memory: the pinned buffer goes back
+        return out
+
+
+def launch_group(item: dict[str, Any], segmenter: Any, s: dict[str, Any], reference: str, use_pl: bool, batch: int,
+                 model: str, dataset_name: str, inputs: dict[str, Any] | None = None) -> GroupJob:
+    """Start one group's forward and reductions (`item` from `GroupInputs`, packed or not; `inputs` its tensors
+    already on the device, from `stage_inputs`)."""
+    if inputs is None:
+        packed = item["packed"] if "packed" in item else pack_group(item, reference)["packed"]
+        inputs = stage_inputs(packed, _device(segmenter))
+    return GroupJob(item, inputs, segmenter, s, use_pl, batch, model, dataset_name)
 
 
 def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], reference: str, use_pl: bool,
@@ -26,91 +162,62 @@ def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], refere
     """Everything evaluate keeps of one group (`item` from `GroupInputs`): `xi` per "<source>|<condition>"
     the retained and reference pixels per class, `cm` per condition the confusion matrix against its
     ground truth, `agreement` and `counts` (phi) rows, `estimators` sums and `pred` label maps."""
-    clean, present = s["clean"], item["present"]
-    images, pseudo_t = item["images"], item["pseudo"].astype(np.int64)
-    own = item["own"]
-    gt_t = own[reference].astype(np.int64) if reference in own else None
-    visible = item.get("visible") or {}  # metric.min_transmittance: what each condition leaves visible
-
-    def hide(label: np.ndarray | None, c: str) -> np.ndarray | None:
-        return label if label is None or c not in visible else np.where(visible[c], label, IGNORE_INDEX)
-
-    preds: dict[str, np.ndarray] = {}
-    confs: dict[str, np.ndarray] = {}
-    entropies: dict[str, np.ndarray] = {}
-    for start in range(0, len(present), batch):
-        names = present[start : start + batch]
-        labels, conf, entropy = segmenter.predict_with_entropy(np.stack([images[c] for c in names]))
-        labels, conf, entropy = labels.numpy(), np.asarray(conf), np.asarray(entropy)
-        for i, c in enumerate(names):
-            preds[c], confs[c], entropies[c] = labels[i], conf[i], entropy[i]
-
-    def mass(c: str, seen: str) -> np.ndarray:
-        """phi counts of c's prediction over the pixels visible in condition `seen`."""
-        conf = confs[c] if seen not in visible else np.where(visible[seen], confs[c], -1.0)
-        return prediction_mass_from_labels(preds[c], conf, NUM_CLASSES, s["tau_mass"]).numpy()[0]
-
-    out: dict[str, Any] = {"group_id": item["group_id"], "xi": {}, "cm": {}, "agreement": [], "counts": [],
-                           "estimators": {c: estimator_sums(preds[c], confs[c], entropies[c], preds[clean]) for c in present},
-                           "pred": {c: preds[c].astype(np.uint8) for c in present}}
-    for c in present:
-        pred = preds[c]
-        pseudo_c = hide(pseudo_t, c)
-        if use_pl:
-            r, t = reference_consistency_counts(pseudo_c, pred, NUM_CLASSES, IGNORE_INDEX)
-            out["xi"][f"{PSEUDO_LABEL}|{c}"] = [r.tolist(), t.tolist()]
-        if gt_t is not None:
-            r, t = reference_consistency_counts(hide(gt_t, c), pred, NUM_CLASSES, IGNORE_INDEX)
-            out["xi"][f"{GT}|{c}"] = [r.tolist(), t.tolist()]
-        # IoU of condition c needs c's own truth; the reference's truth stands in only where the
-        # dataset's labels are those of the reference frame (e.g. ACDC labels the adverse frame
-        # only: they are never used as reference truth nor for the reference image)
-        target = hide(own[c].astype(np.int64) if c in own else gt_t, c)
-        if target is not None:
-            out["cm"][c] = confusion_counts(target, pred, NUM_CLASSES, IGNORE_INDEX).tolist()
-        agree_ref, valid = pixel_agreement(pred, pseudo_c, pseudo_c, IGNORE_INDEX)
-        agree_clean, _ = pixel_agreement(pred, preds[clean], pseudo_c, IGNORE_INDEX)
-        out["agreement"].append({
-            "model": model, "condition": c, "pair_id": item["group_id"], "valid_pixels": valid,
-            "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
-        })
-        if c != clean:
-            clean_mass, adv_mass = mass(clean, c), mass(c, c)
-            for k in s["class_ids"]:
-                out["counts"].append({
-                    "dataset": dataset_name, "model": model, "class_name": CLASS_NAMES[k], "pair_id": item["group_id"],
-                    "condition": c, "clean_count": int(clean_mass[k]), "adv_count": int(adv_mass[k]),
-                })
-    return out
+    return launch_group(item, segmenter, s, reference, use_pl, batch, model, dataset_name).result()
 
 
-def estimator_sums(pred: np.ndarray, conf: np.ndarray, entropy: np.ndarray, clean_pred: np.ndarray) -> dict[str, Any]:
+def estimator_sums(pred: Any, conf: Any, entropy: Any, clean_pred: Any) -> dict[str, Any]:
     """What the label-free estimators of accuracy under shift need of one image, as sums over all its pixels
     (no labels, no confidence filter): pixel count, summed max probability (AC, DoC), summed normalised
     entropy, the max-probability histogram (ATC) and the pixels predicted as on the clean image (plain
-    agreement). Sums, so that groups add up and the bootstrap resamples them."""
-    bins = np.minimum((np.asarray(conf, np.float64) * CONF_BINS).astype(np.int64), CONF_BINS - 1)
-    return {"pixels": int(pred.size), "conf_sum": float(np.sum(conf, dtype=np.float64)),
-            "entropy_sum": float(np.sum(entropy, dtype=np.float64)),
-            "conf_hist": np.bincount(bins.ravel(), minlength=CONF_BINS).tolist(),
-            "agree_clean": int((pred == clean_pred).sum())}
+    agreement). Sums, so that groups add up and the bootstrap resamples them. (One image through the same
+    reductions evaluate runs on the device.)"""
+    p, c, e, q = (torch.as_tensor(np.asarray(x))[None] for x in (pred, conf, entropy, clean_pred))
+    return {"pixels": int(p[0].numel()), "conf_sum": reductions.image_sums(c)[0],
+            "entropy_sum": reductions.image_sums(e)[0], "conf_hist": reductions.confidence_histogram(c)[0].tolist(),
+            "agree_clean": int((p == q).sum())}
 
 
 def count_groups(dataset: PairedDataset, labels: LabelMaps, segmenter: Any, s: dict[str, Any], conditions: list[str],
                  groups: list[Any], batch: int, workers: int) -> list[dict[str, Any]]:
     """`group_counts` of `groups` (those with the clean image), under the metric settings `s`, images
-    decoded by `workers` DataLoader workers."""
+    decoded by `workers` DataLoader workers. Launches group g before reading group g-1's results, so a GPU
+    always has a group queued; the finite-output check is read once, at the end."""
     clean = s["clean"]
     order = [clean] + [c for c in conditions if c != clean]
     use_pl = s["reference_mode"] in ("pseudo_label", "both")
     use_gt = s["reference_mode"] in ("ground_truth", "both")
+    device = _device(segmenter)
     inputs = GroupInputs(dataset, groups, order, clean, labels, use_gt, s["sampling"], s["sampling_seed"],
-                         s["min_transmittance"])
-    results = []
-    for item in tqdm(load_groups(inputs, workers), total=len(groups), desc=f"evaluate [{segmenter.name}]", unit="group"):
-        if "error" in item:
-            raise DataError(item["error"])
-        if item["present"]:
-            results.append(group_counts(item, segmenter, s, dataset.reference, use_pl, batch, segmenter.name,
-                                        dataset.name))
+                         s["min_transmittance"], packed=True)
+    results: list[dict[str, Any]] = []
+    waiting: GroupJob | None = None
+    staged = None
+    loader = iter(tqdm(load_groups(inputs, workers, pin_memory=device.type == "cuda"), total=len(groups),
+                       desc=f"evaluate [{segmenter.name}]", unit="group"))
+
+    def next_staged() -> Any:
+        for item in loader:
+            if "error" in item:
+                raise DataError(item["error"])
+            if item["present"]:
+                return item, stage_inputs(item["packed"], device)
+        return None
+
+    staged = next_staged()
+    while staged is not None:
+        item, on_device = staged
+        job = GroupJob(item, on_device, segmenter, s, use_pl, batch, segmenter.name, dataset.name)
+        if waiting is not None:
+            results.append(waiting.result())
+        waiting = job
+        staged = next_staged()  # decoded while the device computes; copied on the side stream
+    if waiting is not None:
+        results.append(waiting.result())
+    check = getattr(segmenter, "check_finite", None)
+    if check is not None:
+        check()
     return results
+
+
+__all__ = ["PSEUDO_LABEL", "GT", "CONF_BINS", "group_counts", "launch_group", "estimator_sums", "count_groups",
+           "stage_inputs", "GroupJob"]

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from pairedgta.cityscapes import IGNORE_INDEX
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images, load_label, load_transmittance
 from pairedgta.errors import DataError, PairedGTAError
 from pairedgta.lazy import lazy_module
@@ -39,18 +40,20 @@ class GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __ge
 
     def __init__(self, dataset: PairedDataset, groups: list[Any], order: list[str], clean: str,
                  labels: LabelMaps, use_gt: bool, sampling: str = "all", sampling_seed: int = 0,
-                 min_transmittance: float = 0.0) -> None:
+                 min_transmittance: float = 0.0, packed: bool = False) -> None:
         self.dataset, self.groups, self.order, self.clean = dataset, groups, order, clean
         self.labels, self.use_gt = labels, use_gt
         self.sampling, self.sampling_seed = sampling, sampling_seed
         self.min_transmittance = min_transmittance
+        self.packed = packed  # hand the group over as `pack_group` tensors (stacked where it was decoded)
 
     def __len__(self) -> int:
         return len(self.groups)
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         try:
-            return self._load(self.groups[i])
+            item = self._load(self.groups[i])
+            return pack_group(item, self.dataset.reference) if self.packed and item["present"] else item
         except PairedGTAError as exc:
             return {"error": str(exc), "kind": type(exc).__name__}
 
@@ -93,13 +96,44 @@ class GroupInputs:  # a map-style dataset for torch's DataLoader (__len__ + __ge
         return {c: seen[c] & seen[self.clean] for c in present}
 
 
+def pack_group(item: dict[str, Any], reference: str) -> dict[str, Any]:
+    """One group's inputs as the few tensors its reductions take, in the order of `item["present"]`: `images`
+    N x H x W x 3 uint8; `pseudo` H x W; `targets` N x H x W, each condition's ground truth for its IoU (its own
+    labels, else the reference's; 255 where it has none, `has_target` says which); `gt` the reference's truth
+    for xi (or None); `visible` N x H x W bool (or None). Torch tensors: from DataLoader workers they travel
+    through shared memory, not a pickle, and can be pinned for a non-blocking copy to the GPU."""
+    present, own = item["present"], item.get("own") or {}
+    images = item["images"]
+    first = np.asarray(images[present[0]])
+    stack = torch.empty((len(present), *first.shape), dtype=torch.uint8)
+    for i, c in enumerate(present):
+        stack.numpy()[i] = images[c]  # decoded arrays are read-only: copied by numpy, never wrapped
+    gt = own.get(reference)
+    has_target = [c in own or gt is not None for c in present]
+    targets = None
+    if any(has_target):
+        targets = torch.full((len(present), *first.shape[:2]), IGNORE_INDEX, dtype=torch.uint8)
+        for i, c in enumerate(present):
+            label = own[c] if c in own else gt
+            if label is not None:
+                targets.numpy()[i] = label
+    seen = item.get("visible") or {}
+    visible = torch.from_numpy(np.stack([np.asarray(seen[c], dtype=bool) for c in present])) if seen else None
+    return {"group_id": item["group_id"], "present": present, "packed": {
+        "images": stack, "pseudo": torch.from_numpy(np.array(item["pseudo"], dtype=np.uint8)),
+        "targets": targets, "has_target": has_target,
+        "gt": None if gt is None else torch.from_numpy(np.array(gt, dtype=np.uint8)), "visible": visible}}
+
+
 def _identity(item: Any) -> Any:
     return item
 
 
-def load_groups(inputs: GroupInputs, workers: int) -> Any:
-    """The groups' inputs in order: decoded in this process (workers=0) or by `workers` DataLoader workers."""
+def load_groups(inputs: GroupInputs, workers: int, pin_memory: bool = False) -> Any:
+    """The groups' inputs in order: decoded in this process (workers=0) or by `workers` DataLoader workers;
+    with `pin_memory` (a GPU) their tensors arrive in pinned memory, ready for a non-blocking copy."""
     if workers < 1:
         return (inputs[i] for i in range(len(inputs)))
     return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
-                                       collate_fn=_identity, prefetch_factor=2, persistent_workers=False)
+                                       collate_fn=_identity, prefetch_factor=2, persistent_workers=False,
+                                       pin_memory=pin_memory)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import Sequence
+from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -44,6 +44,7 @@ class Segmenter(abc.ABC):
         if self.channels_last:
             module = module.to(memory_format=torch.channels_last)
         self.module = torch.compile(module) if runtime.compile else module
+        self._nonfinite: torch.Tensor | None = None  # device flag: some output since the last check was not finite
 
     # -- to implement -------------------------------------------------------------------------
     @abc.abstractmethod
@@ -57,73 +58,139 @@ class Segmenter(abc.ABC):
         return logits.softmax(dim=1)
 
     # -- public API ----------------------------------------------------------------------------
-    def _as_tensor(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+    def to_device(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """RGB images (B x H x W x 3 or B x 3 x H x W; uint8 0-255 or float 0-1; numpy or torch, on any device)
+        -> float B x 3 x H x W in [0, 1] on this model's device. uint8 crosses to the device as uint8 (a quarter
+        of the bytes; pinned and non-blocking on a GPU) and is converted there, by the same float32 division
+        and into the same memory layout as the former host path, so the forward sees bit-identical input."""
         if isinstance(images, np.ndarray):
-            # astype copies, so read-only arrays (decoded images) are fine
-            if images.dtype == np.uint8:
-                images = torch.from_numpy(images.astype(np.float32)).div_(255.0)
-            else:
-                images = torch.from_numpy(images.astype(np.float32))
-            if images.ndim == 3:
-                images = images.unsqueeze(0)
-            if images.shape[-1] == 3 and images.shape[1] != 3:
-                images = images.permute(0, 3, 1, 2)
+            if not (images.flags.writeable and images.flags.c_contiguous):  # decoded images are read-only
+                images = np.array(images, copy=True, order="C")
+            images = torch.from_numpy(images)
         if images.ndim == 3:
             images = images.unsqueeze(0)
-        if images.ndim != 4 or images.shape[1] != 3:
+        nhwc = images.ndim == 4 and images.shape[-1] == 3 and images.shape[1] != 3
+        if not nhwc and (images.ndim != 4 or images.shape[1] != 3):
             raise DataError(
                 f"{self.name}: expected images of shape B x 3 x H x W (RGB in [0,1]), got {tuple(images.shape)}"
             )
+        images = to_device(images, self.device)
+        if nhwc:
+            images = images.permute(0, 3, 1, 2)  # a view: the NHWC memory layout the host path handed on
+        if images.dtype == torch.uint8:
+            return images.float().div_(255.0)
         return images.float()
 
-    def predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """B x 3 x H x W RGB in [0,1] -> B x num_classes x H x W probabilities (on the CPU)."""
-        with torch.inference_mode():
-            return self._predict_proba(images)
-
-    def _predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
-        images = self._as_tensor(images)
-        outputs = []
-        for start in range(0, images.shape[0], self.batch_size):
-            chunk = images[start : start + self.batch_size].to(self.device, non_blocking=True)
-            if self.channels_last:
-                chunk = chunk.contiguous(memory_format=torch.channels_last)
-            try:
-                if self.amp:
-                    dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
-                    with torch.autocast(device_type="cuda", dtype=dtype):
-                        probs = self._probabilities(chunk)
-                else:
+    def _forward(self, chunk: torch.Tensor) -> torch.Tensor:
+        """One chunk (<= batch_size images, on the device) -> its probabilities on the device (float32)."""
+        if self.channels_last:
+            chunk = chunk.contiguous(memory_format=torch.channels_last)
+        try:
+            if self.amp:
+                dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
+                with torch.autocast(device_type=self.device.type, dtype=dtype):
                     probs = self._probabilities(chunk)
-            except RuntimeError as exc:
-                if "out of memory" in str(exc).lower():
-                    raise ModelError(f"{self.name}: out of memory on {self.device}; lower model.batch_size") from None
-                first = str(exc).strip().splitlines()[0][:200]
-                raise ModelError(
-                    f"{self.name}: forward failed on a {chunk.shape[-1]}x{chunk.shape[-2]} image ({first}); "
-                    "check the image size the model accepts"
-                ) from None
-            if not bool(torch.isfinite(probs).all()):  # NaN weights would score xi 0 everywhere, silently
-                raise ModelError(f"{self.name}: the model's outputs are not finite (NaN or inf); its weights are "
-                                 "broken: re-export or download them again")
-            outputs.append(probs.float().cpu())
-        return torch.cat(outputs, dim=0)
+            else:
+                probs = self._probabilities(chunk)
+        except RuntimeError as exc:
+            if "out of memory" in str(exc).lower():
+                raise ModelError(f"{self.name}: out of memory on {self.device}; lower model.batch_size") from None
+            first = str(exc).strip().splitlines()[0][:200]
+            raise ModelError(
+                f"{self.name}: forward failed on a {chunk.shape[-1]}x{chunk.shape[-2]} image ({first}); "
+                "check the image size the model accepts"
+            ) from None
+        return probs.float()
+
+    def _chunks(self, images: np.ndarray | torch.Tensor) -> Iterator[torch.Tensor]:
+        x = self.to_device(images)
+        for start in range(0, x.shape[0], self.batch_size):
+            yield self._forward(x[start : start + self.batch_size])
+
+    def probabilities(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """B x num_classes x H x W probabilities on the model's device; no host synchronisation, no check
+        (`predict_proba` checks and copies to the CPU; `predict_maps` reduces on the device)."""
+        with torch.inference_mode():
+            return _cat(list(self._chunks(images)))
+
+    def predict_maps(self, images: np.ndarray | torch.Tensor, entropy: bool = True) -> PixelMaps:
+        """The per-pixel maps every stage derives from the probabilities, on the device, chunk by chunk (a
+        chunk's probabilities are freed before the next forward): labels (uint8), max probability and, with
+        `entropy`, the normalised entropy. Nothing crosses to the host; whether every output was finite is
+        kept as a device flag that `check_finite` reads once, at the end of a stage."""
+        labels, confidence, entropies = [], [], []
+        with torch.inference_mode():
+            for probs in self._chunks(images):
+                conf, lab = probs.max(dim=1)
+                self._note_finite(conf)
+                labels.append(lab.to(torch.uint8) if self.num_classes <= 256 else lab)
+                confidence.append(conf)
+                if entropy:
+                    entropies.append(normalised_entropy_(probs))  # probs is ours and not needed after this
+                del probs
+            return PixelMaps(_cat(labels), _cat(confidence), _cat(entropies) if entropy else None)
+
+    def _note_finite(self, confidence: torch.Tensor) -> None:
+        """Accumulates "all outputs finite" on the device. NaN or +inf anywhere in a pixel's distribution is
+        its maximum (torch.max propagates NaN), so the B x H x W maximum decides for the whole distribution."""
+        bad = ~torch.isfinite(confidence).all()
+        self._nonfinite = bad if self._nonfinite is None else self._nonfinite | bad
+
+    def check_finite(self) -> None:
+        """Raises ModelError if any output since the last check was not finite; the one host synchronisation a
+        stage pays for it (NaN weights would score xi 0 everywhere, silently)."""
+        flag, self._nonfinite = self._nonfinite, None
+        if flag is not None and bool(flag):
+            raise ModelError(f"{self.name}: the model's outputs are not finite (NaN or inf); its weights are "
+                             "broken: re-export or download them again")
+
+    def predict_proba(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """B x 3 x H x W RGB in [0,1] -> B x num_classes x H x W probabilities (on the CPU). The full tensor
+        crosses to the host: for callers that need the distribution itself, not for the stages."""
+        probs = self.probabilities(images)
+        if not bool(torch.isfinite(probs).all()):
+            self._nonfinite = torch.ones((), dtype=torch.bool)
+        self.check_finite()
+        return probs.cpu()
 
     def predict(self, images: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """-> (labels B x H x W int64, confidence B x H x W float: the max probability)."""
-        probs = self.predict_proba(images)
-        confidence, labels = probs.max(dim=1)
-        return labels, confidence
+        """-> (labels B x H x W int64, confidence B x H x W float: the max probability), on the CPU; only these
+        two maps cross to the host."""
+        maps = self.predict_maps(images, entropy=False)
+        self.check_finite()
+        return maps.labels.long().cpu(), maps.confidence.cpu()
 
     def predict_with_entropy(self, images: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """-> (labels, confidence, normalised entropy H(p) / log K in [0, 1]), all B x H x W, from one
+        """-> (labels, confidence, normalised entropy H(p) / log K in [0, 1]), all B x H x W on the CPU, from one
         forward pass: the label-free estimators need the whole distribution, not only its maximum."""
-        probs = self.predict_proba(images)
-        confidence, labels = probs.max(dim=1)
-        return labels, confidence, normalised_entropy(probs)
+        maps = self.predict_maps(images, entropy=True)
+        self.check_finite()
+        return maps.labels.long().cpu(), maps.confidence.cpu(), maps.entropy.cpu()
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, device={self.device})"
+
+
+class PixelMaps(NamedTuple):
+    """What the stages keep of a batch's probabilities, on the model's device: B x H x W each."""
+
+    labels: torch.Tensor                 # argmax class, uint8 (int64 for more than 256 classes)
+    confidence: torch.Tensor             # max probability, float32
+    entropy: torch.Tensor | None = None  # normalised entropy in [0, 1], float32
+
+
+def to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A host tensor onto `device`: on a GPU from pinned memory and non-blocking (pageable memory would make the
+    copy wait for the GPU's queue); unchanged when it is there already."""
+    if tensor.device == device:
+        return tensor
+    if device.type == "cuda" and tensor.device.type == "cpu" and not tensor.is_pinned():
+        tensor = tensor.pin_memory()
+    return tensor.to(device, non_blocking=True)
+
+
+def _cat(parts: list[torch.Tensor]) -> torch.Tensor:
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=0)
 
 
 def normalised_entropy(probs: torch.Tensor) -> torch.Tensor:
@@ -133,3 +200,12 @@ def normalised_entropy(probs: torch.Tensor) -> torch.Tensor:
     p = p / p.sum(dim=1, keepdim=True).clamp_min(1e-12)
     h = -(p * torch.log(p.clamp_min(1e-12))).sum(dim=1)
     return (h / math.log(p.shape[1])).clamp(0.0, 1.0)
+
+
+def normalised_entropy_(probs: torch.Tensor) -> torch.Tensor:
+    """`normalised_entropy`, computed in place in `probs` (float32, which it overwrites): the same operations in
+    the same order, so the same bits, with one temporary instead of five."""
+    p = probs.clamp_min_(0)
+    p.div_(p.sum(dim=1, keepdim=True).clamp_min_(1e-12))
+    h = p.clamp_min(1e-12).log_().mul_(p).sum(dim=1).neg_()
+    return h.div_(math.log(p.shape[1])).clamp_(0.0, 1.0)

@@ -57,47 +57,70 @@ def pseudo_label(probs: torch.Tensor, tau: float) -> torch.Tensor:
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
+    """The reference model on each group's reference image, batched; label map, class histogram and quality
+    counts on the model's device; only the uint8 label maps and per-image counts cross to the host, read a
+    batch later (while the next batch computes), and the finite-output check is read once, at the end."""
+    from pairedgta.evaluation import reductions
+    from pairedgta.models.base import to_device
+
     segmenter = shared_segmenter(model_cfg, device=ctx.run.device)
+    device = segmenter.device
     maps = LabelMaps(out)
-    hist = np.zeros(NUM_CLASSES, dtype=np.int64)
+    hist = torch.zeros(NUM_CLASSES, dtype=torch.int64, device=device)
+    gt_counts = torch.zeros(NUM_CLASSES * NUM_CLASSES + 2, dtype=torch.int64, device=device)  # matrix, kept, pixels
+    seen_gt = False
     total = 0
-    gt_cm = ConfusionMatrix(NUM_CLASSES)
-    gt_kept = gt_pixels = 0
     batch_size = ctx.run.pseudolabel.batch_size
     rows = []
     pending: list[tuple[str, np.ndarray]] = []
+    waiting: list[tuple[list[str], reductions.HostCopy]] = []
 
-    def flush() -> None:
-        nonlocal hist, total, gt_kept, gt_pixels
+    def launch() -> None:
+        nonlocal hist, gt_counts, seen_gt
         if not pending:
             return
-        stack = np.stack([im for _, im in pending])
-        probs = segmenter.predict_proba(stack)
-        labels = pseudo_label(probs, tau).to(torch.uint8).numpy()
-        for (gid, _), lab in zip(pending, labels):
-            maps.save(gid, lab)
-            valid = lab != IGNORE_INDEX
-            hist += np.bincount(lab[valid].astype(np.int64), minlength=NUM_CLASSES)
-            total += lab.size
-            rows.append({"group_id": gid, "valid_pixels": int(valid.sum()), "total_pixels": int(lab.size)})
-            group = by_id[gid]
-            if dataset.reference in group.labels:
-                gt = load_label(group.labels[dataset.reference])
-                gt_valid = gt != IGNORE_INDEX
-                gt_pixels += int(gt_valid.sum())
-                gt_kept += int((gt_valid & valid).sum())
-                gt_cm.update(torch.from_numpy(np.where(valid, gt, IGNORE_INDEX)), torch.from_numpy(lab.astype(np.int64)))
+        with torch.inference_mode():
+            m = segmenter.predict_maps(np.stack([im for _, im in pending]), entropy=False)
+            void = torch.full((), IGNORE_INDEX, dtype=m.labels.dtype, device=device)
+            labels = torch.where(m.confidence >= tau, m.labels, void).to(torch.uint8)
+            valid = labels != IGNORE_INDEX
+            hist += reductions.class_counts(labels, valid).sum(dim=0)
+            for i, (gid, _) in enumerate(pending):
+                group = by_id[gid]
+                if dataset.reference in group.labels:  # how good is the weak ground truth where the truth is known
+                    seen_gt = True
+                    gt = to_device(torch.from_numpy(np.array(load_label(group.labels[dataset.reference]))), device)
+                    gt_valid = gt != IGNORE_INDEX
+                    cm = reductions.confusion(torch.where(valid[i], gt, void)[None], labels[i][None])[0]
+                    gt_counts += torch.cat([cm.reshape(-1), (gt_valid & valid[i]).sum().view(1), gt_valid.sum().view(1)])
+            copy = reductions.HostCopy({"labels": labels, "valid": valid.sum(dim=(1, 2))})
+        waiting.append(([gid for gid, _ in pending], copy))
         pending.clear()
+
+    def finish() -> None:
+        nonlocal total
+        gids, copy = waiting.pop(0)
+        r = copy.get()
+        for gid, lab, valid in zip(gids, r["labels"], r["valid"]):
+            maps.save(gid, lab)
+            total += lab.size
+            rows.append({"group_id": gid, "valid_pixels": int(valid), "total_pixels": int(lab.size)})
 
     by_id = {g.group_id: g for g in dataset.groups}
     for group in tqdm(dataset.groups, desc=f"pseudolabel [{segmenter.name}]", unit="image"):
         image = load_image(group.images[dataset.reference])
         if pending and pending[0][1].shape != image.shape:
-            flush()
+            launch()
         pending.append((group.group_id, image))
         if len(pending) >= batch_size:
-            flush()
-    flush()
+            launch()
+        while len(waiting) > 1:  # the batch before the one the device works on
+            finish()
+    launch()
+    while waiting:
+        finish()
+    segmenter.check_finite()
+    hist = hist.cpu().numpy()
     with open(out / "index.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["group_id", "valid_pixels", "total_pixels"])
         w.writeheader()
@@ -109,7 +132,11 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
         for c in range(NUM_CLASSES):
             w.writerow([c, CLASS_NAMES[c], int(hist[c]), hist[c] / valid_total, hist[c] / max(total, 1)])
     extra: dict[str, Any] = {"groups": len(rows), "void_share": 1 - hist.sum() / max(total, 1)}
-    if gt_pixels:
+    counts = gt_counts.cpu().numpy()
+    gt_kept, gt_pixels = int(counts[-2]), int(counts[-1])
+    if seen_gt and gt_pixels:
+        gt_cm = ConfusionMatrix(NUM_CLASSES)
+        gt_cm.update_counts(counts[:-2].reshape(NUM_CLASSES, NUM_CLASSES))
         # how good is the paper's weak ground truth where the backend knows the truth
         iou = gt_cm.iou().numpy()
         with open(out / "quality.csv", "w", newline="") as f:

@@ -1,0 +1,220 @@
+"""Evaluate's per-group reductions, in torch on whatever device the predictions are (one code path for the CPU
+and a GPU): from the label maps, max probabilities and entropies of a group's conditions (`PixelMaps`) the
+xi counts, the confusion matrices, the agreement counts, phi per class and the label-free estimators' sums and
+histograms. Only these small arrays (and the uint8 label maps) cross to the host, in one copy per group that
+does not wait for the GPU (`HostCopy`); the host reads it a group later, while the next group computes.
+
+Counts are integers, so they are the same on any device and in any order. The two float sums (max probability
+and entropy per image) are float64 sums of float32 values; they add in the order numpy's `np.sum` adds (pairwise
+over blocks of 8192, the blocks in sequence: `ordered_sum`), the order of the former host path, so the CPU gives
+bit-identical numbers and a GPU adds its maps in the same order as the CPU.
+
+Counting is by `scatter_add_` into a zeroed tensor, never `torch.bincount`: on CUDA bincount reads the input's
+minimum and maximum back to the host (two synchronisations per call). Invalid pixels go to one extra bin that is
+dropped, instead of boolean indexing (whose output size the host must know)."""
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pairedgta.cityscapes import IGNORE_INDEX, NUM_CLASSES
+from pairedgta.lazy import lazy_module
+
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
+
+CONF_BINS = 1000  # the max-probability histogram ATC's threshold is read from: edges k / 1000
+SUM_BLOCK = 8192  # numpy's buffer: np.sum(float32, dtype=float64) sums blocks of this many pairwise, in sequence
+_LEAF = 128       # numpy's pairwise_sum unrolls blocks of up to this many values with 8 accumulators
+
+
+# -- counting -------------------------------------------------------------------------------------------------
+def count(keys: torch.Tensor, bins: int) -> torch.Tensor:
+    """Occurrences of 0 .. bins-1 in `keys` (int64, any shape; a key == bins is a dropped pixel): bincount
+    without a host synchronisation."""
+    keys = keys.reshape(-1)
+    out = torch.zeros(bins + 1, dtype=torch.int64, device=keys.device)
+    out.scatter_add_(0, keys, torch.ones((), dtype=torch.int64, device=keys.device).expand(keys.shape[0]))
+    return out[:bins]
+
+
+def _keys(index: torch.Tensor, valid: torch.Tensor, bins: int) -> torch.Tensor:
+    return torch.where(valid, index, torch.full((), bins, dtype=torch.int64, device=index.device))
+
+
+def _image_offsets(n: int, width: int, device: Any) -> torch.Tensor:
+    return (torch.arange(n, device=device, dtype=torch.int64) * width).view(n, 1, 1)
+
+
+def xi_counts(reference: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
+              ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """N x K x 2 per image: reference pixels of class k whose prediction differs [.., 0] and equals [.., 1] (so
+    retained = [..., 1], reference = sum over the last axis): `reference_consistency_counts` of N images at once."""
+    ref, p = reference.long(), pred.long()
+    n, k = p.shape[0], num_classes
+    valid = (ref >= 0) & (ref < k) & (ref != ignore_index)
+    index = (_image_offsets(n, k, p.device) + ref) * 2 + (p == ref)
+    return count(_keys(index, valid, n * k * 2), n * k * 2).view(n, k, 2)
+
+
+def confusion(target: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
+              ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """N x K x K confusion matrices (truth x prediction) of N images: `confusion_counts` of each."""
+    t, p = target.long(), pred.long()
+    n, k = p.shape[0], num_classes
+    valid = (t != ignore_index) & (t >= 0) & (t < k) & (p >= 0) & (p < k)
+    index = (_image_offsets(n, k, p.device) + t) * k + p
+    return count(_keys(index, valid, n * k * k), n * k * k).view(n, k, k)
+
+
+def class_counts(labels: torch.Tensor, keep: torch.Tensor, num_classes: int = NUM_CLASSES) -> torch.Tensor:
+    """N x K: per image the pixels of each class where `keep` (phi: `prediction_mass_from_labels`)."""
+    lab = labels.long()
+    n = lab.shape[0]
+    index = _image_offsets(n, num_classes, lab.device) + lab
+    return count(_keys(index, keep & (lab >= 0) & (lab < num_classes), n * num_classes), n * num_classes).view(n, num_classes)
+
+
+def confidence_histogram(confidence: torch.Tensor) -> torch.Tensor:
+    """N x CONF_BINS: per image the max probabilities in bins [k/1000, (k+1)/1000), 1.0 in the last; as the host
+    path binned (float64 product, truncated). Out-of-range values (a NaN that check_finite reports at the end of
+    the stage) are clamped into range so that counting never fails before that report."""
+    n = confidence.shape[0]
+    bins = (confidence.double() * CONF_BINS).long().clamp_(0, CONF_BINS - 1)
+    return count(bins + _image_offsets(n, CONF_BINS, bins.device), n * CONF_BINS).view(n, CONF_BINS)
+
+
+# -- float sums in numpy's order -------------------------------------------------------------------------------
+def _leaf_sum(x: torch.Tensor) -> torch.Tensor:
+    """numpy's pairwise_sum for n <= 128 along the last axis: 8 running sums, combined as a tree, then the rest."""
+    n = x.shape[-1]
+    if n < 8:
+        res = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
+        for i in range(n):
+            res = res + x[..., i]
+        return res
+    m = n - n % 8
+    r = x[..., 0:8]
+    for i in range(8, m, 8):
+        r = r + x[..., i : i + 8]
+    res = ((r[..., 0] + r[..., 1]) + (r[..., 2] + r[..., 3])) + ((r[..., 4] + r[..., 5]) + (r[..., 6] + r[..., 7]))
+    for i in range(m, n):
+        res = res + x[..., i]
+    return res
+
+
+def _pairwise(x: torch.Tensor) -> torch.Tensor:
+    """numpy's pairwise_sum along the last axis (float64), vectorised where the halving is regular."""
+    n = x.shape[-1]
+    if n <= _LEAF:
+        return _leaf_sum(x)
+    leaves = n // _LEAF
+    if n % _LEAF == 0 and leaves & (leaves - 1) == 0:  # 128 * 2^j values: halves all the way down to 128
+        v = x.reshape(*x.shape[:-1], leaves, 16, 8)
+        r = v[..., 0, :]
+        for i in range(1, 16):
+            r = r + v[..., i, :]
+        s = ((r[..., 0] + r[..., 1]) + (r[..., 2] + r[..., 3])) + ((r[..., 4] + r[..., 5]) + (r[..., 6] + r[..., 7]))
+        while s.shape[-1] > 1:
+            s = s[..., 0::2] + s[..., 1::2]
+        return s[..., 0]
+    half = n // 2
+    half -= half % 8
+    return _pairwise(x[..., :half]) + _pairwise(x[..., half:])
+
+
+def block_sums(values: torch.Tensor) -> torch.Tensor:
+    """N x blocks float64: per image (the first axis; the rest flattened, C order) the pairwise sums of its
+    blocks of SUM_BLOCK values, on the device. `ordered_sum` adds them up on the host."""
+    x = values.reshape(values.shape[0], -1).double()
+    n, size = x.shape
+    full = size // SUM_BLOCK
+    parts = []
+    if full:
+        parts.append(_pairwise(x[:, : full * SUM_BLOCK].reshape(n, full, SUM_BLOCK)))
+    if size % SUM_BLOCK or not full:
+        parts.append(_pairwise(x[:, full * SUM_BLOCK :]).unsqueeze(1))
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+
+
+def ordered_sum(blocks: Sequence[float] | np.ndarray) -> float:
+    """One image's block sums (`block_sums`), added in sequence from 0.0 as numpy's reduction adds them."""
+    total = 0.0
+    for b in np.asarray(blocks, dtype=np.float64).tolist():
+        total += b
+    return total
+
+
+def image_sums(values: torch.Tensor) -> list[float]:
+    """float(np.sum(values[i], dtype=np.float64)) for each image i, bit for bit, computed on the device."""
+    return [ordered_sum(row) for row in block_sums(values).cpu().numpy()]
+
+
+# -- one group ----------------------------------------------------------------------------------------------------
+def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: torch.Tensor, clean: int,
+                     pseudo: torch.Tensor, targets: torch.Tensor | None, visible: torch.Tensor | None,
+                     tau: float, gt: torch.Tensor | None, use_pl: bool,
+                     num_classes: int = NUM_CLASSES) -> dict[str, torch.Tensor]:
+    """Everything evaluate keeps of one group's N conditions, as device tensors: `labels`, `confidence`,
+    `entropy` N x H x W (the conditions in order, `clean` the index of the clean one); `pseudo` H x W the
+    pseudo-label; `targets` N x H x W each condition's ground truth for its IoU (void where it has none; None:
+    no condition has one); `visible` N x H x W (or
+    None: all) the pixels visible in each condition and the clean image; `gt` H x W the reference's truth for xi
+    (or None). Hidden pixels count as void in every reference, and phi counts only visible pixels."""
+    n = labels.shape[0]
+    void = torch.full((), IGNORE_INDEX, dtype=pseudo.dtype, device=pseudo.device)
+
+    def hide(ref: torch.Tensor) -> torch.Tensor:
+        ref = ref.unsqueeze(0).expand(n, *ref.shape)
+        return ref if visible is None else torch.where(visible, ref, void)
+
+    out: dict[str, torch.Tensor] = {}
+    pseudo_c = hide(pseudo)
+    if use_pl:
+        out["xi_pl"] = xi_counts(pseudo_c, labels, num_classes)
+    if gt is not None:
+        out["xi_gt"] = xi_counts(hide(gt.to(pseudo.dtype)), labels, num_classes)
+    if targets is not None:
+        out["cm"] = confusion(targets if visible is None else torch.where(visible, targets, void), labels, num_classes)
+    clean_labels = labels[clean].unsqueeze(0)
+    valid = pseudo_c != IGNORE_INDEX
+    same_clean = labels == clean_labels
+    out["agreement"] = torch.stack([valid.sum((1, 2)), ((labels == pseudo_c) & valid).sum((1, 2)),
+                                    (same_clean & valid).sum((1, 2))], dim=1)  # valid, agree ref, agree clean
+    # phi of condition c over the pixels visible in c: of c's prediction and of the clean prediction
+    confident = confidence >= tau
+    clean_confident = confident[clean].unsqueeze(0).expand_as(confident)
+    if visible is not None:
+        confident, clean_confident = confident & visible, clean_confident & visible
+    out["adv_mass"] = class_counts(labels, confident, num_classes)
+    out["clean_mass"] = class_counts(clean_labels.expand_as(labels), clean_confident, num_classes)
+    out["conf_hist"] = confidence_histogram(confidence)
+    out["agree_clean"] = same_clean.sum((1, 2))
+    out["conf_blocks"] = block_sums(confidence)
+    out["entropy_blocks"] = block_sums(entropy)
+    return out
+
+
+class HostCopy:
+    """Device tensors copied to the host without waiting for the device: on a GPU into pinned memory with
+    `non_blocking`, an event marks their arrival; `get()` waits for that event only (on the CPU it is all there)."""
+
+    def __init__(self, tensors: Mapping[str, torch.Tensor]) -> None:
+        self.event = None
+        first = next(iter(tensors.values()), None)
+        if first is not None and first.device.type == "cuda":
+            self.host = {k: v.to("cpu", non_blocking=True) for k, v in tensors.items()}
+            self.event = torch.cuda.Event()
+            self.event.record()
+        else:
+            self.host = {k: v.cpu() for k, v in tensors.items()}
+
+    def get(self) -> dict[str, np.ndarray]:
+        if self.event is not None:
+            self.event.synchronize()
+            self.event = None
+        return {k: v.numpy() for k, v in self.host.items()}
+
+
+__all__ = ["CONF_BINS", "SUM_BLOCK", "count", "xi_counts", "confusion", "class_counts", "confidence_histogram",
+           "block_sums", "ordered_sum", "image_sums", "group_reductions", "HostCopy"]
