@@ -89,6 +89,7 @@ def test_a_store_locked_longer_than_the_run_gets_the_whole_record_from_the_next_
     and nested runs into it, finished, with every metric, parameter, input and artifact, once."""
     from pairedgta.render.synthetic import SyntheticRenderer
 
+    caplog.set_level(logging.INFO, logger="pairedgta.tracking")
     monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0, 0.1))
     db = tmp_path / "mlflow.db"
     uri = mlflow_store(db)
@@ -151,6 +152,7 @@ def test_a_lock_released_before_the_run_ends_is_replayed_by_the_run_itself(tmp_p
     """Locked from the first stage's start to the evaluate stage: the journal goes in at the run's end."""
     from pairedgta.stages import evaluate
 
+    caplog.set_level(logging.INFO, logger="pairedgta.tracking")
     monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0,))
     db = tmp_path / "mlflow.db"
     uri = mlflow_store(db)
