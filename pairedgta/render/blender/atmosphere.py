@@ -73,6 +73,11 @@ def build_sky(bpy, knobs: Knobs) -> None:
     amount = math_node(nt, "ADD", patches, knobs.value(nt, "overcast", 0.0), clamp=True)
     cloud_col = knobs.colour(nt, "cloud_color", (0.5, 0.5, 0.5))
     sky = mix_node(nt, "RGBA", amount, sky, cloud_col)
+    # the city's diffuse light at night (illumination.NightLight.fill) for every ray but the camera's: it lights
+    # the scene and the wet road reflects it, while the sky in the image stays the night sky
+    camera_ray = nt.nodes.new("ShaderNodeLightPath").outputs["Is Camera Ray"]
+    fill = mix_node(nt, "RGBA", math_node(nt, "SUBTRACT", 1.0, camera_ray), (0, 0, 0), knobs.colour(nt, "fill", (0, 0, 0)))
+    sky = mix_node(nt, "RGBA", 1.0, sky, fill, "ADD")
     nt.links.new(sky, bg.inputs["Color"])
     bg.inputs["Strength"].default_value = 1.0
 

@@ -6,7 +6,9 @@ energies.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -23,6 +25,50 @@ FOG_SKY, FOG_SUN = 0.7, 0.2
 LAMP_POWER = 40.0        # W per street-lamp spot light
 HEADLIGHT_POWER = 30.0   # W per head-light spot light
 WINDOW_EMISSION = 0.08   # emission strength of a lit window
+FILL_COLOUR = (1.0, 0.82, 0.62)  # the city's diffuse light: mostly sodium and warm-white lamps, reflected
+
+
+@dataclasses.dataclass(frozen=True)
+class NightLight:
+    """The artificial light of a street at night, the part of the light model fitted to GTA V's night frames
+    (`experiments/fit_night_light.py`, `renderer.night`). Physical terms, each a factor on the model above:
+
+    - `fill`: radiance of the city's diffuse light, what a street lit by lamps every 28 m, lit windows and shop
+      fronts, and the glow of the sky above them send into every shadow after many bounces: a two-bounce path
+      tracer misses it (the scene's second bounce is an ambient-occlusion estimate of the sky), GTA V adds it as
+      an ambient term. It lights the scene through the world shader's non-camera rays (the sky the camera sees
+      stays the night sky), the wet road reflects it, and fog and rain haze scatter it. Only at night (the
+      `night` weight of the sun's elevation: 0 from 2 degrees up), so day and sunset images keep every pixel.
+    - `lamps`, `headlights`, `windows`: the power of the street lamps (spot light and lamp head), of the
+      vehicles' head lights (spot light and lens; tail lights follow) and the emission of lit windows and shop
+      fronts, relative to LAMP_POWER, HEADLIGHT_POWER and WINDOW_EMISSION."""
+
+    fill: float = 0.0
+    lamps: float = 1.0
+    headlights: float = 1.0
+    windows: float = 1.0
+
+    @classmethod
+    def from_cfg(cls, cfg: Mapping[str, Any] | None) -> NightLight:
+        from pairedgta.errors import ConfigError
+
+        cfg = dict(cfg or {})
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(cfg) - set(known))
+        if unknown:
+            raise ConfigError(f"renderer.night: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(known)}")
+        try:
+            light = cls(**{k: float(v) for k, v in cfg.items()})
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"renderer.night: numbers expected ({exc})") from None
+        for key in known:
+            value = getattr(light, key)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f"renderer.night.{key}={value} is invalid; set it to a number >= 0")
+        return light
+
+
+NIGHT = NightLight()  # the fitted values (pairedgta/conf/renderer/blender.yaml `night` says the same)
 
 
 def _smoothstep(a: float, b: float, x: float) -> float:
@@ -44,11 +90,12 @@ def sun_transmittance(elevation_deg: float) -> np.ndarray:
     return np.exp(-np.array([0.06, 0.11, 0.24]) * airmass)
 
 
-def lighting(cond: Condition) -> dict[str, Any]:
+def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]:
     """All condition-dependent render parameters; continuous in every physical field. The extinction
     is the condition's own (visibility and rain rate, conditions.py), so the image and the
     transmittance map written beside it attenuate alike. `light_level` is what the camera meters
-    (render/camera.py): the light falling on the scene from the sun, the sky and, at night, the lamps."""
+    (render/camera.py): the light falling on the scene from the sun, the sky and, at night, the lamps and the
+    city's diffuse light (`night_light`: NightLight)."""
     el = float(cond.sun_elevation_deg)
     rain = cond.rain_level
     cloud = max(float(cond.cloud_cover), rain)
@@ -78,9 +125,12 @@ def lighting(cond: Condition) -> dict[str, Any]:
     # albedo times the light arriving from the sky (cloud-grey as cover grows) and the sun (isotropic
     # share). Lamp and head-light light is scattered where it is: the compositor's glare gives each its
     # halo, so the night's fog stays dark away from the lights instead of glowing uniformly.
-    ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud
+    # the city's diffuse light (NightLight.fill): lights the scene, not the sky the camera sees; scattered by haze
+    fill = night_light.fill * night * np.array(FILL_COLOUR)
+    ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud + fill
     fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi))
-    light_level = sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
+    light_level = (sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
+                   + 2.6 * float(np.mean(fill)))
     return {
         "sun_dir": sun_vector(el, cond.sun_azimuth_deg), "sun_strength": sun_strength, "sun_color": sun_color,
         "sun_angle_deg": 0.53 + 25.0 * cloud,
@@ -90,8 +140,14 @@ def lighting(cond: Condition) -> dict[str, Any]:
         "wetness": wet, "puddle_threshold": 1.0 - 0.42 * wet,
         "fog": fog, "rain": rain, "extinction": extinction, "fog_color": fog_color,
         "lamps": lamps, "vehicle_lights": vehicle_lights,
-        "window_lit": lamps, "light_level": light_level,
+        "window_lit": lamps, "light_level": light_level, "fill": fill,
+        "lamp_power": LAMP_POWER * night_light.lamps * lamps, "lamp_emit": 25.0 * night_light.lamps * lamps,
+        "headlight_power": HEADLIGHT_POWER * night_light.headlights * vehicle_lights,
+        "headlight_emit": 30.0 * night_light.headlights * vehicle_lights,
+        "taillight_emit": 0.3 + 10.0 * night_light.headlights * vehicle_lights,
+        "window_emit": WINDOW_EMISSION * night_light.windows * lamps,
     }
 
 
-__all__ = ["HEADLIGHT_POWER", "LAMP_POWER", "WINDOW_EMISSION", "lighting", "sun_transmittance", "sun_vector"]
+__all__ = ["FILL_COLOUR", "HEADLIGHT_POWER", "LAMP_POWER", "NIGHT", "NightLight", "WINDOW_EMISSION", "lighting",
+           "sun_transmittance", "sun_vector"]

@@ -31,7 +31,7 @@ from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render.base import Renderer, RenderResult
 from pairedgta.render.blender.atmosphere import FOG_MODELS
 from pairedgta.render.blender.cycles import configure_cycles, import_bpy, quiet_stdout
-from pairedgta.render.blender.illumination import lighting
+from pairedgta.render.blender.illumination import NIGHT, NightLight, lighting
 from pairedgta.render.blender.labels import MAX_INSTANCES, render_label_pass
 from pairedgta.render.blender.scene import (
     build_town,
@@ -64,7 +64,7 @@ class BlenderRenderer(Renderer):
                  filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
                  max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
-                 fog_model: str = "analytic") -> None:
+                 fog_model: str = "analytic", night: Mapping[str, Any] | None = None) -> None:
         super().__init__(width, height)
         checks = (
             ("width", self.width >= 8, ">= 8"), ("height", self.height >= 8, ">= 8"),
@@ -92,6 +92,7 @@ class BlenderRenderer(Renderer):
             )
         self.seed = int(seed)
         self.camera = Camera.from_cfg(camera)
+        self.night = NightLight.from_cfg(night) if night is not None else NIGHT
         self.threads = int(threads)
         self.fog_model = str(fog_model)
         self.fog_extent = float(fog_extent)
@@ -260,7 +261,7 @@ class BlenderRenderer(Renderer):
 
     # ---- conditions -----------------------------------------------------------------------
     def _apply_condition(self, cond: Condition) -> dict[str, Any]:
-        p = lighting(cond)
+        p = lighting(cond, self.night)
         p["exposure"] = self.camera.exposure(cond, p["light_level"])
         self._shading.apply(p, self._lamps_used, self._heads_used,
                             self._town.lit_window_fraction if self._town else 0.0)

@@ -16,7 +16,6 @@ from pairedgta.render.blender.atmosphere import (
     build_fog_compositor,
     build_sky,
 )
-from pairedgta.render.blender.illumination import HEADLIGHT_POWER, LAMP_POWER, WINDOW_EMISSION
 from pairedgta.render.blender.materials import build_materials
 from pairedgta.render.blender.nodes import Knobs
 
@@ -91,18 +90,19 @@ class Shading:
         self.knobs.set("overcast", p["overcast"])
         self.knobs.set("wetness", p["wetness"])
         self.knobs.set("puddle_threshold", p["puddle_threshold"])
-        lamps, vlights = p["lamps"], p["vehicle_lights"]
+        lamps = p["lamps"]
         for i, obj in enumerate(self._lamp_pool):
-            obj.data.energy = LAMP_POWER * lamps if i < lamps_used else 0.0
-        self.knobs.set("lamp_emit", 25.0 * lamps)
+            obj.data.energy = p["lamp_power"] if i < lamps_used else 0.0
+        self.knobs.set("lamp_emit", p["lamp_emit"])
         self.knobs.set("window_fraction", lit_window_fraction * p["window_lit"])
-        self.knobs.set("window_emit", WINDOW_EMISSION * p["window_lit"])
+        self.knobs.set("window_emit", p["window_emit"])
         self.knobs.set("signal_emit", 3.0 + 5.0 * lamps)
         self.knobs.set("sign_emit", 0.0)
         for i, obj in enumerate(self._head_pool):
-            obj.data.energy = HEADLIGHT_POWER * vlights if i < heads_used else 0.0
-        self.knobs.set("headlight_emit", 30.0 * vlights)
-        self.knobs.set("taillight_emit", 0.3 + 10.0 * vlights)
+            obj.data.energy = p["headlight_power"] if i < heads_used else 0.0
+        self.knobs.set("headlight_emit", p["headlight_emit"])
+        self.knobs.set("taillight_emit", p["taillight_emit"])
+        self.knobs.set("fill", p["fill"])
         density = p["extinction"]
         volume = self.fog_model == "volume"
         self.knobs.set("fog_density", density if volume else 0.0)
