@@ -67,6 +67,7 @@ def main(cfg: DictConfig) -> None:
         summary = run(cfg, task_overrides=list(HydraConfig.get().overrides.task))
     except PairedGTAError as exc:
         # one line, no traceback: the message names the file/key and the fix
+        _close_progress_bars()
         print(f"error: {exc}", file=sys.stderr)
         _to_log_files([f"error: {exc}"], logging.ERROR)
         if _in_sweep():  # the launcher carries it back to the sweep, which prints it as one line
@@ -79,6 +80,7 @@ def main(cfg: DictConfig) -> None:
         full = disk_full(exc, os.path.dirname(str(exc.filename)) if exc.filename else cfg.get("cache_dir"))
         if full is None:
             raise
+        _close_progress_bars()
         print(f"error: {full}", file=sys.stderr)
         _to_log_files([f"error: {full}"], logging.ERROR)
         sys.exit(2)
@@ -104,6 +106,17 @@ def main(cfg: DictConfig) -> None:
                                                OmegaConf.select(cfg, "conditions.reference", default=None))]
     print("\n".join(lines))
     _to_log_files(lines)
+
+
+def _close_progress_bars() -> None:
+    """A stage's progress bar that an error left open ends its line first: the error is a line of its own
+    (a bar over an iterator an exception left is closed only when it is collected)."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:  # pragma: no cover - a bar half torn down: the error line matters more
+            pass
 
 
 def _to_log_files(lines: list[str], level: int = logging.INFO) -> None:
