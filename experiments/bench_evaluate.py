@@ -1,22 +1,36 @@
-"""Benchmark of the evaluate stage: is it bound by the model forward, not by image decoding?
+"""Benchmark of the evaluate stage: is it bound by the model forward, not by decoding, reductions or writing?
 
-For a real-size model graph (SegFormer-B0 widths, random weights: the cost of a forward does not depend
-on the weights) it prints images/s of the evaluate stage (`evaluate.num_workers` = 0 and N decoding
-processes) beside images/s of the bare model forward on the same images already in memory, and their
-ratio (target: >= 0.9 with workers at batch 4); the share of evaluate time spent in metric accumulation;
-and peak RSS for a small vs a large dataset (must stay flat: evaluate streams).
+It renders a small dataset in the released layout (PNG files on disk), runs the pseudolabel and evaluate stages
+of one model on it (`models=null`: only that model) and, on the same images already decoded and on the device,
+the bare forward (`Segmenter.probabilities`: network, upsampling and softmax, nothing else). It prints images/s of
+both and their ratio (target: >= 0.9 on the CPU, >= 0.7 on a GPU), and splits the stage's time into columns
+that add up to 100 %: the forward, the rest of the counting (decoding not hidden by the workers, the reductions,
+copies), and writing the entry's tables. On a GPU the forward is the GPU time between CUDA events around each
+forward (the host only queues it), the other columns the wall time around it; and the peak GPU memory.
 
     python experiments/bench_evaluate.py [--groups 24] [--width 512 --height 256] [--workers 2] [--batch 4]
     python experiments/bench_evaluate.py --memory 50 500 --width 128 --height 64 --model tiny_segformer
+    python experiments/bench_evaluate.py --device cuda --amp bf16 --model ddrnet_23 --arch - --full \\
+        --width 2048 --height 1024 --conditions 9 --batch 9 --groups 8 --workers 12
+
+`--full` builds a paper graph with random weights (the cost of a forward does not depend on them; offline).
+Each measurement runs in a fresh process (peak RSS, thread pools and the CUDA context are its own); `measure`
+runs one in this process (experiments/gpu_check.py, the tests).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
+from typing import Any, Iterator
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a checkout without the package installed
 
 CONDITIONS = ("Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY")
 # SegFormer-B0 (MiT-b0 encoder, 256-wide decoder): the smallest of the paper's models, so the one where
@@ -25,127 +39,269 @@ B0 = ("{depths:[2,2,2,2],hidden_sizes:[32,64,160,256],num_attention_heads:[1,2,5
       "decoder_hidden_size:256}")
 
 
-def make_release_dataset(root: Path, n: int, width: int, height: int) -> None:
-    """n groups x 3 conditions in the released layout, rendered by the synthetic backend."""
-    from pairedgta.conditions import Condition
+def _conditions(n: int) -> list[Any]:
+    """The first 3 (clean, Day-RAIN, Night-EXTRASUNNY) or all 9 conditions of the paper's grid."""
+    import yaml
+
+    from pairedgta.conditions import build_condition_grid
+    from pairedgta.configs import CONFIG_DIR
+
+    grid = build_condition_grid(yaml.safe_load((Path(CONFIG_DIR) / "conditions" / "paper.yaml").read_text()))
+    if n >= len(grid.conditions):
+        return list(grid.conditions)
+    by_name = {c.name: c for c in grid.conditions}
+    return [by_name[c] for c in CONDITIONS[:n]]
+
+
+def _render_one(job: tuple[str, int, int, int, int]) -> None:
     from pairedgta.datasets.base import save_png_atomic
     from pairedgta.render.synthetic import SyntheticRenderer
     from pairedgta.scene import Location, SceneDescriptor
 
+    root, k, width, height, n_cond = job
     r = SyntheticRenderer(width=width, height=height)
-    conds = [Condition("Day-EXTRASUNNY", "Day", "EXTRASUNNY"),
-             Condition("Day-RAIN", "Day", "RAIN", cloud_cover=0.9, rain_mm_h=25.0, visibility_m=350.0, wetness=1.0),
-             Condition("Night-EXTRASUNNY", "Night", "EXTRASUNNY", clock_hour=0, sun_elevation_deg=-30)]
-    for k in range(n):
-        d = SceneDescriptor(scene_id=str(k), seed=k, location=Location(0, 0))
-        for c in conds:
-            (root / c.time).mkdir(parents=True, exist_ok=True)
-            save_png_atomic(r.render(d, c).image, root / c.time / f"{k}_{c.time}_{c.weather}.png")
+    d = SceneDescriptor(scene_id=str(k), seed=k, location=Location(0, 0))
+    for c in _conditions(n_cond):
+        (Path(root) / c.time).mkdir(parents=True, exist_ok=True)
+        save_png_atomic(r.render(d, c).image, Path(root) / c.time / f"{k}_{c.time}_{c.weather}.png")
 
 
-# one measurement per process, so peak RSS and thread pools are not shared between runs
-CHILD = r"""
-import json, resource, sys, time
-import numpy as np
-from hydra import compose, initialize_config_dir
-import pairedgta.stages.evaluate as ev
-from pairedgta.evaluation import tables
-from pairedgta.models.base import Segmenter
-from pairedgta.app import run
-from pairedgta.configs import CONFIG_DIR
+def make_release_dataset(root: Path, n: int, width: int, height: int, conditions: int = 3, jobs: int = 1) -> None:
+    """n groups x 3 (or 9) conditions in the released layout, rendered by the synthetic backend (`jobs` processes)."""
+    todo = [(str(root), k, width, height, conditions) for k in range(n)]
+    if jobs > 1 and n > 1:
+        import multiprocessing as mp
 
-root, cache, model, workers, batch, arch = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), sys.argv[6]
-# the forward is timed only inside evaluate's count_groups (the pseudolabel stage runs forwards of its own,
-# which once made the "forward share" exceed 100 %); the writing of the tables is timed on its own
-timers = {"forward": 0.0, "evaluate": 0.0, "write": 0.0}
-inside = [False]
-predict = Segmenter.predict
-def timed(self, images):
-    t = time.perf_counter(); out = predict(self, images)
-    if inside[0]:
-        timers["forward"] += time.perf_counter() - t
-    return out
-Segmenter.predict = timed
-count_groups = ev.count_groups
-def wrapped(*a, **k):
-    inside[0] = True
-    t = time.perf_counter()
+        with mp.get_context("spawn").Pool(min(jobs, n)) as pool:
+            pool.map(_render_one, todo)
+    else:
+        for job in todo:
+            _render_one(job)
+
+
+def overrides(root: Path, cache: Path, model: str, workers: int | str, batch: int, arch: str, device: str = "cpu",
+              amp: str | None = None, model_batch: int | None = None, full: bool = False, conditions: int = 3,
+              extra: list[str] | None = None) -> list[str]:
+    """The app's overrides for one measurement: only `model` (models=null), pseudolabel + evaluate."""
+    names = [c.name for c in _conditions(conditions)]
+    out = ["dataset=paired_gta", f"dataset.root={root}", f"cache_dir={cache}", "stages=[pseudolabel,evaluate]",
+           "tracking.enabled=false", f"model={model}", "models=null", f"reference_model={model}",
+           f"evaluate.num_workers={workers}", f"evaluate.batch_size={batch}", f"pseudolabel.batch_size={batch}",
+           f"conditions.only=[{','.join(names)}]", "metric.bootstrap.resamples=100", f"device={device}"]
+    if arch != "-":
+        out.append(f"++model.arch={arch}")
+    if amp:
+        out.append(f"++model.amp={amp}")
+    out.append(f"++model.batch_size={model_batch or batch}")
+    if full:
+        out.append("++model.random_init=true")
+    return out + list(extra or [])
+
+
+@contextlib.contextmanager
+def _timers(device_type: str) -> Iterator[dict[str, Any]]:
+    """Times the forward (only inside evaluate's count_groups: the pseudolabel stage runs forwards of its own),
+    count_groups and the writing of the tables; undone on exit."""
+    import pairedgta.stages.evaluate as ev
+    import torch
+
+    from pairedgta.evaluation import tables
+    from pairedgta.models.base import Segmenter
+
+    t: dict[str, Any] = {"forward": 0.0, "count": 0.0, "write": 0.0, "events": []}
+    inside = [False]
+    forward, count_groups, write_outputs = Segmenter._forward, ev.count_groups, tables.write_outputs
+
+    def timed_forward(self: Any, chunk: Any) -> Any:
+        if not inside[0]:
+            return forward(self, chunk)
+        if device_type == "cuda":  # the host only queues the forward: GPU time between events
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            out = forward(self, chunk)
+            end.record()
+            t["events"].append((start, end))
+            return out
+        s = time.perf_counter()
+        out = forward(self, chunk)
+        t["forward"] += time.perf_counter() - s
+        return out
+
+    def timed_count(*a: Any, **k: Any) -> Any:
+        inside[0] = True
+        s = time.perf_counter()
+        try:
+            return count_groups(*a, **k)
+        finally:
+            if device_type == "cuda":
+                torch.cuda.synchronize()
+            t["count"] += time.perf_counter() - s
+            inside[0] = False
+
+    def timed_write(*a: Any, **k: Any) -> Any:
+        s = time.perf_counter()
+        try:
+            return write_outputs(*a, **k)
+        finally:
+            t["write"] += time.perf_counter() - s
+
+    Segmenter._forward, ev.count_groups, tables.write_outputs = timed_forward, timed_count, timed_write
     try:
-        return count_groups(*a, **k)
+        yield t
     finally:
-        timers["evaluate"] += time.perf_counter() - t; inside[0] = False
-ev.count_groups = wrapped
-write_outputs = tables.write_outputs
-def written(*a, **k):
-    t = time.perf_counter(); out = write_outputs(*a, **k); timers["write"] += time.perf_counter() - t; return out
-tables.write_outputs = written
-overrides = ["dataset=paired_gta", f"dataset.root={root}", f"cache_dir={cache}", "stages=[pseudolabel,evaluate]",
-             "tracking.enabled=false", f"model={model}", f"reference_model={model}", f"evaluate.num_workers={workers}",
-             f"evaluate.batch_size={batch}", "conditions.only=[Day-EXTRASUNNY,Day-RAIN,Night-EXTRASUNNY]",
-             "metric.bootstrap.resamples=100"] + ([f"model.arch={arch}"] if arch != "-" else [])
-with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-    cfg = compose("config", overrides=overrides)
-summary = run(cfg)
-timers["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-# the bare forward on the same images, decoded beforehand
-from omegaconf import OmegaConf
-from pairedgta.datasets import open_dataset, load_image
-from pairedgta.conditions import build_condition_grid
-from pairedgta.models import build_segmenter
-c = OmegaConf.to_container(cfg, resolve=True)
-ds = open_dataset(c["dataset"], build_condition_grid(c["conditions"]))
-images = [load_image(g.images[k]) for g in ds.groups for k in sorted(g.images)]
-seg = build_segmenter(c["model"], device="cpu")
-t = time.perf_counter()
-for s in range(0, len(images), batch):
-    predict(seg, np.stack(images[s:s + batch]))
-timers["bare"] = time.perf_counter() - t
-timers["images"] = len(images)
-print(json.dumps(timers))
-"""
+        Segmenter._forward, ev.count_groups, tables.write_outputs = forward, count_groups, write_outputs
+        t["forward"] += sum(a.elapsed_time(b) for a, b in t.pop("events")) / 1000.0
 
 
-def measure(root: Path, cache: Path, model: str, workers: int, batch: int, arch: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", CHILD, str(root), str(cache), model, str(workers), str(batch), arch],
-                         capture_output=True, text=True)
+def bare_forward(seg: Any, groups: list[list[Any]], batch: int, warmup: int = 1) -> float:
+    """Seconds of `seg.probabilities` over `groups` (per group, its images in batches of `batch`, as evaluate
+    batches them), the images decoded beforehand and already on the device as float in [0, 1]."""
+    import numpy as np
+    import torch
+
+    batches = [seg.to_device(np.stack(g[s : s + batch])) for g in groups for s in range(0, len(g), batch)]
+    sync = torch.cuda.synchronize if seg.device.type == "cuda" else (lambda: None)
+    for x in batches[:warmup]:
+        seg.probabilities(x)
+    sync()
+    start = time.perf_counter()
+    for x in batches:
+        seg.probabilities(x)
+    sync()
+    return time.perf_counter() - start
+
+
+def columns(t: dict[str, Any]) -> dict[str, float]:
+    """The printed numbers from the raw timings: images/s of the stage's counting and of the bare forward, their
+    ratio, and the stage's time (counting + writing) split into forward, the rest of the counting and writing,
+    which add up to 1."""
+    n, count, write = t["images"], t["count"], t["write"]
+    forward = min(t["forward"], count)
+    total = count + write
+    eval_ips, bare_ips = n / count, n / t["bare"]
+    return {"eval_ips": eval_ips, "bare_ips": bare_ips, "ratio": eval_ips / bare_ips, "forward_share": forward / total,
+            "other_share": (count - forward) / total, "write_share": write / total}
+
+
+def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int, arch: str, device: str = "cpu",
+            amp: str | None = None, model_batch: int | None = None, full: bool = False, conditions: int = 3,
+            extra: list[str] | None = None) -> dict[str, Any]:
+    """One measurement in this process: the bare forward (and its warm-up) first, then the stages."""
+    import resource
+
+    import numpy as np
+    import torch
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from pairedgta.app import run
+    from pairedgta.conditions import build_condition_grid
+    from pairedgta.configs import CONFIG_DIR
+    from pairedgta.datasets import load_image, open_dataset
+    from pairedgta.models import build_segmenter
+
+    args = overrides(root, cache, model, workers, batch, arch, device, amp, model_batch, full, conditions, extra)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=args)
+    c = OmegaConf.to_container(cfg, resolve=True)
+    cuda = str(device).startswith("cuda")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(int(c["threads"]))  # as the stage runs: the same CPU threads for both
+    ds = open_dataset(c["dataset"], build_condition_grid(c["conditions"]))
+    clean = c["conditions"]["reference"]
+    images = [[load_image(g.images[k]) for k in sorted(g.images, key=lambda k: (k != clean, k))] for g in ds.groups]
+    seg = build_segmenter(c["model"], device=device)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    out: dict[str, Any] = {"bare": bare_forward(seg, images, batch), "images": sum(len(g) for g in images)}
+    if cuda:
+        out["bare_peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    del seg
+    if cuda:
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+    torch.set_num_threads(threads)
+    start = time.perf_counter()
+    with _timers("cuda" if cuda else "cpu") as t:
+        run(cfg)
+    out["stages"] = time.perf_counter() - start
+    out.update(t)
+    if cuda:
+        out["stage_peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out.update(columns(out))
+    out.update(model=model, device=device, amp=amp or "fp32", batch=batch, workers=workers,
+               width=int(np.asarray(images[0][0]).shape[1]), height=int(np.asarray(images[0][0]).shape[0]),
+               groups=len(images))
+    return out
+
+
+def measure_child(*args: Any, **kwargs: Any) -> dict[str, Any]:
+    """`measure` in a fresh process."""
+    spec = json.dumps({"args": [str(a) if isinstance(a, Path) else a for a in args], "kwargs": kwargs})
+    out = subprocess.run([sys.executable, __file__, "--child", spec], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                                           os.environ.get("PYTHONPATH", "")])})
     if out.returncode != 0:
         raise SystemExit(out.stderr[-3000:])
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+HEADER = (f"{'workers':>7} {'eval img/s':>10} {'bare img/s':>10} {'ratio':>6} {'forward':>8} {'decode+reduce':>13} "
+          f"{'writing':>8}")
+
+
+def row(workers: Any, r: dict[str, Any]) -> str:
+    return (f"{str(workers):>7} {r['eval_ips']:>10.2f} {r['bare_ips']:>10.2f} {r['ratio']:>6.2f} "
+            f"{r['forward_share']:>8.1%} {r['other_share']:>13.1%} {r['write_share']:>8.1%}")
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--groups", type=int, default=24)
     ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--height", type=int, default=256)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--conditions", type=int, default=3, choices=[3, 9], help="conditions per group (9: the paper's)")
+    ap.add_argument("--workers", default="2", help="DataLoader decoding processes (besides 0); or auto")
+    ap.add_argument("--batch", type=int, default=4, help="evaluate.batch_size (and model.batch_size unless given)")
+    ap.add_argument("--model-batch", type=int, default=None)
     ap.add_argument("--model", default="tiny_segformer")
     ap.add_argument("--arch", default=B0, help="model.arch override (default: SegFormer-B0 widths); - = the model's own")
+    ap.add_argument("--full", action="store_true", help="model.random_init=true: a paper graph without its weights")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
+    ap.add_argument("--amp", default=None, choices=["bf16", "fp16"])
+    ap.add_argument("--set", nargs="*", default=[], help="more overrides, e.g. model.channels_last=true")
     ap.add_argument("--memory", type=int, nargs="*", default=[], help="also peak RSS at these dataset sizes")
+    ap.add_argument("--jobs", type=int, default=1, help="processes rendering the dataset")
+    ap.add_argument("--json", default=None, help="append each measurement as a JSON line to this file")
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child:
+        spec = json.loads(args.child)
+        print(json.dumps(measure(*spec["args"], **spec["kwargs"]), default=float))
+        return
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "ds"
-        make_release_dataset(root, args.groups, args.width, args.height)
-        print(f"evaluate, {args.model} {'SegFormer-B0 widths' if args.arch == B0 else 'arch=' + args.arch}, {args.width}x{args.height}, {args.groups} groups x 3 conditions, "
-              f"batch {args.batch}")
-        # forward share: of count_groups' time, the model's forward; decode + counting: the rest of it;
-        # writing: tables.write_outputs (every file of the entry: tables, bootstrap, group counts, label maps),
-        # after count_groups, relative to it
-        print(f"{'workers':>7} {'eval img/s':>10} {'bare img/s':>10} {'ratio':>6} {'forward share':>13} "
-              f"{'decode+count':>12} {'writing':>8}")
-        for workers in sorted({0, args.workers}):
-            t = measure(root, Path(tmp) / f"cache{workers}", args.model, workers, args.batch, args.arch)
-            n = t["images"]
-            ev_ips, bare_ips = n / t["evaluate"], n / t["bare"]
-            other = max(t["evaluate"] - t["forward"], 0.0)
-            print(f"{workers:>7} {ev_ips:>10.2f} {bare_ips:>10.2f} {ev_ips / bare_ips:>6.2f} "
-                  f"{t['forward'] / t['evaluate']:>13.1%} {other / t['evaluate']:>12.1%} {t['write'] / t['evaluate']:>8.1%}")
+        make_release_dataset(root, args.groups, args.width, args.height, args.conditions, args.jobs)
+        arch = "SegFormer-B0 widths" if args.arch == B0 else f"arch={args.arch}"
+        print(f"evaluate, {args.model} {arch}, {args.width}x{args.height}, {args.groups} groups x {args.conditions} "
+              f"conditions, batch {args.batch}, {args.device} {args.amp or 'fp32'}")
+        print(HEADER)
+        kw = dict(device=args.device, amp=args.amp, model_batch=args.model_batch, full=args.full,
+                  conditions=args.conditions, extra=args.set)
+        cuda = args.device.startswith("cuda")
+        for workers in ([args.workers] if cuda else sorted({0, int(args.workers)})):
+            r = measure_child(root, Path(tmp) / f"cache{workers}", args.model, workers, args.batch, args.arch, **kw)
+            print(row(workers, r) + (f"  peak GPU {r['stage_peak_gpu_mb']:.0f} MB" if cuda else ""), flush=True)
+            if args.json:
+                with open(args.json, "a") as f:
+                    f.write(json.dumps(r, default=float) + "\n")
         rss = []
         for n in args.memory:
             r = Path(tmp) / f"mem{n}"
-            make_release_dataset(r, n, args.width, args.height)
-            rss.append((n, measure(r, Path(tmp) / f"cmem{n}", args.model, 0, args.batch, args.arch)["peak_rss_mb"]))
+            make_release_dataset(r, n, args.width, args.height, args.conditions, args.jobs)
+            rss.append((n, measure_child(r, Path(tmp) / f"cmem{n}", args.model, 0, args.batch, args.arch,
+                                         **kw)["peak_rss_mb"]))
         for n, mb in rss:
             print(f"peak RSS with {n} groups: {mb:.0f} MB")
         if len(rss) >= 2:

@@ -242,3 +242,16 @@ def test_a_nan_model_is_reported_once_at_the_end_of_the_stage_not_per_batch():
     with pytest.raises(ModelError, match="outputs are not finite"):
         seg.check_finite()
     seg.check_finite()  # read and reset
+
+
+@pytest.mark.parametrize("levels", [3, 16, None])
+def test_max_and_label_is_torch_max_with_its_tie_breaking(levels):
+    """The first maximal class on ties, as torch.max returns it (quantised scores tie often)."""
+    from pairedgta.models.base import max_and_label
+
+    g = torch.Generator().manual_seed(levels or 0)
+    x = torch.rand(2, NUM_CLASSES, 33, 47, generator=g)
+    x = (x * levels).round() / levels if levels else x.softmax(1)
+    conf, labels = max_and_label(x)
+    values, indices = x.max(dim=1)
+    assert labels.dtype == torch.uint8 and torch.equal(conf, values) and torch.equal(labels.long(), indices)

@@ -121,9 +121,9 @@ class Segmenter(abc.ABC):
         labels, confidence, entropies = [], [], []
         with torch.inference_mode():
             for probs in self._chunks(images):
-                conf, lab = probs.max(dim=1)
+                conf, lab = max_and_label(probs)
                 self._note_finite(conf)
-                labels.append(lab.to(torch.uint8) if self.num_classes <= 256 else lab)
+                labels.append(lab)
                 confidence.append(conf)
                 if entropy:
                     entropies.append(normalised_entropy_(probs))  # probs is ours and not needed after this
@@ -187,6 +187,21 @@ def to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
     if device.type == "cuda" and tensor.device.type == "cpu" and not tensor.is_pinned():
         tensor = tensor.pin_memory()
     return tensor.to(device, non_blocking=True)
+
+
+def max_and_label(probs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`probs.max(dim=1)` as (values, uint8 indices), the first maximal class on ties as torch.max returns it:
+    the maximum by `amax` and the class as the highest of the weights K - k where p_k equals it. On the CPU
+    max-with-indices over the class axis is a scalar loop (7x amax's time here); these are vector passes. A pixel
+    whose maximum is NaN gets label K (no class); check_finite reports it."""
+    k = probs.shape[1]
+    if k > 255:
+        conf, labels = probs.max(dim=1)
+        return conf, labels
+    conf = probs.amax(dim=1, keepdim=True)
+    weights = torch.arange(k, 0, -1, dtype=torch.uint8, device=probs.device).view(1, k, *([1] * (probs.ndim - 2)))
+    first = ((probs == conf) * weights).amax(dim=1)
+    return conf.squeeze(1), torch.sub(k, first, out=first)
 
 
 def _cat(parts: list[torch.Tensor]) -> torch.Tensor:

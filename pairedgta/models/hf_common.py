@@ -143,8 +143,10 @@ class Preprocessor:
         th, tw = target_size(self.size, h, w)
         if (th, tw) != (h, w):
             images = F.interpolate(images, size=(th, tw), mode="bilinear", align_corners=False, antialias=True)
-        mean, std = self.mean.to(images), self.std.to(images)
-        return (images - mean) / std
+        if self.mean.device != images.device or self.mean.dtype != images.dtype:
+            # once, not per batch: a copy from pageable host memory would wait for the GPU's queue
+            self.mean, self.std = self.mean.to(images), self.std.to(images)
+        return (images - self.mean) / self.std
 
     def pad(self, x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
         h, w = x.shape[-2:]

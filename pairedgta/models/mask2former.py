@@ -31,7 +31,8 @@ class Mask2FormerSegmenter(Segmenter):
         out = self.module(pixel_values=x)
         cls = out.class_queries_logits.float().softmax(dim=-1)[..., :-1]
         masks = out.masks_queries_logits.float().sigmoid()
-        sem = torch.einsum("bqk,bqhw->bkhw", cls, masks)
+        # under model.amp the einsum runs in bf16/fp16; the distribution is upsampled and normalised in float32
+        sem = torch.einsum("bqk,bqhw->bkhw", cls, masks).float()
         sem = F.interpolate(sem, size=x.shape[-2:], mode="bilinear", align_corners=False)[..., :h, :w]
         sem = F.interpolate(sem, size=images.shape[-2:], mode="bilinear", align_corners=False)
         return sem / sem.sum(dim=1, keepdim=True).clamp_min(1e-6)
