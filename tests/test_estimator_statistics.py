@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pairedgta.metrics.estimators import permutation_pvalue
+from pairedgta.metrics.estimator_study import permutation_pvalue
 from pairedgta.metrics.validity import spearman_rows
 
 
@@ -129,7 +129,8 @@ def test_differences_are_paired_on_the_same_scene_and_model_draws():
     sys.path.insert(0, str(Path(__file__).parent))
     from test_estimators import K, _synthetic
 
-    from pairedgta.metrics.estimators import ESTIMATORS, compare
+    from pairedgta.metrics.estimators import ESTIMATORS
+    from pairedgta.metrics.estimator_study import compare
     from pairedgta.metrics.inference import holm
 
     groups, counts, agree, scored = _synthetic([f"m{i}" for i in range(6)], n_groups=10, seed=11)
@@ -156,7 +157,7 @@ PAPER_ADVERSE = ["Day-RAIN", "Day-FOGGY", "Sunset-EXTRASUNNY", "Sunset-RAIN", "S
 
 
 def test_illumination_folds_of_the_paper_grid():
-    from pairedgta.metrics.estimators import illumination_folds
+    from pairedgta.metrics.estimator_study import illumination_folds
 
     assert illumination_folds(PAPER_ADVERSE) == {"Day": [0, 1], "Sunset": [2, 3, 4], "Night": [5, 6, 7]}
     assert illumination_folds(["fog_0.5", "fog_1.0"]) == {}          # a ladder: no time of day
@@ -167,7 +168,7 @@ def test_leaving_an_illumination_out_removes_the_sibling_conditions_from_the_fit
     """y = x under Day and Sunset, y = x - 0.5 at night. Left out with its sibling night conditions, night is
     predicted from the day/sunset line y = x: an error of exactly 0.5 on every night cell. Leaving one
     night condition out keeps its siblings in the fit, which pulls the line toward them: a smaller error."""
-    from pairedgta.metrics.estimators import holdout_mae, illumination_folds, loco_mae
+    from pairedgta.metrics.estimator_study import holdout_mae, illumination_folds, loco_mae
 
     rng = np.random.default_rng(0)
     x = rng.random((5, 8))
@@ -197,7 +198,7 @@ def test_loco_and_loio_maes_come_with_intervals():
     sys.path.insert(0, str(Path(__file__).parent))
     from test_estimators import K, _synthetic
 
-    from pairedgta.metrics.estimators import compare
+    from pairedgta.metrics.estimator_study import compare
 
     conds = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Sunset-RAIN", "Night-EXTRASUNNY", "Night-RAIN")
     groups, counts, agree, scored = _synthetic([f"m{i}" for i in range(6)], n_groups=10, seed=2, conds=conds)

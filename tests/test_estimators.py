@@ -12,9 +12,9 @@ import pytest
 
 from pairedgta import schema
 from pairedgta.errors import ConfigError
-from pairedgta.metrics.estimators import (ESTIMATORS, TARGETS, EstimatorCounts, atc, atc_threshold, compare,
-                                          estimator_values, committee_agreement, loco_mae, model_draws, pairwise_agreement,
-                                          permutation_pvalue, ranked_models)
+from pairedgta.metrics.estimators import (ESTIMATORS, TARGETS, EstimatorCounts, atc, atc_threshold, estimator_values,
+                                          committee_agreement, pairwise_agreement)
+from pairedgta.metrics.estimator_study import compare, loco_mae, model_draws, permutation_pvalue, ranked_models
 from pairedgta.metrics.validity import GroupCounts
 
 K, B = 19, 1000

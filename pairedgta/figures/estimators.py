@@ -29,8 +29,9 @@ from pairedgta.figures.inputs import Passes
 from pairedgta.figures.validity import FIX, evaluated_on_every_pass, references
 from pairedgta.metrics import mean_mask
 from pairedgta.metrics.conventions import convention_from_config
-from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, PAIR_COLUMNS, TARGETS, USES_CLEAN_LABELS,
-                                          EstimatorCounts, compare, concat_counts, pairwise_agreement, ranked_models)
+from pairedgta.metrics.estimator_study import PAIR_COLUMNS, compare, ranked_models
+from pairedgta.metrics.estimators import (COUNT_ARRAYS, ESTIMATORS, MIN_RANKED, TARGETS, USES_CLEAN_LABELS, EstimatorCounts,
+                                          concat_counts, pairwise_agreement)
 from pairedgta.metrics.validity import GroupCounts, concat_groups
 
 NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel": "relative AC", "doc": "DoC",

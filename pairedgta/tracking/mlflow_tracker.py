@@ -30,30 +30,13 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
 
 from pairedgta.errors import ConfigError, Terminated
-from pairedgta.jsonio import dumps
 from pairedgta.tracking import journal as journals
-from pairedgta.tracking.naming import RUN_COLOR_TAG, TAG, model_run_color
+from pairedgta.tracking.naming import RUN_COLOR_TAG, TAG, clean_metric_name, flatten, model_run_color
 from pairedgta.tracking.recorder import hydra_record
-from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, owner_tags, probe_server,
-                                      probe_sqlite, shorten_sqlite_waits, store_lock)
+from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, ensure_experiment, owner_tags,
+                                      probe_server, probe_sqlite, shorten_sqlite_waits, store_lock)
 
 log = logging.getLogger("pairedgta.tracking")
-
-
-def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            out.update(flatten(v, f"{prefix}{k}."))
-    elif isinstance(d, (list, tuple)):
-        out[prefix.rstrip(".")] = dumps(d)
-    else:
-        out[prefix.rstrip(".")] = d
-    return out
-
-
-def _clean_metric_name(name: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "_-./ " else "_" for ch in name)
 
 
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
@@ -237,18 +220,7 @@ class Tracker:
         """The id of experiment `name` in this store, created (as `_connect` creates the run's) if missing."""
         if name == self.experiment and getattr(self, "experiment_id", None) is not None:
             return str(self.experiment_id)
-        with store_lock(self.uri):
-            found = self.client.get_experiment_by_name(name)
-            if found is not None:
-                return str(found.experiment_id)
-            try:
-                return str(self.client.create_experiment(name, artifact_location=artifact_location(self.uri, name),
-                                                         tags=dict([EXPERIMENT_KIND])))
-            except self.mlflow.exceptions.MlflowException:  # another job created it first
-                found = self.client.get_experiment_by_name(name)
-                if found is None:
-                    raise
-                return str(found.experiment_id)
+        return ensure_experiment(self.client, self.uri, name, dict([EXPERIMENT_KIND]))
 
     def _log_table(self, frame: Any, artifact_file: str, run_id: str) -> None:
         if isinstance(self.client, journals.JournalClient):
@@ -387,7 +359,7 @@ class Tracker:
     def metrics(self, metrics: dict[str, float]) -> None:
         if not self.enabled:
             return
-        clean = {_clean_metric_name(k): float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
+        clean = {clean_metric_name(k): float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
         if clean:
             from mlflow.entities import Metric
 

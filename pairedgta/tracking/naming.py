@@ -44,3 +44,23 @@ def model_run_color(model: str) -> str:
     from pairedgta.figures.model_colors import model_color_hex
 
     return model_color_hex(model)
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings as dotted keys (MLflow parameters); a list is one JSON value."""
+    from pairedgta.jsonio import dumps
+
+    out: dict[str, Any] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    elif isinstance(d, (list, tuple)):
+        out[prefix.rstrip(".")] = dumps(d)
+    else:
+        out[prefix.rstrip(".")] = d
+    return out
+
+
+def clean_metric_name(name: str) -> str:
+    """What MLflow accepts in a metric key: anything else becomes `_`."""
+    return "".join(ch if ch.isalnum() or ch in "_-./ " else "_" for ch in name)

@@ -131,6 +131,22 @@ def shorten_sqlite_waits() -> None:
     _short_waits_installed = True
 
 
+def ensure_experiment(client: Any, uri: str, name: str, tags: dict[str, str]) -> str:
+    """The id of experiment `name` in `client`'s store, created (artifacts beside a sqlite store) if missing;
+    parallel jobs take turns (`store_lock`), and one that loses a race to create it takes the winner's."""
+    with store_lock(uri):
+        found = client.get_experiment_by_name(name)
+        if found is not None:
+            return str(found.experiment_id)
+        try:
+            return str(client.create_experiment(name, artifact_location=artifact_location(uri, name), tags=tags))
+        except Exception:  # another job (another host) created it first
+            found = client.get_experiment_by_name(name)
+            if found is None:
+                raise
+            return str(found.experiment_id)
+
+
 # -- who owns a run: a RUNNING run whose process is gone was left by a kill -9 ----------------------------
 def process_start(pid: int) -> str:
     """Start time of process `pid` in clock ticks since boot (tells a reused pid apart), '' if unknown."""
