@@ -287,7 +287,10 @@ def build_network(cfg: dict) -> torch.nn.Module:
         return SegformerForSemanticSegmentation(config)
     import importlib
 
-    return importlib.import_module(f"pairedgta.models.{family}").build_module({"name": cfg["model_name"], **arch})
+    from pairedgta.models import checkpoint
+
+    architecture = importlib.import_module(f"pairedgta.models.{family}").architecture
+    return checkpoint.build_network(architecture, {"name": cfg["model_name"], **arch})
 
 
 def logits_of(model: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:

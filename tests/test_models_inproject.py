@@ -20,6 +20,7 @@ from pairedgta.errors import ModelError
 from pairedgta.configs import CONFIG_DIR
 from pairedgta.models import build_segmenter, model_config
 from pairedgta.models import ddrnet, deeplabv3plus, pidnet
+from pairedgta.models.checkpoint import build_network
 
 # names/shapes of the official training graphs (a copy of the shared reference, kept with the tests)
 KEYS_FILE = Path(__file__).parent / "data" / "official_checkpoint_keys.json"
@@ -71,7 +72,7 @@ def shapes_of(module: torch.nn.Module) -> dict[str, list[int]]:
 def meta_graph(family: str, *, augment: bool) -> torch.nn.Module:
     arch, full, _, _ = FAMILIES[family]
     with torch.device("meta"):
-        return arch.build_module(model_config(full), augment=augment)
+        return build_network(arch.architecture, model_config(full), augment=augment)
 
 
 def diff_report(got: dict, expected: dict) -> str:
@@ -137,7 +138,7 @@ def golden_input() -> torch.Tensor:
 
 def tiny_training_weights(family: str, seed: int = 123) -> dict[str, torch.Tensor]:
     arch, _, tiny, _ = FAMILIES[family]
-    return fake_weights(shapes_of(arch.build_module(model_config(tiny), augment=True)), seed)
+    return fake_weights(shapes_of(build_network(arch.architecture, model_config(tiny), augment=True)), seed)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -162,7 +163,7 @@ def test_inference_graph_is_official_minus_training_heads(family, official_keys)
 
 @pytest.mark.parametrize("family", FAMILIES)
 def test_forward_matches_the_official_implementation(family):
-    module = FAMILIES[family][0].build_module(GOLDEN_CFG[family]).eval()
+    module = build_network(FAMILIES[family][0].architecture, GOLDEN_CFG[family]).eval()
     module.load_state_dict(fake_weights(shapes_of(module), seed=GOLDEN_SEED), strict=True)
     with torch.inference_mode():
         logits = module(golden_input())
@@ -179,7 +180,7 @@ def test_dilated_timm_backbone_matches_torchvision_semantics():
         torch.manual_seed(0)
         reference = TvResNet(TvBottleneck, [1, 1, 1, 2], replace_stride_with_dilation=[False, False, True]).eval()
         x = torch.randn(1, 3, 80, 96)
-    mine = deeplabv3plus.DeepLabV3Plus(layers=(1, 1, 1, 2)).backbone.eval()
+    mine = build_network(deeplabv3plus.architecture, {"layers": [1, 1, 1, 2]}).backbone.eval()
     mine.load_state_dict({k: v for k, v in reference.state_dict().items() if not k.startswith("fc.")}, strict=True)
     with torch.no_grad():
         ref = reference.layer4(reference.layer3(reference.layer2(reference.layer1(

@@ -4,8 +4,10 @@
 search path (or takes an already composed config), applies overrides, parses the options every family
 shares once (`RuntimeOptions`: device, batch_size, amp, channels_last, compile) and calls the family's
 builder with the remaining keys as keyword arguments plus `runtime`; as in timm, a family declares only
-its own arguments, with their defaults in its builder's signature. Architecture modules know nothing
-about Hydra.
+its own arguments, with their defaults in its builder's signature. The in-project families share one
+builder (pairedgta/models/checkpoint.py: build_inproject, timm's build_model_with_cfg): such a family's
+module declares only its `architecture` arguments (and its PRETRAINED defaults of the shared input options),
+and one registry line below names it. Architecture modules know nothing about Hydra.
 
 Inside `run_models()` (one run of the app) `shared_segmenter` builds each distinct model config once:
 pseudo-labelling, evaluation and the qualitative figure use the same loaded model."""
@@ -26,12 +28,14 @@ from pairedgta.registry import Registry, accepted_keys
 # The input options of the in-project families (pairedgta/models/checkpoint.py: build_inproject); like the
 # runtime options, every config of such a family has them (its YAML only where it differs from the default).
 IN_PROJECT_OPTIONS = ("random_init", "init_seed", "mean", "std", "pad_multiple", "upsample_align_corners")
+# An in-project family: its module's `architecture`, built through the shared builder (pairedgta/registry.py: via).
+IN_PROJECT = {"via": "pairedgta.models.checkpoint:build_inproject", "filled": IN_PROJECT_OPTIONS}
 FAMILIES = Registry("model family", "model.family")
 FAMILIES.register("segformer", "pairedgta.models.segformer:build")
 FAMILIES.register("mask2former", "pairedgta.models.mask2former:build")
-FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:build", filled=IN_PROJECT_OPTIONS)
-FAMILIES.register("pidnet", "pairedgta.models.pidnet:build", filled=IN_PROJECT_OPTIONS)
-FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:build", filled=IN_PROJECT_OPTIONS)
+FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:architecture", **IN_PROJECT)
+FAMILIES.register("pidnet", "pairedgta.models.pidnet:architecture", **IN_PROJECT)
+FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:architecture", **IN_PROJECT)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")
 _RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
@@ -51,8 +55,9 @@ def model_config(name: str, **overrides: Any) -> dict[str, Any]:
 
 def with_defaults(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """The model config as the stages hash it: a runtime option, or an input option of an in-project family,
-    that the config leaves out takes its one default (RuntimeOptions; the family builder's signature, read
-    without importing torch). So a YAML that omits a default hashes exactly as one that spells it out."""
+    that the config leaves out takes its one default (RuntimeOptions; the family's declared defaults, read from
+    the sources without importing torch: pairedgta/registry.py). So a YAML that omits a default hashes exactly
+    as one that spells it out."""
     out = dict(cfg)
     defaults = runtime_defaults()
     family = out.get("family")

@@ -7,6 +7,7 @@ skipped block would still produce plausible-looking but wrong predictions.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -17,7 +18,7 @@ import torch.nn.functional as F
 
 from pairedgta.errors import ModelError, reason
 from pairedgta.models.base import Segmenter
-from pairedgta.models.runtime import RuntimeOptions
+from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,7 @@ def load_checkpoint_strict(
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Shared by deeplabv3plus / pidnet / ddrnet: normalisation, padding and the config handling of `build`.
+# The shared builder of the in-project families (deeplabv3plus / pidnet / ddrnet): normalisation, padding, weights.
 
 
 class NormalizedSegmenter(Segmenter):
@@ -197,39 +198,46 @@ class NormalizedSegmenter(Segmenter):
         return self._logits(images).softmax(dim=1)
 
 
-def build_inproject(
-    cfg: Mapping[str, Any],
-    make_module: Callable[[], torch.nn.Module],
-    runtime: RuntimeOptions,
-    *,
-    training_only_prefixes: Iterable[str] = (),
-    checkpoint_file: str,
-    checkpoint_source: str,
-) -> NormalizedSegmenter:
-    """Common `build` body of the in-project families (cfg: the builder's keyword arguments, defaults filled
-    in by its signature, checked by pairedgta/models/__init__.py: check_model_config): seed, construct, load
-    weights, wrap."""
-    name = str(cfg.get("name") or cfg.get("family"))
+def build_network(architecture: Callable[..., torch.nn.Module], cfg: Mapping[str, Any], *,
+                  augment: bool = False) -> torch.nn.Module:
+    """The network a model config describes: a family's `architecture(name, augment, *, <its keys>)` called with
+    the keys `cfg` sets (a missing one takes the architecture's default; any other key, e.g. an input option, is
+    not the architecture's). `augment=True` adds the training-only heads (experiments/train_demo_model.py)."""
+    keys = [p.name for p in inspect.signature(architecture).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    return architecture(cfg.get("name"), augment, **{k: cfg[k] for k in keys if k in cfg})
 
-    checkpoint_path = cfg.get("checkpoint_path")
-    if not checkpoint_path and not cfg.get("random_init", False):
-        file = cfg.get("checkpoint_file") or checkpoint_file
-        source = cfg.get("checkpoint_source") or checkpoint_source
+
+def build_inproject(
+    architecture: Callable[..., torch.nn.Module], /, *, name: str, family: str, checkpoint_path: str | None = None,
+    checkpoint_file: str | None = None, checkpoint_source: str | None = None, random_init: bool = False,
+    init_seed: int | None = None, mean: list = IMAGENET_MEAN, std: list = IMAGENET_STD, pad_multiple: int = 1,
+    upsample_align_corners: bool = False, runtime: RuntimeOptions, **arch: Any,
+) -> NormalizedSegmenter:
+    """The one builder of the in-project families (timm's build_model_with_cfg; each family is registered `via`
+    it in pairedgta/models/__init__.py). Its keyword arguments are the input options every such family has, with
+    their one default (a family's module may set its own in `PRETRAINED`, e.g. pidnet's upsample_align_corners);
+    `arch` are the keyword-only arguments of the family's `architecture`, defaults filled in by the registry
+    (pairedgta/registry.py), checked by pairedgta/models/__init__.py: check_model_config. From the family's module
+    it reads its released weights (CHECKPOINT_FILE, CHECKPOINT_SOURCE) and TRAINING_ONLY_PREFIXES.
+    Seeds, constructs, loads the weights strictly, wraps."""
+    name = str(name or family)
+    family_module = inspect.getmodule(architecture)
+    if not checkpoint_path and not random_init:
+        file = checkpoint_file or family_module.CHECKPOINT_FILE
+        source = checkpoint_source or family_module.CHECKPOINT_SOURCE
         raise ModelError(
             f"model '{name}' needs its released weights ({file}; published at {source}); "
             f"download them and set model.checkpoint_path=<path to the file>"
         )
-
-    seed = cfg.get("init_seed")
     with torch.random.fork_rng(devices=[]):
-        if seed is not None:
-            torch.manual_seed(int(seed))
-        module = make_module()
+        if init_seed is not None:
+            torch.manual_seed(int(init_seed))
+        module = architecture(name, False, **arch)
     if checkpoint_path:
-        load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=training_only_prefixes, model_name=name)
-    return NormalizedSegmenter(name, module, mean=[float(v) for v in cfg["mean"]], std=[float(v) for v in cfg["std"]],
-                               pad_multiple=cfg["pad_multiple"], align_corners=cfg["upsample_align_corners"],
-                               runtime=runtime)
+        load_checkpoint_strict(module, checkpoint_path, training_only_prefixes=family_module.TRAINING_ONLY_PREFIXES,
+                               model_name=name)
+    return NormalizedSegmenter(name, module, mean=[float(v) for v in mean], std=[float(v) for v in std],
+                               pad_multiple=pad_multiple, align_corners=upsample_align_corners, runtime=runtime)
 
 
-__all__ = ["load_checkpoint_strict", "read_state_dict", "NormalizedSegmenter", "build_inproject"]
+__all__ = ["load_checkpoint_strict", "read_state_dict", "NormalizedSegmenter", "build_network", "build_inproject"]

@@ -5,7 +5,7 @@ layout. Module attribute names and Sequential indices are load-bearing: they are
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -13,13 +13,15 @@ from torch import nn
 
 from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError
-from pairedgta.models.base import Segmenter
-from pairedgta.models.checkpoint import build_inproject
-from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
+# The released weights (pairedgta/models/checkpoint.py: build_inproject names them when a config gives none).
 TRAINING_ONLY_PREFIXES = ("seghead_extra.",)
 CHECKPOINT_FILE = "the DDRNet_23 Cityscapes weights, val mIoU 79.5"
 CHECKPOINT_SOURCE = "github.com/ydhongHIT/DDRNet, README section Pretrained models / Cityscapes (Google Drive)"
+# The input they expect, where it differs from the shared input options' defaults (build_inproject's signature),
+# as timm's pretrained_cfg. upsample_align_corners keeps the shared false: the authors keep align_corners=False
+# everywhere for their weights.
+PRETRAINED = {"pad_multiple": 32}
 
 
 def resize(x: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
@@ -169,8 +171,8 @@ class DDRNet(nn.Module):
     """Dual-resolution network; returns 1/8-resolution logits. `augment=True` adds the training-only head
     (`seghead_extra`) so the training layout can be compared with the released file; forward never runs it."""
 
-    def __init__(self, layers: Sequence[int] = (2, 2, 2, 2), num_classes: int = NUM_CLASSES, planes: int = 64,
-                 spp_planes: int = 128, head_planes: int = 128, augment: bool = False) -> None:
+    def __init__(self, *, layers: Sequence[int], planes: int, spp_planes: int, head_planes: int,
+                 num_classes: int = NUM_CLASSES, augment: bool = False) -> None:
         super().__init__()
         high = planes * 2
         self.conv1 = stem(planes)
@@ -215,35 +217,13 @@ class DDRNet(nn.Module):
         return self.final_layer(x + hi)
 
 
-def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> DDRNet:
-    layers = list(cfg.get("layers", (2, 2, 2, 2)))
+def architecture(name: str | None, augment: bool, *, layers: list = (2, 2, 2, 2), planes: int = 64,
+                 spp_planes: int = 128, head_planes: int = 128) -> DDRNet:
+    """The keyword-only arguments are this family's architecture keys in a pairedgta/conf/model YAML, with their
+    one default (DDRNet-23); the input options and the weights come from the shared builder
+    (pairedgta/models/checkpoint.py: build_inproject, build_network)."""
+    layers = list(layers)
     if len(layers) != 4:
-        raise ConfigError(f"model '{cfg.get('name')}': layers must list 4 block counts, got {layers}")
-    return DDRNet(
-        layers=layers,
-        planes=int(cfg.get("planes", 64)),
-        spp_planes=int(cfg.get("spp_planes", 128)),
-        head_planes=int(cfg.get("head_planes", 128)),
-        augment=augment,
-    )
-
-
-def build(
-    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
-    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
-    mean: list = IMAGENET_MEAN, std: list = IMAGENET_STD, pad_multiple: int = 32, upsample_align_corners: bool = False,
-    layers: list = (2, 2, 2, 2), planes: int = 64, spp_planes: int = 128, head_planes: int = 128,
-    runtime: RuntimeOptions,
-) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family, with their one default (the
-    input options first, then the architecture); how it runs comes parsed in `runtime` (pairedgta/models/runtime.py)."""
-    # upsample_align_corners: the authors keep align_corners=False everywhere for their weights
-    cfg = dict(locals())
-    return build_inproject(
-        cfg,
-        lambda: build_module(cfg),
-        runtime,
-        training_only_prefixes=TRAINING_ONLY_PREFIXES,
-        checkpoint_file=CHECKPOINT_FILE,
-        checkpoint_source=CHECKPOINT_SOURCE,
-    )
+        raise ConfigError(f"model '{name}': layers must list 4 block counts, got {layers}")
+    return DDRNet(layers=layers, planes=int(planes), spp_planes=int(spp_planes), head_planes=int(head_planes),
+                  augment=augment)

@@ -5,7 +5,7 @@ layer4 keeps dilation 1 and the others use 2, as torchvision's `replace_stride_w
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -14,10 +14,9 @@ from torch import nn
 
 from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError
-from pairedgta.models.base import Segmenter
-from pairedgta.models.checkpoint import build_inproject
-from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
+# The released weights (pairedgta/models/checkpoint.py: build_inproject names them when a config gives none); the
+# input they expect is the shared input options' defaults (no padding, align_corners=False): no PRETRAINED here.
 TRAINING_ONLY_PREFIXES: tuple[str, ...] = ()
 CHECKPOINT_FILE = "best_deeplabv3plus_resnet101_cityscapes_os16.pth"
 CHECKPOINT_SOURCE = "github.com/VainF/DeepLabV3Plus-Pytorch, README section Cityscapes pretrained models"
@@ -40,7 +39,7 @@ class ASPPPooling(nn.Sequential):
 
 
 class ASPP(nn.Module):
-    def __init__(self, cin: int, rates: Sequence[int], channels: int = 256) -> None:
+    def __init__(self, cin: int, rates: Sequence[int], channels: int) -> None:
         super().__init__()
         branches: list[nn.Module] = [nn.Sequential(*_conv_bn_relu(cin, channels))]
         branches += [nn.Sequential(*_conv_bn_relu(cin, channels, 3, rate)) for rate in rates]
@@ -55,9 +54,8 @@ class ASPP(nn.Module):
 class DeepLabV3PlusHead(nn.Module):
     """ASPP on the deep features, concatenated with a 1x1 projection of the stride-4 features, then 3x3 + 1x1."""
 
-    def __init__(self, in_channels: int, low_level_in: int, num_classes: int = NUM_CLASSES,
-                 rates: Sequence[int] = (6, 12, 18), aspp_channels: int = 256, low_level_channels: int = 48,
-                 decoder_channels: int = 256) -> None:
+    def __init__(self, in_channels: int, low_level_in: int, num_classes: int, rates: Sequence[int], aspp_channels: int,
+                 low_level_channels: int, decoder_channels: int) -> None:
         super().__init__()
         self.project = nn.Sequential(*_conv_bn_relu(low_level_in, low_level_channels))
         self.aspp = ASPP(in_channels, rates, aspp_channels)
@@ -75,10 +73,9 @@ class DeepLabV3PlusHead(nn.Module):
 class DeepLabV3Plus(nn.Module):
     """Returns stride-4 logits; `backbone.*` and `classifier.*` are the released checkpoint's key prefixes."""
 
-    def __init__(self, layers: Sequence[int] = (3, 4, 23, 3), channels: Sequence[int] = (64, 128, 256, 512),
-                 output_stride: int = 16, num_classes: int = NUM_CLASSES,
-                 rates: Sequence[int] = (6, 12, 18), aspp_channels: int = 256, low_level_channels: int = 48,
-                 decoder_channels: int = 256) -> None:
+    def __init__(self, *, layers: Sequence[int], channels: Sequence[int], output_stride: int, rates: Sequence[int],
+                 aspp_channels: int, low_level_channels: int, decoder_channels: int,
+                 num_classes: int = NUM_CLASSES) -> None:
         super().__init__()
         self.backbone = ResNet(
             Bottleneck, tuple(layers), channels=tuple(channels), output_stride=output_stride, num_classes=0, global_pool="",
@@ -97,46 +94,21 @@ class DeepLabV3Plus(nn.Module):
         return self.classifier(low_level, deep)
 
 
-def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> DeepLabV3Plus:
-    """`augment` is accepted for symmetry with the other families: this graph has no training-only heads."""
-    name = cfg.get("name")
-    layers = list(cfg.get("layers", (3, 4, 23, 3)))
-    channels = list(cfg.get("backbone_channels", (64, 128, 256, 512)))
-    rates = list(cfg.get("aspp_rates", (6, 12, 18)))
+def architecture(name: str | None, augment: bool, *, layers: list = (3, 4, 23, 3),
+                 backbone_channels: list = (64, 128, 256, 512), output_stride: int = 16, aspp_rates: list = (6, 12, 18),
+                 aspp_channels: int = 256, low_level_channels: int = 48, decoder_channels: int = 256) -> DeepLabV3Plus:
+    """The keyword-only arguments are this family's architecture keys in a pairedgta/conf/model YAML, with their
+    one default (ResNet-101, output stride 16); the input options and the weights come from the shared builder
+    (pairedgta/models/checkpoint.py: build_inproject, build_network). `augment` is accepted for symmetry with the
+    other families: this graph has no training-only heads."""
+    layers, channels, rates = list(layers), list(backbone_channels), list(aspp_rates)
     if len(layers) != 4 or len(channels) != 4:
         raise ConfigError(f"model '{name}': layers and backbone_channels must each list 4 values")
     if len(rates) != 3:
         raise ConfigError(f"model '{name}': aspp_rates must list 3 dilation rates, got {rates}")
-    output_stride = int(cfg.get("output_stride", 16))
+    output_stride = int(output_stride)
     if output_stride not in (8, 16, 32):
         raise ConfigError(f"model '{name}': output_stride must be 8, 16 or 32, got {output_stride}")
-    return DeepLabV3Plus(
-        layers=layers,
-        channels=channels,
-        output_stride=output_stride,
-        rates=rates,
-        aspp_channels=int(cfg.get("aspp_channels", 256)),
-        low_level_channels=int(cfg.get("low_level_channels", 48)),
-        decoder_channels=int(cfg.get("decoder_channels", 256)),
-    )
-
-
-def build(
-    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
-    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
-    mean: list = IMAGENET_MEAN, std: list = IMAGENET_STD, pad_multiple: int = 1, upsample_align_corners: bool = False,
-    layers: list = (3, 4, 23, 3), backbone_channels: list = (64, 128, 256, 512), output_stride: int = 16,
-    aspp_rates: list = (6, 12, 18), aspp_channels: int = 256, low_level_channels: int = 48, decoder_channels: int = 256,
-    runtime: RuntimeOptions,
-) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family, with their one default (the
-    input options first, then the architecture); how it runs comes parsed in `runtime` (pairedgta/models/runtime.py)."""
-    cfg = dict(locals())
-    return build_inproject(
-        cfg,
-        lambda: build_module(cfg),
-        runtime,
-        training_only_prefixes=TRAINING_ONLY_PREFIXES,
-        checkpoint_file=CHECKPOINT_FILE,
-        checkpoint_source=CHECKPOINT_SOURCE,
-    )
+    return DeepLabV3Plus(layers=layers, channels=channels, output_stride=output_stride, rates=rates,
+                         aspp_channels=int(aspp_channels), low_level_channels=int(low_level_channels),
+                         decoder_channels=int(decoder_channels))

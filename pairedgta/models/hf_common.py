@@ -89,7 +89,7 @@ def preprocess_params(cfg: dict[str, Any]) -> dict[str, Any]:
     params: dict[str, Any] = {
         "mean": IMAGENET_MEAN, "std": IMAGENET_STD, "size": None, "size_divisor": cfg.get("size_divisor"),
     }
-    if not cfg.get("random_init") and cfg.get("preprocess", "processor") == "processor":
+    if not cfg["random_init"] and cfg["preprocess"] == "processor":  # cfg: a family builder's arguments
         try:
             from transformers import AutoImageProcessor
 

@@ -49,9 +49,9 @@ def build(
     cfg = dict(locals())
     from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
 
-    if cfg.get("random_init"):
-        torch.manual_seed(int(cfg.get("init_seed", 0)))
-        arch = dict(cfg.get("arch") or {})
+    if random_init:
+        torch.manual_seed(int(init_seed))
+        arch = dict(arch or {})
         backbone = SwinConfig(
             out_features=["stage1", "stage2", "stage3", "stage4"], **dict(arch.pop("backbone", {}) or {})
         )

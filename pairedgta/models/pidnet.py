@@ -5,17 +5,12 @@ gates) and D (boundary at 1/8, whose sigmoid weighs P against I in the final fus
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ConfigError
-from pairedgta.models.base import Segmenter
-from pairedgta.models.checkpoint import build_inproject
-from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 from pairedgta.models.ddrnet import (
     BasicBlock,
     Bottleneck,
@@ -29,9 +24,17 @@ from pairedgta.models.ddrnet import (
     stem,
 )
 
+# The released weights (pairedgta/models/checkpoint.py: build_inproject names them when a config gives none).
 TRAINING_ONLY_PREFIXES = ("seghead_p.", "seghead_d.")
 CHECKPOINT_FILE = "PIDNet_M_Cityscapes_val.pt"
 CHECKPOINT_SOURCE = "github.com/XuJiacong/PIDNet, README section Models / Cityscapes (PIDNet-M, val)"
+# The input they expect, where it differs from the shared input options' defaults (build_inproject's signature),
+# as timm's pretrained_cfg.
+PRETRAINED = {
+    "pad_multiple": 32,
+    # the official evaluation upsamples the 1/8 logits with align_corners=True (its config default ALIGN_CORNERS)
+    "upsample_align_corners": True,
+}
 
 
 class PagFM(nn.Module):
@@ -85,8 +88,8 @@ class PIDNet(nn.Module):
     """Returns 1/8-resolution logits. `augment=True` adds the training-only heads (`seghead_p`, `seghead_d`)
     so the training layout can be compared with the released file; forward never runs them."""
 
-    def __init__(self, m: int = 2, n: int = 3, num_classes: int = NUM_CLASSES, planes: int = 64,
-                 ppm_planes: int = 96, head_planes: int = 128, augment: bool = False) -> None:
+    def __init__(self, *, m: int, n: int, planes: int, ppm_planes: int, head_planes: int,
+                 num_classes: int = NUM_CLASSES, augment: bool = False) -> None:
         super().__init__()
         if m != 2:
             raise ValueError(f"only the m=2 layout (PIDNet-S/M) is implemented, got m={m}")
@@ -141,36 +144,12 @@ class PIDNet(nn.Module):
         return self.final_layer(self.dfm(p, x, d))
 
 
-def build_module(cfg: Mapping[str, Any], *, augment: bool = False) -> PIDNet:
-    if int(cfg.get("m", 2)) != 2:
-        raise ConfigError(f"model '{cfg.get('name')}': m must be 2 (PIDNet-S/M layout; PIDNet-L is not implemented)")
-    return PIDNet(
-        m=int(cfg.get("m", 2)),
-        n=int(cfg.get("n", 3)),
-        planes=int(cfg.get("planes", 64)),
-        ppm_planes=int(cfg.get("ppm_planes", 96)),
-        head_planes=int(cfg.get("head_planes", 128)),
-        augment=augment,
-    )
-
-
-def build(
-    *, name: str, family: str, checkpoint_path: str | None = None, checkpoint_file: str | None = None,
-    checkpoint_source: str | None = None, random_init: bool = False, init_seed: int | None = None,
-    mean: list = IMAGENET_MEAN, std: list = IMAGENET_STD, pad_multiple: int = 32, upsample_align_corners: bool = True,
-    m: int = 2, n: int = 3, planes: int = 64, ppm_planes: int = 96, head_planes: int = 128,
-    runtime: RuntimeOptions,
-) -> Segmenter:
-    """Keyword arguments = the keys of a pairedgta/conf/model YAML of this family, with their one default (the
-    input options first, then the architecture); how it runs comes parsed in `runtime` (pairedgta/models/runtime.py)."""
-    # upsample_align_corners: the official evaluation upsamples the 1/8 logits with align_corners=True
-    # (its config default ALIGN_CORNERS)
-    cfg = dict(locals())
-    return build_inproject(
-        cfg,
-        lambda: build_module(cfg),
-        runtime,
-        training_only_prefixes=TRAINING_ONLY_PREFIXES,
-        checkpoint_file=CHECKPOINT_FILE,
-        checkpoint_source=CHECKPOINT_SOURCE,
-    )
+def architecture(name: str | None, augment: bool, *, m: int = 2, n: int = 3, planes: int = 64, ppm_planes: int = 96,
+                 head_planes: int = 128) -> PIDNet:
+    """The keyword-only arguments are this family's architecture keys in a pairedgta/conf/model YAML, with their
+    one default (PIDNet-M); the input options and the weights come from the shared builder
+    (pairedgta/models/checkpoint.py: build_inproject, build_network)."""
+    if int(m) != 2:
+        raise ConfigError(f"model '{name}': m must be 2 (PIDNet-S/M layout; PIDNet-L is not implemented)")
+    return PIDNet(m=int(m), n=int(n), planes=int(planes), ppm_planes=int(ppm_planes), head_planes=int(head_planes),
+                  augment=augment)

@@ -31,13 +31,13 @@ def build(
     cfg = dict(locals())
     from transformers import SegformerConfig, SegformerForSemanticSegmentation
 
-    if cfg.get("random_init"):
-        torch.manual_seed(int(cfg.get("init_seed", 0)))
+    if random_init:
+        torch.manual_seed(int(init_seed))
         config = SegformerConfig(
             num_labels=len(CLASS_NAMES),
             id2label=dict(enumerate(CLASS_NAMES)),
             label2id={n: i for i, n in enumerate(CLASS_NAMES)},
-            **dict(cfg.get("arch") or {}),
+            **dict(arch or {}),
         )
         model = SegformerForSemanticSegmentation(config)
     else:
