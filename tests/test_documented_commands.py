@@ -204,7 +204,8 @@ def test_the_headline_command_runs_to_its_figure_through_the_console_script(tmp_
     argv = [exe] if exe else [sys.executable, "-m", "pairedgta"]
     args = ["+experiment=night_vs_acdc", f"acdc.root={trees['acdc']}", "models=[tiny_segformer,tiny_mask2former]",
             "reference_model=tiny_segformer", "renderer=synthetic", "region=synthetic_street", "generate.num_scenes=3",
-            "renderer.width=64", "renderer.height=32", "metric.rho.m=2", "plot.formats=[png]", "tracking.enabled=false",
+            "renderer.width=64", "renderer.height=32", "metric.rho.m=2", "plot.formats=[png]", "plot.figures=[ranking]",
+            "tracking.enabled=false",
             f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'run'}"]
     proc = subprocess.run([*argv, *args], cwd=tmp_path, capture_output=True, text=True, timeout=600,
                           env={**__import__("os").environ, **OFFLINE})
