@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from pairedgta.cache import StageCache
 from pairedgta.config_checks import check_run_config
 from pairedgta.models import run_models as loaded_once
+from pairedgta.schema import RunConfig
 from pairedgta.stages import evaluate, planning, plot, pseudolabel
 from pairedgta.tracking import Recorder, dataset_label, open_tracker, run_name
 
@@ -35,7 +36,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     tracker = open_tracker(typed)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
     with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything
-        summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names)
+        summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names, typed)
     return {**summary, "mlflow": tracker.ui_link()}
 
 
@@ -46,14 +47,15 @@ def _log_invocation(tracker: Recorder, container: dict[str, Any]) -> None:
 
 
 def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunModels, cache: StageCache,
-         tracker: Recorder, experiment: str, model_names: list[str]) -> dict[str, Any]:
+         tracker: Recorder, experiment: str, model_names: list[str], typed: RunConfig
+         ) -> dict[str, Any]:
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 
     if plan.check_models:  # Cityscapes val: a check of the models themselves, not a paired run
         from pairedgta.stages import cityscapes_val
 
-        ctx = planning.pass_context(container, cache, plan, results)
+        ctx = planning.pass_context(container, cache, plan, results, typed)
         with tracker.run(run_name(experiment, model_names, [str(container["dataset"].get("name"))])):
             _log_invocation(tracker, container)
             return cityscapes_val.run(ctx, models.evaluated, tracker)
@@ -62,7 +64,7 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
     with tracker.run(run_name(experiment, model_names, [str(c.get("dataset", {}).get("name")) for _, c in configs])):
         _log_invocation(tracker, container)
         for label, pcfg in configs:
-            ctx = planning.pass_context(pcfg, cache, plan, results)
+            ctx = planning.pass_context(pcfg, cache, plan, results, typed if pcfg is container else None)
             p = planning.open_pass(label, ctx, plan, results)
             passes.append((ctx, p))
             if p.dataset is not None:

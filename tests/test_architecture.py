@@ -166,3 +166,18 @@ def test_no_module_over_500_lines():
     long = {p.relative_to(PKG).as_posix(): n for p in PKG.rglob("*.py")
             if "testing" not in p.relative_to(PKG).parts and (n := len(p.read_text().splitlines())) > 500}
     assert not long, long
+
+
+@pytest.mark.slow
+def test_the_config_is_parsed_once_per_pass(tmp_path, monkeypatch):
+    """The typed config (pairedgta/schema.py) is built once by the run's checks and handed down: the planner,
+    the pass's context and its result reuse it (a variant's pass, a config of its own, is parsed once more)."""
+    from pairedgta import schema
+    from pairedgta.app import run
+    from pairedgta.testing.cli import compose_cfg, fast_overrides
+
+    calls = []
+    real = schema.parse
+    monkeypatch.setattr(schema, "parse", lambda cfg, *a, **k: (calls.append(1), real(cfg, *a, **k))[1])
+    run(compose_cfg(fast_overrides(tmp_path) + ["tracking.enabled=false", "plot.figures=[xi_models]"]))
+    assert len(calls) == 1

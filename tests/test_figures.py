@@ -198,7 +198,7 @@ def test_figures_that_key_the_plot_by_their_own_files_say_so_in_their_spec():
 def test_the_plan_reads_what_figures_need_from_their_specs():
     """needs, unless and source decide which stages run; an unknown name is one line listing the known ones."""
     from pairedgta.errors import ConfigError
-    from pairedgta.stages.plot import figures_of, needed_stages
+    from pairedgta.figures import figures_of, needed_stages
 
     assert needed_stages({"plot": {"figures": ["xi_table", "distribution", "cost"]}}) == {"evaluate", "pseudolabel",
                                                                                          "generate"}

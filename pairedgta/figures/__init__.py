@@ -123,3 +123,33 @@ def lookup(cfg: dict[str, Any], dotted: str) -> Any:
 
 
 __all__ = ["FIGURES", "FigureOptions", "FigureSpec", "figure", "lookup"]
+
+
+# -- what a run's figures need: read by the planner before any stage runs ---------------------------
+def sourced(cfg: dict[str, Any]) -> dict[str, str]:
+    """figure -> the config key of the file it is drawn from, for the figures whose key is set."""
+    specs = sorted(FIGURES, key=lambda spec: spec.name)  # by name: the order they are drawn in
+    return {spec.name: spec.source for spec in specs if spec.source and lookup(cfg, spec.source)}
+
+
+def figures_of(cfg: dict[str, Any]) -> list[str]:
+    given = sourced(cfg)
+    if given:  # a user-given file replaces the run's data: only the figures drawn from it
+        return list(given)
+    # the default list has one owner, pairedgta/conf/config.yaml; an empty list draws nothing
+    figures = list((cfg.get("plot") or {}).get("figures") or [])
+    for f in figures:
+        source = figure(f).source  # an unknown name: one line listing the known ones
+        if source:
+            raise ConfigError(f"plot.figures: {f} is drawn from a file of yours; set {source}=PATH (with stages=[plot])")
+    return figures
+
+
+def needed_stages(cfg: dict[str, Any]) -> set[str]:
+    """Which upstream stages the requested figures read (a figure given its own input file needs none)."""
+    needs = set()
+    for f in figures_of(cfg):
+        spec = figure(f)
+        if spec.needs and not (spec.unless and lookup(cfg, spec.unless)):
+            needs.add(spec.needs)
+    return needs

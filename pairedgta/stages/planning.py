@@ -112,18 +112,18 @@ class RunState:
 
 
 def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
-    from pairedgta.stages import plot
+    from pairedgta import figures
 
     stages, force = list(run.stages), set(run.force)
     device = run.device
     if device not in ("cpu", "cuda", "auto") and not device.startswith("cuda:"):
         raise ConfigError(f"device={device!r}; use cpu, cuda or auto")
     check_cuda(device)
-    sourced = plot.sourced(cfg)
+    sourced = figures.sourced(cfg)
     if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
         raise ConfigError(f"{', '.join(sorted(set(sourced.values())))} draws {', '.join(sourced)} from that file and runs no "
                           f"data stage; use stages=[plot] (stages={stages})")
-    needs = plot.needed_stages(cfg) if "plot" in stages else set()
+    needs = figures.needed_stages(cfg) if "plot" in stages else set()
     return Plan(stages, force, needs)
 
 
@@ -226,9 +226,9 @@ def _root_key(container: dict[str, Any], dataset: dict[str, Any], variant: bool)
 def check_roots(container: dict[str, Any]) -> None:
     """Every dataset a pass reads needs a root, before anything is computed: one line naming the key.
     A run that only draws figures from files given to it (plot.table_csv, plot.frame_counts_csv) reads none."""
-    from pairedgta.stages import plot
+    from pairedgta.figures import sourced
 
-    if plot.sourced(container) and list(container.get("stages") or []) == ["plot"]:
+    if sourced(container) and list(container.get("stages") or []) == ["plot"]:
         return
     for _label, cfg in pass_configs(container):
         d = cfg["dataset"]
@@ -254,7 +254,8 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
             f"(+experiment=cityscapes_val_check, stages=[{CHECK_STAGE}]), not {', '.join(plan.stages)}"
         )
     if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
-        return PassResult(label, cfg, grid)  # figures drawn from given files (cost.csv, the authors' CSVs) read no dataset
+        # figures drawn from given files (cost.csv, the authors' CSVs) read no dataset
+        return _typed(PassResult(label, cfg, grid), ctx)
     if dcfg.get("root") is None:
         if plan.models is not None and plan.run_pseudo and generate.will_compute(ctx):
             from pairedgta.models.availability import check_available
@@ -268,18 +269,27 @@ def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> 
                     "generate.shard is set and other shards' scenes are still missing: run the remaining shards, "
                     "then the later stages without generate.shard/num_shards"
                 )
-            return PassResult(label, cfg, grid)
+            return _typed(PassResult(label, cfg, grid), ctx)
         dataset = open_dataset(dcfg, grid, root=gen.path)
-        return PassResult(label, cfg, dataset.grid or grid, dataset, f"generate:{gen.key}", generate=gen)
+        return _typed(PassResult(label, cfg, dataset.grid or grid, dataset, f"generate:{gen.key}", generate=gen), ctx)
     if "generate" in plan.stages:
         log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))
     dataset = open_dataset(dcfg, grid)
-    return PassResult(label, cfg, dataset.grid or grid, dataset, f"external:{dataset.fingerprint()}")
+    return _typed(PassResult(label, cfg, dataset.grid or grid, dataset, f"external:{dataset.fingerprint()}"), ctx)
 
 
-def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any]) -> Context:
-    return Context(cfg=cfg, run=schema.parse(cfg), grid=build_condition_grid(cfg["conditions"]), cache=cache,
-                   stages=plan.stages, force=plan.force, results=results)
+def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any],
+                 run: schema.RunConfig | None = None) -> Context:
+    """`run`: the typed config where the caller has it already (the run's own, for its only pass): the config
+    is parsed once per pass."""
+    typed = run if run is not None else schema.parse(cfg)
+    return Context(cfg=cfg, run=typed, grid=build_condition_grid(cfg["conditions"]), cache=cache, stages=plan.stages,
+                   force=plan.force, results=results)
+
+
+def _typed(result: PassResult, ctx: Context) -> PassResult:
+    result.__dict__["run"] = ctx.run  # PassResult.run (a cached property) is the context's: not parsed again
+    return result
 
 
 __all__ = ["PassResult", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",

@@ -22,8 +22,7 @@ from typing import TYPE_CHECKING, Any
 from tqdm import tqdm
 
 from pairedgta.cache import require_intact
-from pairedgta.errors import ConfigError
-from pairedgta.figures import FIGURES, FigureOptions, figure, lookup
+from pairedgta.figures import FigureOptions, figure, figures_of, sourced
 from pairedgta.jsonio import write_json
 from pairedgta.schema import RunConfig, as_dict
 from pairedgta.stages.common import Context, StageResult, Unsharded, run_cached
@@ -59,35 +58,6 @@ class Figures(StageResult):
     def metrics(self) -> dict[str, float]:
         path = self.path / "metrics.json"
         return json.loads(path.read_text()) if path.is_file() else {}
-
-
-def sourced(cfg: dict[str, Any]) -> dict[str, str]:
-    """figure -> the config key of the file it is drawn from, for the figures whose key is set."""
-    specs = sorted(FIGURES, key=lambda spec: spec.name)  # by name: the order they are drawn in
-    return {spec.name: spec.source for spec in specs if spec.source and lookup(cfg, spec.source)}
-
-
-def figures_of(cfg: dict[str, Any]) -> list[str]:
-    given = sourced(cfg)
-    if given:  # a user-given file replaces the run's data: only the figures drawn from it
-        return list(given)
-    # the default list has one owner, pairedgta/conf/config.yaml; an empty list draws nothing
-    figures = list((cfg.get("plot") or {}).get("figures") or [])
-    for f in figures:
-        source = figure(f).source  # an unknown name: one line listing the known ones
-        if source:
-            raise ConfigError(f"plot.figures: {f} is drawn from a file of yours; set {source}=PATH (with stages=[plot])")
-    return figures
-
-
-def needed_stages(cfg: dict[str, Any]) -> set[str]:
-    """Which upstream stages the requested figures read (a figure given its own input file needs none)."""
-    needs = set()
-    for f in figures_of(cfg):
-        spec = figure(f)
-        if spec.needs and not (spec.unless and lookup(cfg, spec.unless)):
-            needs.add(spec.needs)
-    return needs
 
 
 def options(run: RunConfig, passes: list[PassResult]) -> FigureOptions:
