@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from pairedgta.app import run
-from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
+from pairedgta.testing.cli import compose_cfg, fast_overrides, locked_sqlite, mlflow_store
 from pairedgta.tracking import journal as journals
 from pairedgta.tracking import mlflow_tracker
 from pairedgta.tracking.mlflow_tracker import Tracker
@@ -30,18 +30,7 @@ def _tracked(tmp: Path, uri: str, extra: list[str] = ()) -> list[str]:
                    "plot.figures=[xi_models]", *extra]
 
 
-@contextlib.contextmanager
-def _locked(db: Path):
-    """Another program holding the sqlite store's write lock (a DB browser, a backup mid-transaction)."""
-    import sqlite3
-
-    holder = sqlite3.connect(db, isolation_level=None)
-    holder.execute("BEGIN EXCLUSIVE")
-    try:
-        yield
-    finally:
-        holder.execute("ROLLBACK")
-        holder.close()
+_locked = locked_sqlite  # another program holding the sqlite store's write lock
 
 
 def _record(uri: str, experiment: str = "jrn") -> list[dict]:

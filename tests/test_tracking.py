@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from pairedgta.app import run
-from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store
+from pairedgta.testing.cli import compose_cfg, fast_overrides, locked_sqlite, mlflow_store
 from pairedgta.tracking import bundle, dataset_label, run_name
 from pairedgta.tracking.store import artifact_location
 
@@ -330,18 +330,7 @@ def test_a_locked_store_is_retried_then_the_run_finishes_without_it(tmp_path, ca
     assert {s for s, _ in _statuses(db)} == {"FINISHED"}  # the half-written runs got their record and their end
 
 
-@contextlib.contextmanager
-def _locked(db: Path):
-    """Another program holding the sqlite store's write lock (a DB browser mid-transaction)."""
-    import sqlite3
-
-    holder = sqlite3.connect(db, isolation_level=None)
-    holder.execute("BEGIN EXCLUSIVE")
-    try:
-        yield
-    finally:
-        holder.execute("ROLLBACK")
-        holder.close()
+_locked = locked_sqlite  # another program holding the sqlite store's write lock
 
 
 @contextlib.contextmanager

@@ -143,3 +143,21 @@ def run_app_in_process(cli, argv: list[str], cwd: Path) -> subprocess.CompletedP
         if saved_threads is not None:
             torch.set_num_threads(saved_threads)
     return subprocess.CompletedProcess(list(argv), code, out.getvalue(), err.getvalue())
+
+
+def locked_sqlite(db: Path):
+    """A context in which another program holds `db`'s write lock (a DB browser or a backup mid-transaction)."""
+    import contextlib
+    import sqlite3
+
+    @contextlib.contextmanager
+    def holding():
+        holder = sqlite3.connect(db, isolation_level=None)
+        holder.execute("BEGIN EXCLUSIVE")
+        try:
+            yield
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+
+    return holding()
