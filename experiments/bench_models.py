@@ -1,31 +1,86 @@
-"""Throughput of the in-project families (DeepLabV3+, PIDNet, DDRNet) with random weights. Not a test.
+"""Throughput of the model families with random weights (the cost of a forward does not depend on them). Not a test.
 
-Times `Segmenter.predict_proba` end to end (normalise, pad, forward, upsample, softmax, copy to CPU), which is
-what an evaluation run pays per image.
+Times the bare forward, `Segmenter.probabilities` (normalise, pad, network, upsample, softmax) on images already on
+the device, in the layout evaluate hands them over; with `--stage` also the evaluate stage on PNGs read from disk
+(experiments/bench_evaluate.py), so the two can be compared graph by graph.
 
-    python experiments/bench_models.py                      # all families, tiny + full, batch 1 and 4
-    python experiments/bench_models.py --graphs full --device cuda --amp bf16
+    python experiments/bench_models.py                      # the in-project families, tiny + full, batch 1 and 4
+    python experiments/bench_models.py --graphs full --device cuda --amp fp32 bf16 --batches 8
+    python experiments/bench_models.py --graphs full --models ddrnet_23 --device cuda --stage --csv out.csv
+
+`--graphs full` are the paper's eight graphs (PAPER): the in-project ones with random weights, the transformers
+ones random-initialised with the published widths (no hub access, and no image processor: they run at the
+input's size, where the hub's processor may resize first).
 """
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import csv
+import datetime
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
-if importlib.util.find_spec("pairedgta") is None:  # run from a checkout without installing the package
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a checkout without the package installed
 
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_segmenter, model_config  # noqa: E402
 
-GRAPHS = {
-    "deeplabv3plus": {"tiny": "tiny_deeplabv3plus", "full": "deeplabv3plus_r101"},
-    "pidnet": {"tiny": "tiny_pidnet", "full": "pidnet_m"},
-    "ddrnet": {"tiny": "tiny_ddrnet", "full": "ddrnet_23"},
+SWIN = {"depths": [2, 2, 18, 2]}
+# the paper's eight graphs (pairedgta/conf/experiment/paper_table.yaml), as built without their weights
+PAPER: dict[str, dict[str, Any]] = {
+    "segformer_b5": {"random_init": True, "arch": {"depths": [3, 6, 40, 3], "hidden_sizes": [64, 128, 320, 512],
+                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 768}},
+    "mask2former_swin_l": {"random_init": True, "arch": {"backbone": {**SWIN, "embed_dim": 192,
+                                                                      "num_heads": [6, 12, 24, 48], "window_size": 12}}},
+    "segformer_b2": {"random_init": True, "arch": {"depths": [3, 4, 6, 3], "hidden_sizes": [64, 128, 320, 512],
+                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 768}},
+    "mask2former_swin_s": {"random_init": True, "arch": {"backbone": {**SWIN, "embed_dim": 96,
+                                                                      "num_heads": [3, 6, 12, 24], "window_size": 7}}},
+    "segformer_b0": {"random_init": True, "arch": {"depths": [2, 2, 2, 2], "hidden_sizes": [32, 64, 160, 256],
+                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 256}},
+    "ddrnet_23": {"random_init": True},
+    "pidnet_m": {"random_init": True},
+    "deeplabv3plus_r101": {"random_init": True},
 }
+TINY = {"deeplabv3plus": "tiny_deeplabv3plus", "pidnet": "tiny_pidnet", "ddrnet": "tiny_ddrnet",
+        "segformer": "tiny_segformer", "mask2former": "tiny_mask2former"}
+IN_PROJECT = ("deeplabv3plus", "pidnet", "ddrnet")
+
+
+def family(name: str) -> str:
+    return str(model_config(name)["family"])
+
+
+def graphs(kinds: list[str], families: list[str], names: list[str] | None) -> list[tuple[str, str, dict[str, Any]]]:
+    """(graph kind, model name, overrides) to time."""
+    out = []
+    if names:
+        return [("full" if n in PAPER else "tiny", n, dict(PAPER.get(n, {}))) for n in names]
+    for kind in kinds:
+        if kind == "tiny":
+            out += [("tiny", TINY[f], {}) for f in TINY if f in families]
+        else:
+            out += [("full", n, dict(o)) for n, o in PAPER.items() if family(n) in families]
+    return out
+
+
+def hydra_value(value: Any) -> str:
+    """A Python value in Hydra's override grammar (dicts and lists nest)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{hydra_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(hydra_value(v) for v in value) + "]"
+    return "null" if value is None else str(value)
+
+
+def model_overrides(options: dict[str, Any]) -> list[str]:
+    """`++model.<key>=<value>` for the stage (bench_evaluate) from a graph's build overrides."""
+    return [f"++model.{k}={hydra_value(v)}" for k, v in options.items()]
 
 
 def _sync(device: torch.device) -> None:
@@ -33,44 +88,125 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def seconds_per_call(seg, images: torch.Tensor, warmup: int, iters: int) -> float:
-    for _ in range(warmup):
-        seg.predict_proba(images)
-    _sync(seg.device)
-    start = time.perf_counter()
-    for _ in range(iters):
-        seg.predict_proba(images)
-    _sync(seg.device)
+def seconds_per_call(seg: Any, images: torch.Tensor, warmup: int, iters: int) -> float:
+    with torch.inference_mode():
+        for _ in range(warmup):
+            seg.probabilities(images)
+        _sync(seg.device)
+        start = time.perf_counter()
+        for _ in range(iters):
+            seg.probabilities(images)
+        _sync(seg.device)
     return (time.perf_counter() - start) / iters
+
+
+def time_forward(seg: Any, batch: int, height: int, width: int, amp: str, warmup: int, iters: int) -> dict[str, Any]:
+    """images/s of the bare forward at `amp` (fp32, bf16, fp16) and its peak GPU memory; OOM is a row too."""
+    cuda = seg.device.type == "cuda"
+    seg.amp = None if amp == "fp32" or not cuda else amp
+    seg.batch_size = batch  # one forward per call
+    row: dict[str, Any] = {"batch": batch, "dtype": amp, "height": height, "width": width}
+    try:
+        if cuda:
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats()
+        # as evaluate hands images over: H x W x 3 on the host, a channels-last view of float on the device
+        images = seg.to_device(torch.rand(batch, height, width, 3))
+        per_image = seconds_per_call(seg, images, warmup, iters) / batch
+        row.update(forward_ips=1.0 / per_image, ms_per_image=per_image * 1e3)
+        if cuda:
+            row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    except Exception as exc:  # noqa: BLE001 - a bench row, not a crash (ModelError: out of memory)
+        row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
+    return row
+
+
+def device_name(device: torch.device) -> str:
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+
+
+def append_csv(path: str | None, row: dict[str, Any]) -> None:
+    if not path:
+        return
+    p = Path(path)
+    new = not p.is_file()
+    with open(p, "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+FIELDS = ["date", "device", "torch", "kind", "model", "family", "graph", "dtype", "batch", "height", "width",
+          "forward_ips", "ms_per_image", "peak_gpu_mb", "stage_ips", "stage_steady_ips", "bare_ips", "ratio",
+          "steady_ratio", "forward_share", "other_share", "write_share", "stage_peak_gpu_mb", "images", "workers",
+          "error"]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--families", nargs="+", default=list(GRAPHS), choices=list(GRAPHS))
+    parser.add_argument("--families", nargs="+", default=list(IN_PROJECT), choices=list(TINY))
     parser.add_argument("--graphs", nargs="+", default=["tiny", "full"], choices=["tiny", "full"])
+    parser.add_argument("--models", nargs="*", default=None, help="these model names instead (PAPER's overrides)")
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 4])
     parser.add_argument("--height", type=int, default=512)
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--iters", type=int, default=3)
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
-    parser.add_argument("--amp", default=None, choices=["bf16", "fp16"])
+    parser.add_argument("--amp", nargs="+", default=["fp32"], choices=["fp32", "bf16", "fp16"])
+    parser.add_argument("--stage", action="store_true", help="also the evaluate stage (bench_evaluate) per graph")
+    parser.add_argument("--stage-groups", type=int, default=4)
+    parser.add_argument("--workers", default="auto")
+    parser.add_argument("--csv", default=None, help="append one row per measurement")
     args = parser.parse_args()
+    if args.graphs == ["full"] and args.families == list(IN_PROJECT) and "--families" not in sys.argv:
+        args.families = list(TINY)  # --graphs full: the paper's eight, transformers families included
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, input {args.height}x{args.width}")
-    print(f"{'family':<14}{'graph':<6}{'model':<20}{'batch':>6}{'images/s':>11}{'ms/image':>11}")
-    for family in args.families:
-        for graph in args.graphs:
-            name = GRAPHS[family][graph]
-            seg = build_segmenter(name, random_init=True, checkpoint_path=None, init_seed=0,
-                                  device=args.device, amp=args.amp)
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    base = {"date": datetime.date.today().isoformat(), "device": device_name(device), "torch": torch.__version__}
+    print(f"torch {torch.__version__}, {base['device']}, {torch.get_num_threads()} CPU threads, "
+          f"input {args.height}x{args.width}")
+    print(f"{'family':<14}{'graph':<6}{'model':<20}{'dtype':>6}{'batch':>6}{'images/s':>11}{'ms/image':>11}"
+          f"{'peak MB':>9}")
+    stage_root = None
+    for kind, name, options in graphs(args.graphs, args.families, args.models):
+        fam = family(name)
+        seg = build_segmenter(name, device=str(device), **options)
+        for amp in args.amp:
             for batch in args.batches:
-                seg.batch_size = batch  # one forward per call
-                images = torch.rand(batch, 3, args.height, args.width)
-                per_image = seconds_per_call(seg, images, args.warmup, args.iters) / batch
-                print(f"{family:<14}{graph:<6}{name:<20}{batch:>6}{1.0 / per_image:>11.2f}{per_image * 1e3:>11.1f}",
-                      flush=True)
-            del seg
+                row = {**base, "kind": "forward", "model": name, "family": fam, "graph": kind,
+                       **time_forward(seg, batch, args.height, args.width, amp, args.warmup, args.iters)}
+                shown = (f"{row['forward_ips']:>11.2f}{row['ms_per_image']:>11.1f}" if "error" not in row
+                         else f"  {row['error']}")
+                print(f"{fam:<14}{kind:<6}{name:<20}{amp:>6}{batch:>6}{shown}"
+                      + (f"{row['peak_gpu_mb']:>9.0f}" if "peak_gpu_mb" in row else ""), flush=True)
+                append_csv(args.csv, row)
+        del seg
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+        if args.stage:
+            import tempfile
+
+            import bench_evaluate as be
+
+            if stage_root is None:
+                stage_root = Path(tempfile.mkdtemp()) / "ds"
+                be.make_release_dataset(stage_root, args.stage_groups, args.width, args.height, conditions=9, jobs=8)
+            for amp in args.amp:
+                batch = max(args.batches)
+                r = be.measure(stage_root, stage_root.parent / f"cache-{name}-{amp}", name, args.workers, batch, "-",
+                               str(device), None if amp == "fp32" else amp, full=False, conditions=9,
+                               extra=model_overrides(options))
+                row = {**base, "kind": "stage", "model": name, "family": fam, "graph": kind, "dtype": amp,
+                       "batch": batch, "height": args.height, "width": args.width, "stage_ips": r["eval_ips"],
+                       **{k: r.get(k) for k in ("stage_steady_ips", "bare_ips", "ratio", "steady_ratio",
+                                                "forward_share", "other_share", "write_share", "stage_peak_gpu_mb",
+                                                "images", "workers")}}
+                print(f"{fam:<14}{kind:<6}{name:<20}{amp:>6}{batch:>6}  stage {r['eval_ips']:.2f} img/s, bare "
+                      f"{r['bare_ips']:.2f}, ratio {r['ratio']:.2f}", flush=True)
+                append_csv(args.csv, row)
 
 
 if __name__ == "__main__":

@@ -24,9 +24,10 @@ def test_columns_add_up_and_the_ratio_is_as_stated():
     assert c["eval_ips"] == 12.0 and c["bare_ips"] == 16.0 and c["ratio"] == 0.75
     assert (c["forward_share"], c["other_share"], c["write_share"]) == (0.6, 0.2, 0.2)
     # a forward timed longer than its stage (clock jitter) is capped: no negative "other" column
-    c = b.columns({"images": 10, "count": 1.0, "forward": 1.2, "write": 0.0, "bare": 1.0})
+    c = b.columns({"images": 10, "count": 1.0, "forward": 1.2, "write": 0.0, "bare": 1.0, "steady": 0.5})
     assert c["other_share"] == 0.0 and c["forward_share"] == 1.0
-    assert "100.0%" in b.row(0, c) and "-" not in b.row(0, c).split()[5]
+    assert c["stage_steady_ips"] == 20.0 and c["steady_ratio"] == 2.0  # from the first decoded group on
+    assert "100.0%" in b.row(0, c) and "-" not in b.row(0, c).split()[6]
 
 
 def test_the_evaluated_model_is_the_benchmarked_one_alone():
@@ -68,4 +69,5 @@ def test_a_measurement_on_a_fake_segmenter_adds_up(tmp_path, monkeypatch):
     assert 0 < r["forward"] <= r["count"] and r["write"] > 0 and r["bare"] > 0
     assert r["forward_share"] + r["other_share"] + r["write_share"] == pytest.approx(1.0, abs=1e-12)
     assert r["eval_ips"] == pytest.approx(9 / r["count"]) and r["ratio"] == pytest.approx(r["eval_ips"] / r["bare_ips"])
+    assert 0 < r["steady"] <= r["count"] and r["steady_ratio"] >= r["ratio"]
     assert list((tmp_path / "cache" / "evaluate").iterdir())  # the stage did run (not a cache hit of nothing)

@@ -38,8 +38,19 @@ def count(keys: torch.Tensor, bins: int) -> torch.Tensor:
     return out[:bins]
 
 
-def _keys(index: torch.Tensor, valid: torch.Tensor, bins: int) -> torch.Tensor:
-    return torch.where(valid, index, torch.full((), bins, dtype=torch.int64, device=index.device))
+def _in_range(labels: torch.Tensor, num_classes: int, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """Pixels whose label is a class (0 <= label < K, not void); one comparison for uint8 maps."""
+    if labels.dtype == torch.uint8 and num_classes <= ignore_index:
+        return labels < num_classes
+    return (labels >= 0) & (labels < num_classes) & (labels != ignore_index)
+
+
+def _count_keyed(index: torch.Tensor, valid: torch.Tensor, n: int, width: int) -> torch.Tensor:
+    """N x width counts of `index` (N x H x W int64, 0 <= index < width where valid; modified in place) over the
+    pixels where `valid` (broadcastable to it), one count for all N images."""
+    index += _image_offsets(n, width, index.device)
+    index.masked_fill_(~valid, n * width)  # the dropped bin
+    return count(index, n * width).view(n, width)
 
 
 def _image_offsets(n: int, width: int, device: Any) -> torch.Tensor:
@@ -49,30 +60,27 @@ def _image_offsets(n: int, width: int, device: Any) -> torch.Tensor:
 def xi_counts(reference: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
               ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """N x K x 2 per image: reference pixels of class k whose prediction differs [.., 0] and equals [.., 1] (so
-    retained = [..., 1], reference = sum over the last axis): `reference_consistency_counts` of N images at once."""
-    ref, p = reference.long(), pred.long()
-    n, k = p.shape[0], num_classes
-    valid = (ref >= 0) & (ref < k) & (ref != ignore_index)
-    index = (_image_offsets(n, k, p.device) + ref) * 2 + (p == ref)
-    return count(_keys(index, valid, n * k * 2), n * k * 2).view(n, k, 2)
+    retained = [..., 1], reference = sum over the last axis): `reference_consistency_counts` of N images at once.
+    `reference` is N x H x W, or H x W for a reference all N share (computed once, not per image)."""
+    n, k = pred.shape[0], num_classes
+    index = (pred == reference) + reference.long() * 2  # int64 N x H x W; the rest at the reference's own size
+    return _count_keyed(index, _in_range(reference, k, ignore_index), n, 2 * k).view(n, k, 2)
 
 
 def confusion(target: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
               ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """N x K x K confusion matrices (truth x prediction) of N images: `confusion_counts` of each."""
-    t, p = target.long(), pred.long()
-    n, k = p.shape[0], num_classes
-    valid = (t != ignore_index) & (t >= 0) & (t < k) & (p >= 0) & (p < k)
-    index = (_image_offsets(n, k, p.device) + t) * k + p
-    return count(_keys(index, valid, n * k * k), n * k * k).view(n, k, k)
+    n, k = pred.shape[0], num_classes
+    valid = _in_range(target, k, ignore_index) & _in_range(pred, k, ignore_index) if pred.dtype == torch.uint8 else (
+        _in_range(target, k, ignore_index) & (pred >= 0) & (pred < k))
+    index = target.long() * k + pred
+    return _count_keyed(index, valid, n, k * k).view(n, k, k)
 
 
 def class_counts(labels: torch.Tensor, keep: torch.Tensor, num_classes: int = NUM_CLASSES) -> torch.Tensor:
     """N x K: per image the pixels of each class where `keep` (phi: `prediction_mass_from_labels`)."""
-    lab = labels.long()
-    n = lab.shape[0]
-    index = _image_offsets(n, num_classes, lab.device) + lab
-    return count(_keys(index, keep & (lab >= 0) & (lab < num_classes), n * num_classes), n * num_classes).view(n, num_classes)
+    valid = keep & ((labels < num_classes) if labels.dtype == torch.uint8 else (labels >= 0) & (labels < num_classes))
+    return _count_keyed(labels.long(), valid, labels.shape[0], num_classes)
 
 
 def confidence_histogram(confidence: torch.Tensor) -> torch.Tensor:
@@ -161,11 +169,10 @@ def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: to
     no condition has one); `visible` N x H x W (or
     None: all) the pixels visible in each condition and the clean image; `gt` H x W the reference's truth for xi
     (or None). Hidden pixels count as void in every reference, and phi counts only visible pixels."""
-    n = labels.shape[0]
     void = torch.full((), IGNORE_INDEX, dtype=pseudo.dtype, device=pseudo.device)
 
     def hide(ref: torch.Tensor) -> torch.Tensor:
-        ref = ref.unsqueeze(0).expand(n, *ref.shape)
+        """The reference as condition c sees it: H x W shared by all (no masks), else N x H x W."""
         return ref if visible is None else torch.where(visible, ref, void)
 
     out: dict[str, torch.Tensor] = {}
@@ -177,7 +184,7 @@ def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: to
     if targets is not None:
         out["cm"] = confusion(targets if visible is None else torch.where(visible, targets, void), labels, num_classes)
     clean_labels = labels[clean].unsqueeze(0)
-    valid = pseudo_c != IGNORE_INDEX
+    valid = (pseudo_c != IGNORE_INDEX).expand_as(labels)
     same_clean = labels == clean_labels
     out["agreement"] = torch.stack([valid.sum((1, 2)), ((labels == pseudo_c) & valid).sum((1, 2)),
                                     (same_clean & valid).sum((1, 2))], dim=1)  # valid, agree ref, agree clean

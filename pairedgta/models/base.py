@@ -201,7 +201,7 @@ def max_and_label(probs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     conf = probs.amax(dim=1, keepdim=True)
     weights = torch.arange(k, 0, -1, dtype=torch.uint8, device=probs.device).view(1, k, *([1] * (probs.ndim - 2)))
     first = ((probs == conf) * weights).amax(dim=1)
-    return conf.squeeze(1), torch.sub(k, first, out=first)
+    return conf.squeeze(1), k - first
 
 
 def _cat(parts: list[torch.Tensor]) -> torch.Tensor:
