@@ -37,4 +37,4 @@ def build_renderer(cfg: Mapping[str, Any]) -> Renderer:
     return RENDERERS.build(cfg.pop("backend", None), cfg, where="renderer")
 
 
-__all__ = ["Renderer", "RenderResult", "build_renderer", "renderer_versions", "RENDERERS"]
+__all__ = ["RENDERERS", "RenderResult", "Renderer", "build_renderer", "renderer_versions"]

@@ -30,23 +30,28 @@ FILL_COLOUR = (1.0, 0.82, 0.62)  # the city's diffuse light: mostly sodium and w
 
 @dataclasses.dataclass(frozen=True)
 class NightLight:
-    """The artificial light of a street at night, the part of the light model fitted to GTA V's night frames
-    (`experiments/fit_night_light.py`, `renderer.night`). Physical terms, each a factor on the model above:
+    """The light of a street at night, the part of the light model fitted to GTA V's night frames
+    (`experiments/fit_night_light.py`, `renderer.night`). A look, not a measurement: GTA V's nights are lit by a
+    strong diffuse fill relative to their light sources, and a camera of fixed exposure that sees our physical
+    sources (lamp heads, head-light lenses and their reflections on a wet road, lit windows and shop fronts, far
+    brighter than the street around them) keeps three times GTA V's contrast. Each term applies at night only, weighted by the `night` weight
+    of the sun's elevation (0 from 2 degrees up, 1 below -8), so day and sunset images keep every pixel:
 
     - `fill`: radiance of the city's diffuse light, what a street lit by lamps every 28 m, lit windows and shop
       fronts, and the glow of the sky above them send into every shadow after many bounces: a two-bounce path
       tracer misses it (the scene's second bounce is an ambient-occlusion estimate of the sky), GTA V adds it as
       an ambient term. It lights the scene through the world shader's non-camera rays (the sky the camera sees
-      stays the night sky), the wet road reflects it, and fog and rain haze scatter it. Only at night (the
-      `night` weight of the sun's elevation: 0 from 2 degrees up), so day and sunset images keep every pixel.
-    - `lamps`, `headlights`, `windows`: the power of the street lamps (spot light and lamp head), of the
-      vehicles' head lights (spot light and lens; tail lights follow) and the emission of lit windows and shop
-      fronts, relative to LAMP_POWER, HEADLIGHT_POWER and WINDOW_EMISSION."""
+      stays the night sky) and the wet road reflects it.
+    - `lamps`, `headlights`, `windows`: the power at night of the street lamps (spot light and lamp head), of
+      the vehicles' head lights (spot light and lens; tail lights follow) and the emission of lit windows and
+      shop fronts, as factors on LAMP_POWER, HEADLIGHT_POWER and WINDOW_EMISSION (1: the physical model's)."""
 
-    fill: float = 0.0
-    lamps: float = 1.0
-    headlights: float = 1.0
-    windows: float = 1.0
+    # fitted by `python experiments/fit_night_light.py` (16 scenes of seeds 2 and 3, 256x128: its docstring);
+    # pairedgta/conf/renderer/blender.yaml `night` says the same
+    fill: float = 0.035
+    lamps: float = 0.5
+    headlights: float = 0.03
+    windows: float = 0.1
 
     @classmethod
     def from_cfg(cls, cfg: Mapping[str, Any] | None) -> NightLight:
@@ -68,7 +73,8 @@ class NightLight:
         return light
 
 
-NIGHT = NightLight()  # the fitted values (pairedgta/conf/renderer/blender.yaml `night` says the same)
+NIGHT = NightLight()  # the fitted night
+PHYSICAL = NightLight(fill=0.0, lamps=1.0, headlights=1.0, windows=1.0)  # the physical model's own (before the fit)
 
 
 def _smoothstep(a: float, b: float, x: float) -> float:
@@ -125,9 +131,13 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
     # albedo times the light arriving from the sky (cloud-grey as cover grows) and the sun (isotropic
     # share). Lamp and head-light light is scattered where it is: the compositor's glare gives each its
     # halo, so the night's fog stays dark away from the lights instead of glowing uniformly.
-    # the city's diffuse light (NightLight.fill): lights the scene, not the sky the camera sees; scattered by haze
+    # the city's diffuse light (NightLight.fill): lights the scene, not the sky the camera sees, nor the haze (the
+    # lamps' light in the air is the glare around each lamp: scattering the fill too would count it twice)
     fill = night_light.fill * night * np.array(FILL_COLOUR)
-    ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud + fill
+
+    def at_night(factor: float) -> float:  # a NightLight factor, weighted by how much of the night it is
+        return 1.0 + (factor - 1.0) * night
+    ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud
     fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi))
     light_level = (sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
                    + 2.6 * float(np.mean(fill)))
@@ -141,13 +151,25 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
         "fog": fog, "rain": rain, "extinction": extinction, "fog_color": fog_color,
         "lamps": lamps, "vehicle_lights": vehicle_lights,
         "window_lit": lamps, "light_level": light_level, "fill": fill,
-        "lamp_power": LAMP_POWER * night_light.lamps * lamps, "lamp_emit": 25.0 * night_light.lamps * lamps,
-        "headlight_power": HEADLIGHT_POWER * night_light.headlights * vehicle_lights,
-        "headlight_emit": 30.0 * night_light.headlights * vehicle_lights,
-        "taillight_emit": 0.3 + 10.0 * night_light.headlights * vehicle_lights,
-        "window_emit": WINDOW_EMISSION * night_light.windows * lamps,
+        "night": night,
+        "lamp_power": LAMP_POWER * at_night(night_light.lamps) * lamps,
+        "lamp_emit": 25.0 * at_night(night_light.lamps) * lamps,
+        "headlight_power": HEADLIGHT_POWER * at_night(night_light.headlights) * vehicle_lights,
+        "headlight_emit": 30.0 * at_night(night_light.headlights) * vehicle_lights,
+        "taillight_emit": 0.3 + 10.0 * at_night(night_light.headlights) * vehicle_lights,
+        "window_emit": WINDOW_EMISSION * at_night(night_light.windows) * lamps,
     }
 
 
-__all__ = ["FILL_COLOUR", "HEADLIGHT_POWER", "LAMP_POWER", "NIGHT", "NightLight", "WINDOW_EMISSION", "lighting",
-           "sun_transmittance", "sun_vector"]
+__all__ = [
+    "FILL_COLOUR",
+    "HEADLIGHT_POWER",
+    "LAMP_POWER",
+    "NIGHT",
+    "PHYSICAL",
+    "WINDOW_EMISSION",
+    "NightLight",
+    "lighting",
+    "sun_transmittance",
+    "sun_vector",
+]

@@ -313,6 +313,62 @@ class BlenderRenderer(Renderer):
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB")).copy()
 
+    # ---- calibration (experiments/fit_night_light.py) ----------------------------------------
+    def render_linear(self, descriptor: SceneDescriptor, condition: Condition, night: NightLight | None = None,
+                      atmosphere: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
+        """The scene-referred image (H x W x 3 float32, top row first) of `descriptor` under `condition` with the
+        night light `night` (default: the renderer's), before the camera, and the condition's render parameters
+        (lighting(), with the camera's `exposure`). `atmosphere=False` leaves out the analytic fog's compositor.
+        Cycles is linear in every light's power, so images rendered with one light term at a time add up to the
+        image with all of them (up to the denoiser): what the night-light fit relies on."""
+        if _OWNER is not self or self._prepared is None or self._prepared != descriptor:
+            self.prepare(descriptor)
+        saved, self.night = self.night, night or self.night
+        try:
+            p = self._apply_condition(condition)
+        finally:
+            self.night = saved
+        bpy = self._bpy
+        sc = bpy.context.scene
+        if not atmosphere:
+            sc.render.use_compositing = False
+        img = sc.render.image_settings
+        img.file_format, img.color_mode, img.color_depth, img.exr_codec = "OPEN_EXR", "RGB", "32", "NONE"
+        path = os.path.join(self._tmp or tempfile.gettempdir(), "linear.exr")
+        self._render_to(path)
+        frame = bpy.data.images.load(path, check_existing=False)
+        try:
+            w, h = frame.size
+            px = np.empty(w * h * frame.channels, dtype=np.float32)
+            frame.pixels.foreach_get(px)
+        finally:
+            bpy.data.images.remove(frame)
+        return px.reshape(h, w, -1)[::-1, :, :3].copy(), p
+
+    def develop(self, linear: np.ndarray, ev: float) -> np.ndarray:
+        """The camera's development of a scene-referred image (render_linear's): exposure `ev` and the view
+        transform, to the 8-bit sRGB image `render` stores (identical for the same linear image; no sensor noise).
+        Images stacked along the rows develop in one call."""
+        from PIL import Image
+
+        bpy = self._bpy
+        sc = bpy.context.scene
+        h, w = linear.shape[:2]
+        frame = bpy.data.images.new("develop", w, h, alpha=False, float_buffer=True)
+        path = os.path.join(self._tmp or tempfile.gettempdir(), "develop.png")
+        try:
+            rgba = np.ones((h, w, 4), dtype=np.float32)
+            rgba[..., :3] = linear[::-1]
+            frame.pixels.foreach_set(rgba.ravel())
+            sc.view_settings.exposure = ev
+            img = sc.render.image_settings
+            img.file_format, img.color_mode, img.color_depth, img.compression = "PNG", "RGB", "8", 0
+            frame.save_render(path, scene=sc)
+        finally:
+            bpy.data.images.remove(frame)
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB")).copy()
+
     def render(self, descriptor: SceneDescriptor, condition: Condition) -> RenderResult:
         if _OWNER is not self or self._prepared is None or self._prepared != descriptor:
             self.prepare(descriptor)
