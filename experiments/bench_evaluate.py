@@ -238,8 +238,8 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     import pairedgta.models as models
 
     build = models.build_segmenter  # the stages get the model just timed (built once: the paper's take seconds)
-    models.build_segmenter = lambda cfg, device=None, **kw: seg if cfg.get("name") == c["model"]["name"] else build(
-        cfg, device=device, **kw)
+    built = {c["model"]["name"]: seg}
+    models.build_segmenter = lambda cfg, device=None, **kw: built.get(cfg.get("name")) or build(cfg, device=device, **kw)
     start = time.perf_counter()
     try:
         with _timers("cuda" if cuda else "cpu") as t:
@@ -247,6 +247,7 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     finally:
         models.build_segmenter = build
     out["stages"] = time.perf_counter() - start
+    built.clear()
     del seg
     out.update(t)
     if cuda:

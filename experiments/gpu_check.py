@@ -271,10 +271,9 @@ def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dt
     try:
         r = be.measure(root, tmp / f"cache-{step}-{name}-{dtype}", model, workers, batch, "-", device,
                        None if dtype == "fp32" else dtype, full=False, conditions=9, extra=model_overrides(options))
-    except BaseException as exc:  # noqa: BLE001 - a row that says so, the next measurement goes on
-        if isinstance(exc, KeyboardInterrupt):
-            raise
-        rep.add(step, model=name, dtype=dtype, batch=batch, note=f"failed: {type(exc).__name__}: {str(exc)[:160]}")
+    except Exception as exc:  # noqa: BLE001 - a row that says so, the next measurement goes on
+        rep.add(step, model=name, dtype=dtype, batch=batch, note=failed(exc))
+        free()
         return None
     rep.add(step, model=name, dtype=dtype, batch=batch, width=r["width"], height=r["height"], groups=r["groups"],
             images=r["images"], stage_ips=r["eval_ips"], stage_steady_ips=r["stage_steady_ips"], bare_ips=r["bare_ips"],
@@ -282,6 +281,32 @@ def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dt
             other_share=r["other_share"], write_share=r["write_share"], stage_peak_gpu_mb=r.get("stage_peak_gpu_mb"),
             peak_gpu_mb=r.get("bare_peak_gpu_mb"), workers=workers, note=None if model == name else f"as {model}")
     return r
+
+
+def failed(exc: BaseException) -> str:
+    return f"failed: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
+
+
+def free() -> None:
+    import gc
+
+    import torch
+
+    gc.collect()
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+
+
+def guarded(rep: Report, step: str, fn: Any, *args: Any) -> None:
+    """A step whose failure is a row of the report, not the end of the run."""
+    try:
+        fn(*args)
+    except Exception as exc:  # noqa: BLE001
+        import traceback
+
+        traceback.print_exc()
+        rep.add(step, model="all", note=failed(exc))
+        free()
 
 
 def dataset(root: Path, groups: int, unique: Path) -> Path:
@@ -319,8 +344,6 @@ def main() -> None:
         prepare(Path(args.bundle), Path(args.cache) if args.cache else None)
         return
     t0 = time.perf_counter()
-    import torch
-
     import bench_evaluate as be
     from bench_models import PAPER, time_forward
 
@@ -341,11 +364,11 @@ def main() -> None:
         return False
 
     if "check" in args.steps and not skip("check", "all"):
-        step_check(rep, args.device)
+        guarded(rep, "check", step_check, rep, args.device)
         rep.write_md()
     if "mainjob" in args.steps and not skip("mainjob", "all"):
         if (Path(args.bundle) / "mainjob" / "meta.json").is_file():
-            step_mainjob(rep, Path(args.bundle), args.device, tmp)
+            guarded(rep, "mainjob", step_mainjob, rep, Path(args.bundle), args.device, tmp)
         else:
             rep.add("mainjob", model="all", note=f"skipped: no {args.bundle}/mainjob (run `gpu_check.py prepare`)")
         rep.write_md()
@@ -366,14 +389,17 @@ def main() -> None:
         for name in PAPER:
             if skip("forward", name):
                 continue
-            seg = build_segmenter(model(name), device=args.device, **options(name))
+            try:
+                seg = build_segmenter(model(name), device=args.device, **options(name))
+            except Exception as exc:  # noqa: BLE001
+                rep.add("forward", model=name, note=failed(exc))
+                continue
             for dtype in ("fp32", "bf16"):
                 r = time_forward(seg, 8 if not args.tiny else 2, height, width, dtype, 1, 3 if not args.tiny else 1)
                 rep.add("forward", model=name, dtype=dtype, batch=r["batch"], width=width, height=height,
                         forward_ips=r.get("forward_ips"), peak_gpu_mb=r.get("peak_gpu_mb"), note=r.get("error"))
             del seg
-            if args.device.startswith("cuda"):
-                torch.cuda.empty_cache()
+            free()
             rep.write_md()
     if "eta" in args.steps:
         seconds: dict[str, float] = {}

@@ -219,6 +219,8 @@ def test_counting_kernels_match_numpy_bincount_and_drop_void():
         assert np.array_equal(cm[i], confusion_counts(ref[i], pred[i], NUM_CLASSES))
     assert cm.sum() == (ref != IGNORE_INDEX).sum()
     assert reductions.count(torch.tensor([0, 2, 2, 5]), 5).tolist() == [1, 0, 2, 0, 0]  # 5 = the dropped bin
+    keys = torch.from_numpy(rng.integers(0, 39, 10_001))
+    assert torch.equal(reductions.count(keys, 38, lanes=64), reductions.count(keys, 38))  # a GPU's spread-out bins
 
 
 def test_confidence_histogram_bins_like_the_host_path_and_survives_nan():

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
+from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.datasets import LabelMaps, PairedDataset
 from pairedgta.errors import DataError
 from pairedgta.evaluation import reductions
@@ -40,21 +40,12 @@ def stage_inputs(packed: dict[str, Any], device: Any) -> dict[str, Any]:
     tensors = {k: v for k, v in packed.items() if isinstance(v, torch.Tensor)}
     if device.type != "cuda":
         return {**packed, **{k: to_device(v, device) for k, v in tensors.items()}}
-    stream = _copy_stream(device)
+    stream = reductions.side_stream(device, "h2d")
     with torch.cuda.stream(stream):
         moved = {k: to_device(v, device) for k, v in tensors.items()}
         ready = torch.cuda.Event()
         ready.record(stream)
     return {**packed, **moved, "_ready": ready}
-
-
-_STREAMS: dict[Any, Any] = {}
-
-
-def _copy_stream(device: Any) -> Any:
-    if device not in _STREAMS:
-        _STREAMS[device] = torch.cuda.Stream(device)
-    return _STREAMS[device]
 
 
 def _use(inputs: dict[str, Any]) -> None:

@@ -29,13 +29,21 @@ _LEAF = 128       # numpy's pairwise_sum unrolls blocks of up to this many value
 
 
 # -- counting -------------------------------------------------------------------------------------------------
-def count(keys: torch.Tensor, bins: int) -> torch.Tensor:
+LANES = 64  # on a GPU each bin is counted in this many places (pixel index mod LANES), then summed
+
+
+def count(keys: torch.Tensor, bins: int, lanes: int | None = None) -> torch.Tensor:
     """Occurrences of 0 .. bins-1 in `keys` (int64, any shape; a key == bins is a dropped pixel): bincount
-    without a host synchronisation."""
+    without a host synchronisation. On a GPU the atomic adds of a few bins (19 classes; most pixels in the top
+    confidence bin) would queue on the same addresses: neighbouring pixels count into LANES separate copies."""
     keys = keys.reshape(-1)
-    out = torch.zeros(bins + 1, dtype=torch.int64, device=keys.device)
+    lanes = lanes or (LANES if keys.device.type == "cuda" else 1)  # a power of two
+    if lanes > 1:
+        lane = torch.arange(keys.shape[0], device=keys.device, dtype=torch.int64).bitwise_and_(lanes - 1)
+        keys = lane.mul_(bins + 1).add_(keys)  # lane-major: the copies of a bin lie far apart
+    out = torch.zeros(lanes * (bins + 1), dtype=torch.int64, device=keys.device)
     out.scatter_add_(0, keys, torch.ones((), dtype=torch.int64, device=keys.device).expand(keys.shape[0]))
-    return out[:bins]
+    return out.view(lanes, bins + 1).sum(dim=0)[:bins] if lanes > 1 else out[:bins]
 
 
 def _in_range(labels: torch.Tensor, num_classes: int, ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
@@ -202,6 +210,17 @@ def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: to
     return out
 
 
+_STREAMS: dict[tuple[str, str], Any] = {}
+
+
+def side_stream(device: Any, role: str) -> Any:
+    """One CUDA stream per device and role (h2d: inputs in, d2h: results out), beside the compute stream."""
+    key = (str(device), role)
+    if key not in _STREAMS:
+        _STREAMS[key] = torch.cuda.Stream(device)
+    return _STREAMS[key]
+
+
 class HostCopy:
     """Device tensors copied to the host without waiting for the device: on a GPU into pinned memory with
     `non_blocking`, an event marks their arrival; `get()` waits for that event only (on the CPU it is all there)."""
@@ -210,9 +229,15 @@ class HostCopy:
         self.event = None
         first = next(iter(tensors.values()), None)
         if first is not None and first.device.type == "cuda":
-            self.host = {k: v.to("cpu", non_blocking=True) for k, v in tensors.items()}
-            self.event = torch.cuda.Event()
-            self.event.record()
+            # on a stream of their own, so the next group's kernels need not wait behind the copies
+            stream = side_stream(first.device, "d2h")
+            stream.wait_stream(torch.cuda.current_stream(first.device))
+            with torch.cuda.stream(stream):
+                self.host = {k: v.to("cpu", non_blocking=True) for k, v in tensors.items()}
+                for v in tensors.values():
+                    v.record_stream(stream)  # not reused by the compute stream before the copy is done
+                self.event = torch.cuda.Event()
+                self.event.record(stream)
         else:
             self.host = {k: v.cpu() for k, v in tensors.items()}
 
@@ -223,5 +248,5 @@ class HostCopy:
         return {k: v.numpy() for k, v in self.host.items()}
 
 
-__all__ = ["CONF_BINS", "SUM_BLOCK", "count", "xi_counts", "confusion", "class_counts", "confidence_histogram",
+__all__ = ["CONF_BINS", "SUM_BLOCK", "LANES", "count", "xi_counts", "confusion", "class_counts", "confidence_histogram",
            "block_sums", "ordered_sum", "image_sums", "group_reductions", "HostCopy"]

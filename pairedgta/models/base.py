@@ -190,14 +190,14 @@ def to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
 
 
 def max_and_label(probs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """`probs.max(dim=1)` as (values, uint8 indices), the first maximal class on ties as torch.max returns it:
-    the maximum by `amax` and the class as the highest of the weights K - k where p_k equals it. On the CPU
-    max-with-indices over the class axis is a scalar loop (7x amax's time here); these are vector passes. A pixel
-    whose maximum is NaN gets label K (no class); check_finite reports it."""
+    """`probs.max(dim=1)` as (values, uint8 indices), the first maximal class on ties as torch.max returns it.
+    On the CPU max-with-indices over the class axis is a scalar loop (7x amax's time here), so there the maximum
+    comes from `amax` and the class as the highest of the weights K - k where p_k equals it: vector passes, the
+    same numbers (a pixel whose maximum is NaN gets label K, no class; check_finite reports it)."""
     k = probs.shape[1]
-    if k > 255:
+    if k > 255 or probs.device.type != "cpu":  # a GPU's max-with-indices is one pass, with the same tie rule
         conf, labels = probs.max(dim=1)
-        return conf, labels
+        return conf, labels.to(torch.uint8) if k <= 255 else labels
     conf = probs.amax(dim=1, keepdim=True)
     weights = torch.arange(k, 0, -1, dtype=torch.uint8, device=probs.device).view(1, k, *([1] * (probs.ndim - 2)))
     first = ((probs == conf) * weights).amax(dim=1)
