@@ -68,8 +68,9 @@ def tmp(tmp_path: Path) -> Path:
 # instead of one waiting for the last long module the other picked up late. The two cluster modules start
 # first, one on each worker: they mostly wait on their jobs and servers, whose CPU time the other
 # modules would otherwise compete with at the end.
-SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_cli.py", "test_demo_model.py",
-              "test_tracking.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
+SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_documented_commands.py",
+              "test_journal.py", "test_cli.py", "test_demo_model.py", "test_night_light.py", "test_tracking.py",
+              "test_python_versions.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
               "test_experiments.py", "test_pipeline.py", "test_cityscapes_val.py", "test_ladders.py",
               "test_paper_table.py", "test_render_blender.py")
 
