@@ -2,7 +2,9 @@
 
 It renders a small dataset in the released layout (PNG files on disk), runs the pseudolabel and evaluate stages
 of one model on it (`models=null`: only that model) and, on the same images already decoded and on the device,
-the bare forward (`Segmenter.probabilities`: network, upsampling and softmax, nothing else). It prints images/s of
+the bare forward: the model's prediction and nothing else (`Segmenter.predict_maps(entropy=False)`: network,
+upsampling, softmax, label map and max probability, left on the device; the bench's bare forward was always
+`predict`, labels and confidence; timed before and after the stage, the mean). It prints images/s of
 both and their ratio (target: >= 0.9 on the CPU, >= 0.7 on a GPU), and splits the stage's time into columns
 that add up to 100 %: the forward, the rest of the counting (decoding not hidden by the workers, the reductions,
 copies), and writing the entry's tables. On a GPU the forward is the GPU time between CUDA events around each
@@ -168,20 +170,22 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
 
 
 def bare_forward(seg: Any, groups: list[list[Any]], batch: int, warmup: int = 1) -> float:
-    """Seconds of `seg.probabilities` over `groups` (per group, its images in batches of `batch`, as evaluate
-    batches them), the images decoded beforehand and already on the device as float in [0, 1]."""
+    """Seconds of the bare forward (`predict_maps` without entropy: the prediction, left on the device) over
+    `groups` (per group, its images in batches of `batch`, as evaluate batches them), the images decoded
+    beforehand and already on the device as float in [0, 1]."""
     import numpy as np
     import torch
 
     batches = [seg.to_device(np.stack(g[s : s + batch])) for g in groups for s in range(0, len(g), batch)]
     sync = torch.cuda.synchronize if seg.device.type == "cuda" else (lambda: None)
     for x in batches[:warmup]:
-        seg.probabilities(x)
+        seg.predict_maps(x, entropy=False)
     sync()
     start = time.perf_counter()
     for x in batches:
-        seg.probabilities(x)
+        seg.predict_maps(x, entropy=False)
     sync()
+    seg.check_finite()
     return time.perf_counter() - start
 
 
@@ -248,6 +252,12 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
         models.build_segmenter = build
     out["stages"] = time.perf_counter() - start
     built.clear()
+    torch.set_num_threads(int(c["threads"]))
+    # the bare forward again, after the stage: the mean of the two is less at the mercy of the machine's load
+    out["bare_before"], out["bare_after"] = out["bare"], bare_forward(seg, images, batch)
+    out["bare"] = (out["bare_before"] + out["bare_after"]) / 2
+    torch.set_num_threads(threads)
+    out["load"] = [round(x, 2) for x in os.getloadavg()]
     del seg
     out.update(t)
     if cuda:
@@ -318,7 +328,9 @@ def main() -> None:
         cuda = args.device.startswith("cuda")
         for workers in ([args.workers] if cuda else sorted({0, int(args.workers)})):
             r = measure_child(root, Path(tmp) / f"cache{workers}", args.model, workers, args.batch, args.arch, **kw)
-            print(row(workers, r) + (f"  peak GPU {r['stage_peak_gpu_mb']:.0f} MB" if cuda else ""), flush=True)
+            print(row(workers, r) + (f"  peak GPU {r['stage_peak_gpu_mb']:.0f} MB" if cuda else "")
+                  + f"  (bare {r['images'] / r['bare_before']:.2f} before, {r['images'] / r['bare_after']:.2f} after; "
+                  f"load {r['load'][0]})", flush=True)
             if args.json:
                 with open(args.json, "a") as f:
                     f.write(json.dumps(r, default=float) + "\n")

@@ -1,8 +1,9 @@
 """Throughput of the model families with random weights (the cost of a forward does not depend on them). Not a test.
 
-Times the bare forward, `Segmenter.probabilities` (normalise, pad, network, upsample, softmax) on images already on
-the device, in the layout evaluate hands them over; with `--stage` also the evaluate stage on PNGs read from disk
-(experiments/bench_evaluate.py), so the two can be compared graph by graph.
+Times the bare forward, the model's prediction (`Segmenter.predict_maps(entropy=False)`: normalise, pad, network,
+upsample, softmax, label map and max probability, left on the device) on images already on the device, in the layout
+evaluate hands them over; with `--stage` also the evaluate stage on PNGs read from disk (experiments/bench_evaluate.py),
+so the two can be compared graph by graph.
 
     python experiments/bench_models.py                      # the in-project families, tiny + full, batch 1 and 4
     python experiments/bench_models.py --graphs full --device cuda --amp fp32 bf16 --batches 8
@@ -91,11 +92,11 @@ def _sync(device: torch.device) -> None:
 def seconds_per_call(seg: Any, images: torch.Tensor, warmup: int, iters: int) -> float:
     with torch.inference_mode():
         for _ in range(warmup):
-            seg.probabilities(images)
+            seg.predict_maps(images, entropy=False)
         _sync(seg.device)
         start = time.perf_counter()
         for _ in range(iters):
-            seg.probabilities(images)
+            seg.predict_maps(images, entropy=False)
         _sync(seg.device)
     return (time.perf_counter() - start) / iters
 

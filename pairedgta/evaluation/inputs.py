@@ -105,24 +105,26 @@ def pack_group(item: dict[str, Any], reference: str) -> dict[str, Any]:
     present, own = item["present"], item.get("own") or {}
     images = item["images"]
     first = np.asarray(images[present[0]])
-    stack = torch.empty((len(present), *first.shape), dtype=torch.uint8)
+    # numpy builds them (no torch kernel: this may run in a decoding thread beside the forward's thread pool)
+    stack = np.empty((len(present), *first.shape), dtype=np.uint8)
     for i, c in enumerate(present):
-        stack.numpy()[i] = images[c]  # decoded arrays are read-only: copied by numpy, never wrapped
+        stack[i] = images[c]
     gt = own.get(reference)
     has_target = [c in own or gt is not None for c in present]
     targets = None
     if any(has_target):
-        targets = torch.full((len(present), *first.shape[:2]), IGNORE_INDEX, dtype=torch.uint8)
+        targets = np.full((len(present), *first.shape[:2]), IGNORE_INDEX, dtype=np.uint8)
         for i, c in enumerate(present):
             label = own[c] if c in own else gt
             if label is not None:
-                targets.numpy()[i] = label
+                targets[i] = label
     seen = item.get("visible") or {}
-    visible = torch.from_numpy(np.stack([np.asarray(seen[c], dtype=bool) for c in present])) if seen else None
+    visible = np.stack([np.asarray(seen[c], dtype=bool) for c in present]) if seen else None
+    tensor = (lambda a: None if a is None else torch.from_numpy(a))
     return {"group_id": item["group_id"], "present": present, "packed": {
-        "images": stack, "pseudo": torch.from_numpy(np.array(item["pseudo"], dtype=np.uint8)),
-        "targets": targets, "has_target": has_target,
-        "gt": None if gt is None else torch.from_numpy(np.array(gt, dtype=np.uint8)), "visible": visible}}
+        "images": tensor(stack), "pseudo": tensor(np.array(item["pseudo"], dtype=np.uint8)),
+        "targets": tensor(targets), "has_target": has_target,
+        "gt": None if gt is None else tensor(np.array(gt, dtype=np.uint8)), "visible": tensor(visible)}}
 
 
 def _identity(item: Any) -> Any:
@@ -132,7 +134,7 @@ def _identity(item: Any) -> Any:
 def load_groups(inputs: GroupInputs, workers: int, pin_memory: bool = False) -> Any:
     """The groups' inputs in order: decoded in this process (workers=0) or by `workers` DataLoader workers;
     with `pin_memory` (a GPU) their tensors arrive in pinned memory, ready for a non-blocking copy."""
-    if workers < 1:
+    if workers < 1:  # not a thread either: beside the forward's OpenMP threads it slowed the forward down (2 cores)
         return (inputs[i] for i in range(len(inputs)))
     return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
                                        collate_fn=_identity, prefetch_factor=2, persistent_workers=False,

@@ -9,9 +9,9 @@ and entropy per image) are float64 sums of float32 values; they add in the order
 over blocks of 8192, the blocks in sequence: `ordered_sum`), the order of the former host path, so the CPU gives
 bit-identical numbers and a GPU adds its maps in the same order as the CPU.
 
-Counting is by `scatter_add_` into a zeroed tensor, never `torch.bincount`: on CUDA bincount reads the input's
-minimum and maximum back to the host (two synchronisations per call). Invalid pixels go to one extra bin that is
-dropped, instead of boolean indexing (whose output size the host must know)."""
+Counting on a GPU is by `scatter_add_` into a zeroed tensor, not `torch.bincount`: on CUDA bincount reads the
+input's minimum and maximum back to the host (two synchronisations per call); on the CPU it is bincount. Invalid
+pixels go to one extra bin that is dropped, instead of boolean indexing (whose output size the host must know)."""
 from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
@@ -37,7 +37,9 @@ def count(keys: torch.Tensor, bins: int, lanes: int | None = None) -> torch.Tens
     without a host synchronisation. On a GPU the atomic adds of a few bins (19 classes; most pixels in the top
     confidence bin) would queue on the same addresses: neighbouring pixels count into LANES separate copies."""
     keys = keys.reshape(-1)
-    lanes = lanes or (LANES if keys.device.type == "cuda" else 1)  # a power of two
+    if keys.device.type == "cpu" and not lanes:  # no host to wait for: bincount's one pass
+        return torch.bincount(keys, minlength=bins + 1)[:bins]
+    lanes = lanes or LANES  # a power of two
     if lanes > 1:
         lane = torch.arange(keys.shape[0], device=keys.device, dtype=torch.int64).bitwise_and_(lanes - 1)
         keys = lane.mul_(bins + 1).add_(keys)  # lane-major: the copies of a bin lie far apart
