@@ -124,7 +124,19 @@ def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
         raise ConfigError(f"{', '.join(sorted(set(sourced.values())))} draws {', '.join(sourced)} from that file and runs no "
                           f"data stage; use stages=[plot] (stages={stages})")
     needs = figures.needed_stages(cfg) if "plot" in stages else set()
+    if not (sourced and set(stages) == {"plot"}):
+        check_renderer(cfg)
     return Plan(stages, force, needs)
+
+
+def check_renderer(cfg: dict[str, Any]) -> None:
+    """A run that reads a generated dataset needs its renderer's software here (Blender as a module for
+    renderer=blender: its version is part of the generate key): one line before the record opens or any stage
+    writes, not when the generate stage starts."""
+    from pairedgta.render import renderer_versions
+
+    if any((c.get("dataset") or {}).get("root") is None for _, c in pass_configs(cfg)):
+        renderer_versions((cfg.get("renderer") or {}).get("backend"))
 
 
 def check_cuda(device: str) -> None:
