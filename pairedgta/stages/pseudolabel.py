@@ -89,7 +89,8 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
                 group = by_id[gid]
                 if dataset.reference in group.labels:  # how good is the weak ground truth where the truth is known
                     seen_gt = True
-                    gt = to_device(torch.from_numpy(np.array(load_label(group.labels[dataset.reference]))), device)
+                    gt = np.array(load_label(group.labels[dataset.reference]), np.uint8)  # train ids: 0-18, 255
+                    gt = to_device(torch.from_numpy(gt), device)
                     gt_valid = gt != IGNORE_INDEX
                     cm = reductions.confusion(torch.where(valid[i], gt, void)[None], labels[i][None])[0]
                     gt_counts += torch.cat([cm.reshape(-1), (gt_valid & valid[i]).sum().view(1), gt_valid.sum().view(1)])
