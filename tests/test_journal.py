@@ -129,11 +129,10 @@ def test_through_the_cli_the_tracking_child_journals_a_locked_store_and_the_next
     said = [line for line in (proc.stdout + proc.stderr).splitlines() if "MLflow store" in line]
     assert len(said) == 2, said  # it failed (the warning), and still fails at the end: each with the journal's path
     assert "failed while opening the experiment" in said[0] and all(str(journal) in line for line in said)
-    proc = run_cli(args, tmp_path)  # the same command once the lock is gone (in this process: it is the same code)
-    assert proc.returncode == 0 and "MLflow store" not in proc.stdout + proc.stderr, proc.stdout[-2000:]
+    Tracker(uri, "jrn", results=tmp_path / "cache")  # the lock gone: the next run, as it opens the store
     assert not journals.pending(tmp_path / "cache", uri)
     # `model=` on a command line chooses the one model to evaluate (fast_overrides sets it)
-    _check_complete(_record(uri), invocations=2, models={"tiny_segformer"})
+    _check_complete(_record(uri), invocations=1, models={"tiny_segformer"})
 
 
 @pytest.mark.slow
