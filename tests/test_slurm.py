@@ -1,4 +1,4 @@
-"""README's worked example on a real single-node SLURM cluster (munge, slurmctld and slurmd started by
+"""The worked example of docs/scaling-out.md on a real single-node SLURM cluster (munge, slurmctld and slurmd started by
 the fixture, `pairedgta/testing/slurm.py`): generate in 2 SLURM shards with the embedded Blender renderer,
 one shard cancelled with `scancel` mid-render and resubmitted, pseudo-labels in one job, evaluation in 2
 SLURM shards, then the unsharded run that merges; the results are byte-identical to one local run."""
