@@ -111,6 +111,17 @@ def import_bpy():
     return bpy
 
 
+def image_pixels(image):
+    """A loaded Blender image's pixels as a float32 (height, width, channels) array, rows bottom-up as Blender
+    stores them (`image.pixels.foreach_set(a.ravel())` writes such an array back)."""
+    import numpy as np
+
+    w, h = image.size
+    px = np.empty(w * h * image.channels, dtype=np.float32)
+    image.pixels.foreach_get(px)
+    return px.reshape(h, w, image.channels)
+
+
 def configure_cycles(bpy, *, width: int, height: int, samples: int, device: str, denoise: bool,
                      denoiser_quality: str, max_bounces: int, fast_gi: bool, light_tree: bool, seed: int,
                      filter_width: float, volume_step_rate: float, threads: int, view_transform: str,

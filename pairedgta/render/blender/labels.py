@@ -9,6 +9,7 @@ from collections.abc import Callable
 import numpy as np
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX
+from pairedgta.render.blender.cycles import image_pixels
 from pairedgta.render.blender.nodes import Knobs
 
 LABEL_CODE_VOID = 31  # class code for surfaces that are not one of the 19 classes
@@ -62,12 +63,9 @@ def render_label_pass(bpy, knobs: Knobs, render_to: Callable[[str], None],
         cy.samples, cy.filter_width, cy.use_denoising = saved
     image = bpy.data.images.load(path, check_existing=False)
     try:
-        w, h = image.size
-        px = np.empty(w * h * image.channels, dtype=np.float32)
-        image.pixels.foreach_get(px)
+        px = image_pixels(image)[::-1]
     finally:
         bpy.data.images.remove(image)
-    px = px.reshape(h, w, -1)[::-1]
     train, instances = decode_labels(px[..., 0])
     distance = np.where(np.rint(px[..., 0]) == 0, np.inf, px[..., 1]).astype(np.float32)
     return train, instances, distance

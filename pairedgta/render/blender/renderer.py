@@ -30,7 +30,7 @@ from pairedgta.conditions import Condition
 from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render.base import Renderer, RenderResult
 from pairedgta.render.blender.atmosphere import FOG_MODELS
-from pairedgta.render.blender.cycles import configure_cycles, import_bpy, quiet_stdout
+from pairedgta.render.blender.cycles import configure_cycles, image_pixels, import_bpy, quiet_stdout
 from pairedgta.render.blender.illumination import NIGHT, NightLight, lighting
 from pairedgta.render.blender.labels import MAX_INSTANCES, render_label_pass
 from pairedgta.render.blender.scene import (
@@ -297,10 +297,7 @@ class BlenderRenderer(Renderer):
         frame = bpy.data.images.load(linear_path, check_existing=False)
         try:
             if self.camera.noisy:
-                w, h = frame.size
-                px = np.empty(w * h * frame.channels, dtype=np.float32)
-                frame.pixels.foreach_get(px)
-                px = px.reshape(h, w, frame.channels)
+                px = image_pixels(frame)
                 px[..., :3] = self.camera.add_noise(px[..., :3], ev, noise_seed)
                 frame.pixels.foreach_set(px.ravel())
             sc.view_settings.exposure = ev
@@ -338,12 +335,10 @@ class BlenderRenderer(Renderer):
         self._render_to(path)
         frame = bpy.data.images.load(path, check_existing=False)
         try:
-            w, h = frame.size
-            px = np.empty(w * h * frame.channels, dtype=np.float32)
-            frame.pixels.foreach_get(px)
+            px = image_pixels(frame)
         finally:
             bpy.data.images.remove(frame)
-        return px.reshape(h, w, -1)[::-1, :, :3].copy(), p
+        return px[::-1, :, :3].copy(), p
 
     def develop(self, linear: np.ndarray, ev: float) -> np.ndarray:
         """The camera's development of a scene-referred image (render_linear's): exposure `ev` and the view
