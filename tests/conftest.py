@@ -78,3 +78,24 @@ SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "
 def pytest_collection_modifyitems(items):
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
+
+
+@pytest.fixture
+def calibration(tmp_path: Path):
+    """`+experiment=photometric_calibration` through the CLI on the main job's first `scenes` scenes at 128x64 with
+    one sample: (the photometry table by condition, the checks, the plot entry's folder)."""
+    import pandas as pd
+
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    def run(scenes: int):
+        proc = run_cli(base_overrides(tmp_path) + [
+            "+experiment=photometric_calibration", f"generate.num_scenes={scenes}", "renderer.width=128",
+            "renderer.height=64", "renderer.samples=1", "plot.figures=[photometry]", "plot.formats=[png]",
+            "plot.dpi=60", "tracking.enabled=false"], tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        entry, = (tmp_path / "cache" / "plot").glob("*/photometry.csv")
+        checks = pd.read_csv(entry.with_name("photometry_checks.csv"))
+        return pd.read_csv(entry).set_index("condition"), checks, entry.parent
+
+    return run

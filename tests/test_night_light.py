@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pandas as pd
 import pytest
 import yaml
 from omegaconf import OmegaConf
@@ -14,7 +13,7 @@ from omegaconf import OmegaConf
 from pairedgta.conditions import build_condition_grid
 from pairedgta.errors import ConfigError
 from pairedgta.render.blender.illumination import NIGHT, PHYSICAL, NightLight, lighting
-from pairedgta.testing.cli import CONF, base_overrides, run_cli
+from pairedgta.testing.cli import CONF
 
 GRID = build_condition_grid(OmegaConf.to_container(OmegaConf.load(CONF / "conditions" / "paper.yaml")))
 
@@ -80,17 +79,10 @@ def test_the_fits_linear_model_is_the_renderer():
 
 
 @pytest.mark.slow  # the CLI and Blender renders
-def test_the_calibration_holds_on_six_consecutive_scenes(tmp_path):
+def test_the_calibration_holds_on_six_consecutive_scenes(calibration):
     """A subset of the main job (its first six scenes, which hold all three of its scenes with oncoming head lights)
     at 128x64, one sample: every check passes, and Night-RAIN keeps a contrast ratio of at most 0.25 (before the
     fit: 0.43 on these six, the eight at the edge of the 0.35 band)."""
-    proc = run_cli(base_overrides(tmp_path) + [
-        "+experiment=photometric_calibration", "generate.num_scenes=6", "renderer.width=128", "renderer.height=64",
-        "renderer.samples=1", "plot.figures=[photometry]", "plot.formats=[png]", "plot.dpi=60",
-        "tracking.enabled=false"], tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    entry, = (tmp_path / "cache" / "plot").glob("*/photometry.csv")
-    table = pd.read_csv(entry).set_index("condition")
-    checks = pd.read_csv(entry.with_name("photometry_checks.csv"))
+    table, checks, _ = calibration(6)
     assert len(checks) == 16 and checks["ok"].all(), checks[~checks["ok"]].to_string()
     assert table.loc["Night-RAIN", "contrast_ratio_median"] <= 0.25

@@ -5,11 +5,9 @@ from __future__ import annotations
 import types
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from pairedgta.metrics.photometry import band_checks, group_rows, image_stats, physics_checks, summarise
-from pairedgta.testing.cli import base_overrides, run_cli
 
 pytestmark = pytest.mark.slow  # end to end: the CLI or the stage graph on every test
 
@@ -73,21 +71,14 @@ def test_a_light_ladder_must_darken_step_by_step():
     assert [c["ok"] for c in ladder_checks(rising, ["clean", "a", "b"])] == [False, False]
 
 
-def test_the_calibration_experiment_meets_the_gta_bands(tmp_path):
+def test_the_calibration_experiment_meets_the_gta_bands(calibration):
     """The main job's 8 scenes at 128x64, one sample: every check of the calibration passes (the bands are
-    medians over groups of a ratio of means, which the resolution barely moves: 0.112 / 0.311 / 0.448 /
-    0.421 here against 0.116 / 0.348 / 0.456 / 0.406 at 512x256). Two groups would not do: the two first
-    scenes alone are darker than the median (Night-RAIN 0.060)."""
-    proc = run_cli(base_overrides(tmp_path) + [
-        "+experiment=photometric_calibration", "generate.num_scenes=8", "renderer.width=128", "renderer.height=64",
-        "renderer.samples=1", "plot.figures=[photometry]", "plot.formats=[png]", "plot.dpi=60",
-        "tracking.enabled=false"], tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    entry, = (tmp_path / "cache" / "plot").glob("*/photometry.csv")
-    table = pd.read_csv(entry).set_index("condition")
+    medians over groups of a ratio of means, which the resolution barely moves: Night-RAIN luma / contrast and
+    Sunset-FOGGY luma / contrast 0.106 / 0.129 / 0.448 / 0.421 here against 0.110 / 0.158 / 0.456 / 0.406 at
+    512x256). Two groups would not do: the two first scenes alone are darker than the median."""
+    table, checks, folder = calibration(8)
     assert table.loc["Day-EXTRASUNNY", "luma_ratio_median"] == pytest.approx(1.0)
     assert table.loc["Night-RAIN", "gta_luma_ratio_median"] == pytest.approx(0.1232)
-    checks = pd.read_csv(entry.with_name("photometry_checks.csv"))
     assert len(checks) == 16 and checks["ok"].all(), checks[~checks["ok"]].to_string()
     assert checks["check"].str.contains("GTA V band").sum() == 4
-    assert (entry.parent / "photometry.png").is_file()
+    assert (folder / "photometry.png").is_file()
