@@ -107,12 +107,12 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
     import pairedgta.stages.evaluate as ev
     import torch
 
-    from pairedgta.evaluation import counting, tables
+    from pairedgta.evaluation import counting, entry
     from pairedgta.models.base import Segmenter
 
     t: dict[str, Any] = {"forward": 0.0, "count": 0.0, "write": 0.0, "events": [], "steady": 0.0}
     inside = [False]
-    forward, count_groups, write_outputs = Segmenter._forward, ev.count_groups, tables.write_outputs
+    forward, count_groups, write_outputs = Segmenter._forward, ev.count_groups, entry.write_outputs
     load_groups = counting.load_groups
     first: list[float] = []
 
@@ -159,12 +159,12 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
         finally:
             t["write"] += time.perf_counter() - s
 
-    Segmenter._forward, ev.count_groups, tables.write_outputs = timed_forward, timed_count, timed_write
+    Segmenter._forward, ev.count_groups, entry.write_outputs = timed_forward, timed_count, timed_write
     counting.load_groups = timed_load
     try:
         yield t
     finally:
-        Segmenter._forward, ev.count_groups, tables.write_outputs = forward, count_groups, write_outputs
+        Segmenter._forward, ev.count_groups, entry.write_outputs = forward, count_groups, write_outputs
         counting.load_groups = load_groups
         t["forward"] += sum(a.elapsed_time(b) for a, b in t.pop("events")) / 1000.0
 

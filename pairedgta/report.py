@@ -8,6 +8,8 @@ import json
 import math
 from pathlib import Path
 
+from pairedgta.evaluation.entry import SUMMARY
+
 REFERENCE_TAG = " (reference)"
 
 
@@ -19,7 +21,7 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
     teachers: set[str] = set()
     own: set[str] = set()  # evaluations of the model whose pseudo-labels they are scored against
     for name, path in evaluations.items():
-        summary = Path(path) / "summary.json"
+        summary = Path(path) / SUMMARY
         if summary.is_file():
             data = json.loads(summary.read_text())
             teacher = str(data.get("reference_model"))

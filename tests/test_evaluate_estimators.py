@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pairedgta.models.base import normalised_entropy
-from pairedgta.evaluation import counting, shards, tables
+from pairedgta.evaluation import counting, entry, registry, shards, tables
 
 
 def test_normalised_entropy_is_zero_when_certain_one_when_uniform_and_renormalises():
@@ -78,11 +78,11 @@ def test_estimator_arrays_predictions_and_shard_parts_round_trip(tmp_path):
                 "estimators": {c: {"pixels": 6, "conf_sum": 1.5 + g, "entropy_sum": 0.5, "conf_hist": hist,
                                    "agree_clean": 3} for c in conds[: 2 - g]},
                 "pred": {c: np.full((2, 3), g + i, np.uint8) for i, c in enumerate(conds[: 2 - g])}} for g in range(2)]
-    tables.write_group_counts(tmp_path / "gc.npz", results, conds)
+    entry.write_group_counts(tmp_path / "gc.npz", results, conds)
     a = np.load(tmp_path / "gc.npz")
     assert a["est_pixels"].tolist() == [[6, 6], [6, 0]] and a["est_conf_sum"][1, 0] == 2.5
     assert a["est_conf_hist"][0, 1, 10] == 6 and a["est_agree_clean"].sum() == 9
-    tables.write_predictions(tmp_path / "p.npz", results, conds)
+    entry.write_predictions(tmp_path / "p.npz", results, conds)
     p = np.load(tmp_path / "p.npz")
     assert p["group_id"].tolist() == ["s0", "s1"] and p["g00000"].shape == (2, 2, 3)
     assert (p["g00001"][1] == 255).all() and (p["g00001"][0] == 1).all()  # absent condition: 255
@@ -114,7 +114,7 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
                                                    "conf_hist": hist(clean_bin), "agree_clean": 10},
                                        conds[1]: {"pixels": 10, "conf_sum": 10 * adv_bin / 1000, "entropy_sum": 4.0,
                                                    "conf_hist": hist(adv_bin), "agree_clean": 3 + g}}})
-    arrays = tables.write_group_counts(tmp_path / "group_counts.npz", results, conds)
+    arrays = entry.write_group_counts(tmp_path / "group_counts.npz", results, conds)
     conv = {"mean_exclude": [], "absent": "nan", "min_images": 0, "min_pixels": 0}
     out = tables.write_estimators(tmp_path, "m", conds, {"clean": conds[0], "convention": conv}, arrays)
     adv = out["Night-RAIN"]
@@ -135,7 +135,7 @@ def test_estimators_csv_per_model_by_hand(tmp_path):
 
 def test_entry_written_from_counted_groups_by_hand(tmp_path):
     """Two groups counted by `group_counts` (the _Fixed model keeps half of class 0 at night), summed and
-    written by `tables.write_outputs`: xi, IoU and agreement by hand, through the metrics' update_counts."""
+    written by `entry.write_outputs`: xi, IoU and agreement by hand, through the metrics' update_counts."""
     import json
 
     import pandas as pd
@@ -150,8 +150,8 @@ def test_entry_written_from_counted_groups_by_hand(tmp_path):
     groups = [counting.group_counts({"group_id": f"g{i}", "present": [clean, adverse], "images": images, "pseudo": zeros,
                                      "own": {clean: zeros}}, _Fixed(), s, clean, True, 2, "fixed", "d") for i in range(2)]
     covered = {"groups_per_condition": {clean: 2, adverse: 2}, "groups_without_clean": 0}
-    out = tables.write_outputs(tmp_path, tables.ModelEvaluation("d", "fixed", "ref", [clean, adverse], s, groups, covered))
-    assert out == {"xi_mean": {clean: 1.0, adverse: 0.5}}
+    out = entry.write_outputs(tmp_path, entry.ModelEvaluation("d", "fixed", "ref", [clean, adverse], s, groups, covered))
+    assert out["xi_mean"] == {clean: 1.0, adverse: 0.5}
     xi = pd.read_csv(tmp_path / tables.XI).set_index(["reference_model", "condition", "class_name"])
     for source in ("ref", counting.GT):
         row = xi.loc[(source, adverse, "road")]
@@ -164,7 +164,7 @@ def test_entry_written_from_counted_groups_by_hand(tmp_path):
     frames = pd.read_csv(tmp_path / tables.FRAME_COUNTS)
     assert frames.groupby("class_name")[["clean_count", "adv_count"]].sum().to_dict("index") == {
         "road": {"clean_count": 48, "adv_count": 24}, "sidewalk": {"clean_count": 0, "adv_count": 24}}
-    summary = json.loads((tmp_path / tables.SUMMARY).read_text())
+    summary = json.loads((tmp_path / entry.SUMMARY).read_text())
     assert summary["gt_miou"] == {clean: 1.0, adverse: 0.25} and summary["n_pairs"] == {clean: 2, adverse: 2}
     assert summary["xi_mean_gt"] == {clean: 1.0, adverse: 0.5} and summary["groups_per_condition"][adverse] == 2
-    assert set(tables.RESULT_FILES) <= {p.name for p in tmp_path.iterdir()}
+    assert set(registry.result_files()) <= {p.name for p in tmp_path.iterdir()}

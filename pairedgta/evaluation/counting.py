@@ -15,17 +15,15 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.datasets import LabelMaps, PairedDataset
 from pairedgta.errors import DataError
-from pairedgta.evaluation import reductions
+from pairedgta.evaluation import reductions, registry
 from pairedgta.evaluation.inputs import GroupInputs, load_groups, pack_group
+from pairedgta.evaluation.metric import GT, PSEUDO_LABEL, Group, GroupContext
 from pairedgta.evaluation.reductions import CONF_BINS
 from pairedgta.lazy import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
-
-PSEUDO_LABEL, GT = "pseudo_label", "ground_truth"  # the reference sources xi is measured against
 
 
 def _device(segmenter: Any) -> Any:
@@ -81,12 +79,14 @@ def _maps(segmenter: Any, images: Any, batch: int) -> tuple[Any, Any, Any]:
 
 
 class GroupJob:
-    """One group's reductions, launched on the device; `result()` reads them on the host (waiting, on a GPU,
-    only for this group's copies) and writes the dict `group_counts` returns."""
+    """One group's reductions, launched on the device: each registered metric's `update` on the shared
+    `GroupContext`, all copied to the host at once; `result()` reads them on the host (waiting, on a GPU, only
+    for this group's copies) and writes the dict `group_counts` returns, one field per metric."""
 
     def __init__(self, item: dict[str, Any], inputs: dict[str, Any], segmenter: Any, s: dict[str, Any],
                  use_pl: bool, batch: int, model: str, dataset_name: str) -> None:
         self.item, self.s, self.use_pl, self.model, self.dataset_name = item, s, use_pl, model, dataset_name
+        self.metrics = registry.metrics()
         present = item["present"]
         self.clean = present.index(s["clean"])
         self.has_target = inputs["has_target"]
@@ -95,46 +95,27 @@ class GroupJob:
             _use(inputs)
             labels, conf, entropy = _maps(segmenter, inputs["images"], batch)
             on = (lambda t: None if t is None else t.to(labels.device))  # there already, but for a stand-in model
-            out = reductions.group_reductions(labels, conf, entropy, self.clean, on(inputs["pseudo"]),
-                                              on(inputs["targets"]), on(inputs["visible"]), s["tau_mass"],
-                                              on(inputs["gt"]), use_pl)
+            ctx = GroupContext(labels, conf, entropy, self.clean, on(inputs["pseudo"]), on(inputs["targets"]),
+                               on(inputs["visible"]), s["tau_mass"], on(inputs["gt"]), use_pl)
+            out = {f"{n}/{k}": v for n, m in enumerate(self.metrics) for k, v in m.update(ctx).items()}
             out["pred"] = labels
             self.copy = reductions.HostCopy(out)
 
     def result(self) -> dict[str, Any]:
         r = self.copy.get()
-        item, s, present, clean = self.item, self.s, self.item["present"], self.clean
-        gid = item["group_id"]
-        h, w = r["pred"].shape[1:]
-        out: dict[str, Any] = {"group_id": gid, "xi": {}, "cm": {}, "agreement": [], "counts": [], "estimators": {},
-                               "pred": {}}
-        targets = [i for i in range(len(present)) if self.has_target[i]]
-        for i, c in enumerate(present):
-            if self.use_pl:
-                counts = r["xi_pl"][i]
-                out["xi"][f"{PSEUDO_LABEL}|{c}"] = [counts[:, 1].tolist(), counts.sum(axis=1).tolist()]
-            if self.has_gt:
-                counts = r["xi_gt"][i]
-                out["xi"][f"{GT}|{c}"] = [counts[:, 1].tolist(), counts.sum(axis=1).tolist()]
-            if i in targets:
-                out["cm"][c] = r["cm"][i].tolist()
-            valid, agree_ref, agree_clean = (int(v) for v in r["agreement"][i])
-            out["agreement"].append({
-                "model": self.model, "condition": c, "pair_id": gid, "valid_pixels": valid,
-                "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean,
-            })
-            if i != clean:
-                clean_mass, adv_mass = r["clean_mass"][i], r["adv_mass"][i]
-                for k in s["class_ids"]:
-                    out["counts"].append({
-                        "dataset": self.dataset_name, "model": self.model, "class_name": CLASS_NAMES[k], "pair_id": gid,
-                        "condition": c, "clean_count": int(clean_mass[k]), "adv_count": int(adv_mass[k]),
-                    })
-            out["estimators"][c] = {
-                "pixels": int(h * w), "conf_sum": reductions.ordered_sum(r["conf_blocks"][i]),
-                "entropy_sum": reductions.ordered_sum(r["entropy_blocks"][i]),
-                "conf_hist": r["conf_hist"][i].tolist(), "agree_clean": int(r["agree_clean"][i])}
-            out["pred"][c] = np.array(r["pred"][i], dtype=np.uint8)  # own memory: the pinned buffer goes back
+        present = self.item["present"]
+        pred = r.pop("pred")
+        group = Group(self.item["group_id"], list(present), self.clean, [bool(t) for t in self.has_target],
+                      self.has_gt, self.use_pl, tuple(pred.shape[1:]), self.model, self.dataset_name, self.s)
+        own: list[dict[str, np.ndarray]] = [{} for _ in self.metrics]
+        for key, v in r.items():
+            n, name = key.split("/", 1)
+            own[int(n)][name] = v
+        out: dict[str, Any] = {"group_id": self.item["group_id"]}
+        for m, host in zip(self.metrics, own):
+            out[m.key] = m.record(host, group)
+        # own memory: the pinned buffer goes back
+        out["pred"] = {c: np.array(pred[i], dtype=np.uint8) for i, c in enumerate(present)}
         return out
 
 

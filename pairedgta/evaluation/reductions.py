@@ -1,7 +1,7 @@
-"""Evaluate's per-group reductions, in torch on whatever device the predictions are (one code path for the CPU
-and a GPU): from the label maps, max probabilities and entropies of a group's conditions (`PixelMaps`) the
-xi counts, the confusion matrices, the agreement counts, phi per class and the label-free estimators' sums and
-histograms. Only these small arrays (and the uint8 label maps) cross to the host, in one copy per group that
+"""Evaluate's per-group reduction kernels, in torch on whatever device the predictions are (one code path for the
+CPU and a GPU), which the registered metrics' `update` call (`registry.METRICS`): from the label maps, max
+probabilities and entropies of a group's conditions (`PixelMaps`) the xi counts, the confusion matrices, the
+agreement counts, phi per class and the label-free estimators' sums and histograms. Only these small arrays (and the uint8 label maps) cross to the host, in one copy per group that
 does not wait for the GPU (`HostCopy`); the host reads it a group later, while the next group computes.
 
 Counts are integers, so they are the same on any device and in any order. The two float sums (max probability
@@ -173,43 +173,13 @@ def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: to
                      pseudo: torch.Tensor, targets: torch.Tensor | None, visible: torch.Tensor | None,
                      tau: float, gt: torch.Tensor | None, use_pl: bool,
                      num_classes: int = NUM_CLASSES) -> dict[str, torch.Tensor]:
-    """Everything evaluate keeps of one group's N conditions, as device tensors: `labels`, `confidence`,
-    `entropy` N x H x W (the conditions in order, `clean` the index of the clean one); `pseudo` H x W the
-    pseudo-label; `targets` N x H x W each condition's ground truth for its IoU (void where it has none; None:
-    no condition has one); `visible` N x H x W (or
-    None: all) the pixels visible in each condition and the clean image; `gt` H x W the reference's truth for xi
-    (or None). Hidden pixels count as void in every reference, and phi counts only visible pixels."""
-    void = torch.full((), IGNORE_INDEX, dtype=pseudo.dtype, device=pseudo.device)
+    """Every registered metric's device tensors of one group (`metric.GroupContext` says what the arguments
+    are), in one dict: what `counting.GroupJob` copies to the host, for a check outside the stage."""
+    from pairedgta.evaluation import registry
+    from pairedgta.evaluation.metric import GroupContext
 
-    def hide(ref: torch.Tensor) -> torch.Tensor:
-        """The reference as condition c sees it: H x W shared by all (no masks), else N x H x W."""
-        return ref if visible is None else torch.where(visible, ref, void)
-
-    out: dict[str, torch.Tensor] = {}
-    pseudo_c = hide(pseudo)
-    if use_pl:
-        out["xi_pl"] = xi_counts(pseudo_c, labels, num_classes)
-    if gt is not None:
-        out["xi_gt"] = xi_counts(hide(gt.to(pseudo.dtype)), labels, num_classes)
-    if targets is not None:
-        out["cm"] = confusion(targets if visible is None else torch.where(visible, targets, void), labels, num_classes)
-    clean_labels = labels[clean].unsqueeze(0)
-    valid = (pseudo_c != IGNORE_INDEX).expand_as(labels)
-    same_clean = labels == clean_labels
-    out["agreement"] = torch.stack([valid.sum((1, 2)), ((labels == pseudo_c) & valid).sum((1, 2)),
-                                    (same_clean & valid).sum((1, 2))], dim=1)  # valid, agree ref, agree clean
-    # phi of condition c over the pixels visible in c: of c's prediction and of the clean prediction
-    confident = confidence >= tau
-    clean_confident = confident[clean].unsqueeze(0).expand_as(confident)
-    if visible is not None:
-        confident, clean_confident = confident & visible, clean_confident & visible
-    out["adv_mass"] = class_counts(labels, confident, num_classes)
-    out["clean_mass"] = class_counts(clean_labels.expand_as(labels), clean_confident, num_classes)
-    out["conf_hist"] = confidence_histogram(confidence)
-    out["agree_clean"] = same_clean.sum((1, 2))
-    out["conf_blocks"] = block_sums(confidence)
-    out["entropy_blocks"] = block_sums(entropy)
-    return out
+    ctx = GroupContext(labels, confidence, entropy, clean, pseudo, targets, visible, tau, gt, use_pl, num_classes)
+    return {k: v for m in registry.metrics() for k, v in m.update(ctx).items()}
 
 
 _STREAMS: dict[tuple[str, str], Any] = {}

@@ -1,11 +1,12 @@
-"""One model's evaluate entry from its groups' counts: the counts summed through the metrics' own
-update_counts/compute, percentile-bootstrap intervals over images, and every file of the entry. The
-file names live here (`EvaluateResult` reads the entry by them), so no other module names them."""
+"""The evaluate entry's built-in metrics, one class each (`pairedgta/evaluation/metric.py` says what a metric
+declares; `registry.METRICS` lists them): xi, pixel agreement, phi and rho_valid, ground-truth IoU and the
+label-free estimators' sums. Per metric its device reduction (`update`), its per-group record, its arrays of
+group_counts.npz and its tables, computed through the metrics' own update_counts/compute with
+percentile-bootstrap intervals over images. The file names live here (`EvaluateResult` reads the entry through
+the registry), so no other module names them."""
 from __future__ import annotations
 
-import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,10 +14,10 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
-from pairedgta.datasets import PairedDataset
-from pairedgta.evaluation.counting import CONF_BINS, GT, PSEUDO_LABEL
-from pairedgta.evaluation.inputs import sampled_conditions
-from pairedgta.jsonio import write_json
+from pairedgta.evaluation import reductions
+from pairedgta.evaluation.metric import GT, PSEUDO_LABEL, Group, GroupContext, Metric, ModelEvaluation, per_condition
+from pairedgta.evaluation.reductions import CONF_BINS
+from pairedgta.lazy import lazy_module
 from pairedgta.metrics import (
     ConfusionMatrix,
     ReferenceConsistency,
@@ -29,26 +30,11 @@ from pairedgta.metrics.bootstrap import class_mean_ci, drop_zero_width
 from pairedgta.metrics.conventions import support_mask
 from pairedgta.metrics.ranking import rho_rows as rho_valid_rows
 
-log = logging.getLogger("pairedgta.evaluate")
+torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
 XI, AGREEMENT, FRAME_COUNTS, RHO_VALID, GT_IOU = ("xi.csv", "pixel_agreement.csv", "frame_counts.csv", "rho_valid.csv",
                                                   "gt_iou.csv")
-SUMMARY, GROUP_COUNTS, PREDICTIONS, ESTIMATORS = "summary.json", "group_counts.npz", "predictions.npz", "estimators.csv"
-RESULT_FILES = (XI, AGREEMENT, FRAME_COUNTS, RHO_VALID, GT_IOU, SUMMARY, GROUP_COUNTS, ESTIMATORS)  # the entry's tables
-
-
-@dataclass(frozen=True)
-class ModelEvaluation:
-    """What one model's entry is written from: its groups' counts (`counting.group_counts`, in dataset
-    order) and what names and settles the numbers."""
-
-    dataset: str
-    model: str
-    reference_model: str  # the pseudo-labels' model
-    conditions: list[str]
-    settings: dict[str, Any]  # evaluation.settings.metric_settings
-    groups: list[dict[str, Any]]
-    coverage: dict[str, Any]  # `coverage`: how many groups each condition averages over
+ESTIMATORS = "estimators.csv"
 
 
 class ConsistencyCounts:
@@ -65,26 +51,6 @@ class ConsistencyCounts:
         self.metric.update_counts(retained, reference)
         self.retained.append(retained)
         self.reference.append(reference)
-
-
-def write_outputs(out: Path, e: ModelEvaluation) -> dict[str, Any]:
-    """Every file of the entry into `out`; returns the build's extra result (the mean xi per condition)."""
-    s, conv = e.settings, e.settings["convention"]
-    arrays = write_group_counts(out / GROUP_COUNTS, e.groups, e.conditions)
-    write_predictions(out / PREDICTIONS, e.groups, e.conditions)
-    estimators = write_estimators(out, e.model, e.conditions, s, arrays)
-    summary: dict[str, Any] = {"model": e.model, "reference_model": e.reference_model, "dataset": e.dataset,
-                               "convention": conv, "sampling": s["sampling"], "min_transmittance": s["min_transmittance"],
-                               "xi_mean": {}, "xi_mean_gt": {}, "rho_valid": {}, "rho_valid_headline": {},
-                               "gt_miou": {}, "agreement": {}, "n_pairs": {}, **e.coverage, "estimators": estimators}
-    if s["sampling"] == "random_one":
-        summary["sampling_seed"] = s["sampling_seed"]
-    write_xi(out, e, summary)
-    write_agreement(out, e, summary)
-    write_rho_valid(out, e, summary)
-    write_gt_iou(out, e, summary)
-    write_json(out / SUMMARY, summary)
-    return {"xi_mean": summary["xi_mean"]}
 
 
 def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
@@ -235,85 +201,162 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
     return {cond: {k: v for k, v in r.items() if k not in ("model", "condition")} for cond, r in rows.items()}
 
 
-def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
-    """What a paired bootstrap over groups needs, per group g and condition i: `present[g, i]`; for each
-    reference source (`pseudo_label`, `ground_truth`) the retained and reference pixels per class
-    (`<source>_retained[g, i, c]`, `<source>_reference[g, i, c]`); the confusion matrix against the
-    condition's own labels (`cm[g, i, truth, prediction]`, with `cm_present[g, i]`); and the label-free
-    estimators' sums (`est_*`). No pickle is needed to read it back."""
-    G, C = len(results), len(conditions)
-    arrays: dict[str, np.ndarray] = {
-        "group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
-        "conditions": np.array(conditions, dtype=str),
-        "present": np.zeros((G, C), dtype=bool), "cm_present": np.zeros((G, C), dtype=bool),
-        "cm": np.zeros((G, C, NUM_CLASSES, NUM_CLASSES), dtype=np.int64),
-    }
-    for source in (PSEUDO_LABEL, GT):
-        arrays[f"{source}_retained"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
-        arrays[f"{source}_reference"] = np.zeros((G, C, NUM_CLASSES), dtype=np.int64)
-    arrays.update({"est_pixels": np.zeros((G, C), dtype=np.int64), "est_conf_sum": np.zeros((G, C)),
-                   "est_entropy_sum": np.zeros((G, C)), "est_conf_hist": np.zeros((G, C, CONF_BINS), dtype=np.int64),
-                   "est_agree_clean": np.zeros((G, C), dtype=np.int64)})
-    index = {c: i for i, c in enumerate(conditions)}
-    for g, r in enumerate(results):
-        for cond, e in (r.get("estimators") or {}).items():
-            if cond in index:
-                for k in ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean"):
-                    arrays[f"est_{k}"][g, index[cond]] = e[k]
-        for key, (retained, reference) in r["xi"].items():
-            source, cond = key.split("|", 1)
-            if cond in index:
-                arrays["present"][g, index[cond]] = True
-                arrays[f"{source}_retained"][g, index[cond]] = retained
-                arrays[f"{source}_reference"][g, index[cond]] = reference
-        for cond, mat in r["cm"].items():
-            if cond in index:
-                arrays["cm_present"][g, index[cond]] = True
-                arrays["cm"][g, index[cond]] = np.asarray(mat, dtype=np.int64)
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    return arrays
+def _zeros(groups: list[dict[str, Any]], conditions: list[str], *shape: int, dtype: Any = np.int64) -> np.ndarray:
+    return np.zeros((len(groups), len(conditions), *shape), dtype=dtype)
 
 
-def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
-    """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
-    absent), so that estimators comparing models pixel by pixel (agreement between models, ALine) need no
-    second inference pass. Label maps compress well: a few kB per image."""
-    arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
-                                     "conditions": np.array(conditions, dtype=str)}
-    for g, r in enumerate(results):
-        maps = r.get("pred") or {}
-        if not maps:
-            continue
-        shape = next(iter(maps.values())).shape
-        stack = np.full((len(conditions), *shape), IGNORE_INDEX, dtype=np.uint8)
-        for i, cond in enumerate(conditions):
-            if cond in maps:
-                stack[i] = maps[cond]
-        arrays[f"g{g:05d}"] = stack
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+class Xi(Metric):
+    """xi per (reference source, condition, class): retained and reference pixels per class and image."""
+
+    name, version, files, summary_keys = "xi", "8", (XI,), ("xi_mean", "xi_mean_gt", "n_pairs")
+
+    def update(self, ctx: GroupContext) -> dict[str, Any]:
+        out = {}
+        if ctx.use_pl:
+            out["xi_pl"] = reductions.xi_counts(ctx.pseudo_seen, ctx.labels, ctx.num_classes)
+        if ctx.gt is not None:
+            out["xi_gt"] = reductions.xi_counts(ctx.hide(ctx.gt.to(ctx.pseudo.dtype)), ctx.labels, ctx.num_classes)
+        return out
+
+    def record(self, host: dict[str, np.ndarray], group: Group) -> dict[str, list[list[int]]]:
+        """Per "<source>|<condition>" [retained, reference] pixels per class."""
+        out = {}
+        for i, c in enumerate(group.conditions):
+            for source, key, on in ((PSEUDO_LABEL, "xi_pl", group.use_pl), (GT, "xi_gt", group.has_gt)):
+                if on:
+                    counts = host[key][i]
+                    out[f"{source}|{c}"] = [counts[:, 1].tolist(), counts.sum(axis=1).tolist()]
+        return out
+
+    def arrays(self, groups: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
+        """`present[g, i]` and per source `<source>_retained[g, i, c]`, `<source>_reference[g, i, c]`."""
+        arrays = {"present": _zeros(groups, conditions, dtype=bool)}
+        for source in (PSEUDO_LABEL, GT):
+            arrays[f"{source}_retained"] = _zeros(groups, conditions, NUM_CLASSES)
+            arrays[f"{source}_reference"] = _zeros(groups, conditions, NUM_CLASSES)
+        index = {c: i for i, c in enumerate(conditions)}
+        for g, r in enumerate(groups):
+            for key, (retained, reference) in r["xi"].items():
+                source, cond = key.split("|", 1)
+                if cond in index:
+                    arrays["present"][g, index[cond]] = True
+                    arrays[f"{source}_retained"][g, index[cond]] = retained
+                    arrays[f"{source}_reference"][g, index[cond]] = reference
+        return arrays
+
+    def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        write_xi(out, e, summary)
 
 
-def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",
-             sampling_seed: int = 0) -> dict[str, Any]:
-    """How many groups each condition's numbers average over (under evaluate.sampling=random_one, the
-    groups that drew it); a warning when missing images make the conditions' groups differ."""
-    groups = {c: 0 for c in conditions}
-    available = dict(groups)
-    without_clean = 0
-    for g in dataset.groups:
-        if clean not in g.images:
-            without_clean += 1
-            continue
-        present = [c for c in conditions if c in g.images]
-        for c in present:
-            available[c] += 1
-        for c in sampled_conditions(g.group_id, [clean] + [c for c in present if c != clean], clean, sampling, sampling_seed):
-            groups[c] += c in groups
-    if without_clean or len(set(available.values())) > 1:
-        log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
-                    "leaves its group out of that condition only; see summary.json groups_per_condition)",
-                    model, ", ".join(f"{c} {n}" for c, n in groups.items()),
-                    f"; {without_clean} group(s) without the clean image {clean} skipped" if without_clean else "")
-    return {"groups_per_condition": groups, "groups_without_clean": without_clean}
+class Agreement(Metric):
+    """Per image the pseudo-label's valid pixels and those agreeing with it and with the clean prediction."""
+
+    name, version, files, summary_keys = "agreement", "8", (AGREEMENT,), ("agreement",)
+
+    def update(self, ctx: GroupContext) -> dict[str, Any]:
+        valid = ctx.valid
+        return {"agreement": torch.stack([valid.sum((1, 2)), ((ctx.labels == ctx.pseudo_seen) & valid).sum((1, 2)),
+                                          (ctx.same_clean & valid).sum((1, 2))], dim=1)}  # valid, agree ref, agree clean
+
+    def record(self, host: dict[str, np.ndarray], group: Group) -> list[dict[str, Any]]:
+        rows = []
+        for i, c in enumerate(group.conditions):
+            valid, agree_ref, agree_clean = (int(v) for v in host["agreement"][i])
+            rows.append({"model": group.model, "condition": c, "pair_id": group.group_id, "valid_pixels": valid,
+                         "agree_reference_pixels": agree_ref, "agree_clean_pixels": agree_clean})
+        return rows
+
+    def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        write_agreement(out, e, summary)
+
+
+class RhoValid(Metric):
+    """phi per (image, adverse condition, class) of the condition's and the clean prediction, and rho_valid."""
+
+    name, version, field = "rho_valid", "8", "counts"
+    files, summary_keys = (FRAME_COUNTS, RHO_VALID), ("rho_valid", "rho_valid_headline")
+
+    def update(self, ctx: GroupContext) -> dict[str, Any]:
+        """phi of condition c over the pixels visible in c: of c's prediction and of the clean prediction."""
+        confident = ctx.confidence >= ctx.tau
+        clean_confident = confident[ctx.clean].unsqueeze(0).expand_as(confident)
+        if ctx.visible is not None:
+            confident, clean_confident = confident & ctx.visible, clean_confident & ctx.visible
+        return {"adv_mass": reductions.class_counts(ctx.labels, confident, ctx.num_classes),
+                "clean_mass": reductions.class_counts(ctx.clean_labels.expand_as(ctx.labels), clean_confident,
+                                                      ctx.num_classes)}
+
+    def record(self, host: dict[str, np.ndarray], group: Group) -> list[dict[str, Any]]:
+        rows = []
+        for i, c in enumerate(group.conditions):
+            if i == group.clean:
+                continue
+            clean_mass, adv_mass = host["clean_mass"][i], host["adv_mass"][i]
+            for k in group.settings["class_ids"]:
+                rows.append({"dataset": group.dataset, "model": group.model, "class_name": CLASS_NAMES[k],
+                             "pair_id": group.group_id, "condition": c, "clean_count": int(clean_mass[k]),
+                             "adv_count": int(adv_mass[k])})
+        return rows
+
+    def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        write_rho_valid(out, e, summary)
+
+
+class GtIoU(Metric):
+    """The confusion matrix of each condition with ground truth, against it: IoU and mIoU."""
+
+    name, version, field, files, summary_keys = "gt_iou", "8", "cm", (GT_IOU,), ("gt_miou",)
+
+    def update(self, ctx: GroupContext) -> dict[str, Any]:
+        if ctx.targets is None:
+            return {}
+        targets = ctx.targets if ctx.visible is None else torch.where(ctx.visible, ctx.targets, ctx.void)
+        return {"cm": reductions.confusion(targets, ctx.labels, ctx.num_classes)}
+
+    def record(self, host: dict[str, np.ndarray], group: Group) -> dict[str, list]:
+        return {c: host["cm"][i].tolist() for i, c in enumerate(group.conditions) if group.has_target[i]}
+
+    def arrays(self, groups: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
+        """`cm[g, i, truth, prediction]` against the condition's own labels, with `cm_present[g, i]`."""
+        arrays = {"cm_present": _zeros(groups, conditions, dtype=bool),
+                  "cm": _zeros(groups, conditions, NUM_CLASSES, NUM_CLASSES)}
+        for g, i, mat in per_condition(groups, "cm", conditions):
+            arrays["cm_present"][g, i] = True
+            arrays["cm"][g, i] = np.asarray(mat, dtype=np.int64)
+        return arrays
+
+    def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        write_gt_iou(out, e, summary)
+
+
+EST_KEYS = ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean")
+
+
+class Estimators(Metric):
+    """The label-free estimators' sums per image (pairedgta.metrics.estimators) and estimators.csv."""
+
+    name, version, files, summary_keys = "estimators", "8", (ESTIMATORS,), ("estimators",)
+
+    def update(self, ctx: GroupContext) -> dict[str, Any]:
+        return {"conf_hist": reductions.confidence_histogram(ctx.confidence), "agree_clean": ctx.same_clean.sum((1, 2)),
+                "conf_blocks": reductions.block_sums(ctx.confidence), "entropy_blocks": reductions.block_sums(ctx.entropy)}
+
+    def record(self, host: dict[str, np.ndarray], group: Group) -> dict[str, dict[str, Any]]:
+        h, w = group.shape
+        return {c: {"pixels": int(h * w), "conf_sum": reductions.ordered_sum(host["conf_blocks"][i]),
+                    "entropy_sum": reductions.ordered_sum(host["entropy_blocks"][i]),
+                    "conf_hist": host["conf_hist"][i].tolist(), "agree_clean": int(host["agree_clean"][i])}
+                for i, c in enumerate(group.conditions)}
+
+    def arrays(self, groups: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
+        """The sums `est_*[g, i]` (the histogram `est_conf_hist[g, i, bin]`)."""
+        arrays = {"est_pixels": _zeros(groups, conditions), "est_conf_sum": _zeros(groups, conditions, dtype=float),
+                  "est_entropy_sum": _zeros(groups, conditions, dtype=float),
+                  "est_conf_hist": _zeros(groups, conditions, CONF_BINS), "est_agree_clean": _zeros(groups, conditions)}
+        for g, i, e in per_condition(groups, "estimators", conditions):
+            for k in EST_KEYS:
+                arrays[f"est_{k}"][g, i] = e[k]
+        return arrays
+
+    def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        summary["estimators"] = write_estimators(out, e.model, e.conditions, e.settings, arrays)

@@ -23,6 +23,7 @@ import pandas as pd
 from pairedgta.schema import as_dict
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError
+from pairedgta.evaluation.entry import PREDICTIONS
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_table, paper_style, save
 from pairedgta.figures.inputs import Passes
@@ -71,7 +72,7 @@ def agreement(models: list[GroupCounts], paths: dict[str, list[Path]], n_passes:
         with contextlib.ExitStack() as stack:
             sources = []
             for m in models:
-                path = paths[m.model][k] / "predictions.npz"
+                path = paths[m.model][k] / PREDICTIONS
                 if not path.is_file():
                     raise ConfigError(f"plot.figures: estimators needs {path} (the argmax predictions, for the agreement between models); {FIX}")
                 z = stack.enter_context(np.load(path, allow_pickle=False))

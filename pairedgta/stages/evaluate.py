@@ -25,7 +25,7 @@ import pandas as pd
 from pairedgta.cache import canonical_json
 from pairedgta.datasets import PairedDataset
 from pairedgta.errors import ConfigError, PairedGTAError
-from pairedgta.evaluation import counting, shards, tables
+from pairedgta.evaluation import counting, entry, registry, shards, tables
 from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.settings import conditions_for, metric_settings
 from pairedgta.schema import as_dict
@@ -42,19 +42,22 @@ from pairedgta.stages.common import (
 from pairedgta.stages.pseudolabel import PseudoLabels
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "8"  # 8: label-free estimator sums (est_* in group_counts.npz), estimators.csv, predictions.npz; 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
+VERSION = "8"  # the framework's; the registered metrics' versions join it past VERSION 8 (registry.stage_version). 8: label-free estimator sums (est_* in group_counts.npz), estimators.csv, predictions.npz; 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
 # 4: group_counts.npz (per-group counts: the bootstrap of a comparison across models resamples groups)
 # 5: xi.csv `images`/`supported` (metric.min_images/min_pixels); no interval for a class seen in one image;
 #    random_one draws a time of day, then a weather of it (the authors' loader)
 
 
 class EvaluateResult(StageResult):
-    """One model's evaluate entry and the readers of its files (by the names pairedgta/evaluation/tables.py
-    writes them under: no other code names them). `complete` is False for a shard job's partial result (nothing to read yet)."""
+    """One model's evaluate entry and the readers of its files, derived from the registered metrics
+    (`pairedgta/evaluation/registry.py`: each metric names and reads its own files; no other code names them).
+    `complete` is False for a shard job's partial result (nothing to read yet)."""
 
     complete: bool = True
 
-    FILES = tables.RESULT_FILES
+    @property
+    def FILES(self) -> tuple[str, ...]:
+        return registry.result_files()
 
     def model_config(self) -> dict[str, Any]:
         """The model's composed config: as this run built it, or (an evaluation collected from the cache)
@@ -67,35 +70,31 @@ class EvaluateResult(StageResult):
     def model(self) -> str:
         return str(self.model_config()["name"])
 
-    def _csv(self, name: str) -> pd.DataFrame:
-        path = self.path / name
-        return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
+    def read(self, file: str) -> Any:
+        """One of the entry's tables, by the reader of the registered metric that writes it."""
+        return registry.reader(file).read(self.path / file)
 
     def xi(self) -> pd.DataFrame:
-        return self._csv(tables.XI)
+        return self.read(tables.XI)
 
     def rho(self) -> pd.DataFrame:
-        return self._csv(tables.RHO_VALID)
+        return self.read(tables.RHO_VALID)
 
     def frame_counts(self) -> pd.DataFrame:
-        return self._csv(tables.FRAME_COUNTS)
+        return self.read(tables.FRAME_COUNTS)
 
     def agreement(self) -> pd.DataFrame:
-        return self._csv(tables.AGREEMENT)
+        return self.read(tables.AGREEMENT)
 
     def gt_iou(self) -> pd.DataFrame:
-        return self._csv(tables.GT_IOU)
+        return self.read(tables.GT_IOU)
 
     def summary(self) -> dict[str, Any]:
-        return json.loads((self.path / tables.SUMMARY).read_text())
+        return entry.read_summary(self.path)
 
     def group_counts(self) -> dict[str, np.ndarray]:
-        """Per-group counts (see `tables.write_group_counts`); empty for entries written before VERSION 4."""
-        path = self.path / tables.GROUP_COUNTS
-        if not path.is_file():
-            return {}
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+        """Per-group counts (see `entry.write_group_counts`); empty for entries written before VERSION 4."""
+        return entry.read_group_counts(self.path)
 
     def artifacts(self) -> list[Path]:
         return [self.path / f for f in self.FILES if (self.path / f).is_file()]
@@ -142,16 +141,16 @@ def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: 
     settings = json.loads(canonical_json(metric_settings(ctx.run, grid.names, dataset.reference)))
     conditions = conditions_for(ctx.run.evaluate, grid)
     found: dict[str, tuple[float, EvaluateResult]] = {}
-    for entry in ctx.cache.entries("evaluate"):
-        m = entry.manifest
+    for cached in ctx.cache.entries("evaluate"):
+        m = cached.manifest
         cfg = m.get("config") or {}
         if m.get("inputs") != want_inputs or cfg.get("metric") != settings or cfg.get("conditions") != conditions:
             continue
         name = str((cfg.get("model") or {}).get("name"))
         if name in exclude:
             continue
-        if name not in found or entry.mtime > found[name][0]:
-            found[name] = (entry.mtime, EvaluateResult("evaluate", entry.key, entry.path, hit=True))
+        if name not in found or cached.mtime > found[name][0]:
+            found[name] = (cached.mtime, EvaluateResult("evaluate", cached.key, cached.path, hit=True))
     return [r for _, r in sorted(found.values(), key=lambda t: t[1].key)]
 
 
@@ -183,11 +182,11 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
     for r in count_groups(ctx, dataset, pseudo, model_cfg, conditions, missing, s):
         done[r["group_id"]] = r
     model = str(model_cfg["name"])
-    covered = tables.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
-    evaluation = tables.ModelEvaluation(
+    covered = entry.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
+    evaluation = entry.ModelEvaluation(
         dataset=dataset.name, model=model, reference_model=reference_model, conditions=conditions, settings=s,
         groups=[done[g.group_id] for g in dataset.groups if g.group_id in done], coverage=covered)
-    return tables.write_outputs(out, evaluation)
+    return entry.write_outputs(out, evaluation)
 
 
 def parts_dir(ctx: Context, key: str) -> Path:
@@ -210,6 +209,7 @@ class Evaluate:
     result_cls: type[EvaluateResult] = EvaluateResult
 
     def __post_init__(self) -> None:
+        self.version = registry.stage_version(self.version)  # the registered metrics' declaration, past VERSION 8
         grid = self.dataset.grid or self.ctx.grid
         self.conditions = conditions_for(self.ctx.run.evaluate, grid)
         self.settings = metric_settings(self.ctx.run, grid.names, self.dataset.reference)

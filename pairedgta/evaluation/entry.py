@@ -1,0 +1,130 @@
+"""One model's evaluate entry from its groups' records: every registered metric's tables
+(`registry.METRICS`), the arrays they contribute to group_counts.npz, the label maps (predictions.npz) and
+summary.json. The entry's own files are named here, the metrics' files by their metrics."""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pairedgta.cityscapes import IGNORE_INDEX
+from pairedgta.datasets import PairedDataset
+from pairedgta.evaluation.inputs import sampled_conditions
+from pairedgta.evaluation.metric import Metric, ModelEvaluation
+from pairedgta.jsonio import write_json
+
+log = logging.getLogger("pairedgta.evaluate")
+
+SUMMARY, GROUP_COUNTS, PREDICTIONS = "summary.json", "group_counts.npz", "predictions.npz"
+OWN_FILES = (SUMMARY, GROUP_COUNTS)  # the entry's tables besides the metrics' (predictions.npz: label maps)
+# The layout summary.json and group_counts.npz have had since evaluate VERSION 8, which these files keep byte for
+# byte; what a metric registered since adds follows, in registry order.
+SUMMARY_ORDER = ("model", "reference_model", "dataset", "convention", "sampling", "min_transmittance", "xi_mean",
+                 "xi_mean_gt", "rho_valid", "rho_valid_headline", "gt_miou", "agreement", "n_pairs",
+                 "groups_per_condition", "groups_without_clean", "estimators", "sampling_seed")
+ARRAY_ORDER = ("group_id", "conditions", "present", "cm_present", "cm", "pseudo_label_retained",
+               "pseudo_label_reference", "ground_truth_retained", "ground_truth_reference", "est_pixels",
+               "est_conf_sum", "est_entropy_sum", "est_conf_hist", "est_agree_clean")
+
+
+def in_order(d: dict[str, Any], order: tuple[str, ...]) -> dict[str, Any]:
+    """`d` with the keys of `order` first, in that order, then the others as they were added."""
+    return {**{k: d[k] for k in order if k in d}, **{k: v for k, v in d.items() if k not in order}}
+
+
+def write_outputs(out: Path, e: ModelEvaluation, ms: list[Metric] | None = None) -> dict[str, Any]:
+    """Every file of the entry into `out`, each registered metric's through its `write`; returns the summary."""
+    from pairedgta.evaluation import registry
+
+    ms = registry.metrics() if ms is None else ms
+    s = e.settings
+    arrays = write_group_counts(out / GROUP_COUNTS, e.groups, e.conditions, ms)
+    write_predictions(out / PREDICTIONS, e.groups, e.conditions)
+    summary: dict[str, Any] = {"model": e.model, "reference_model": e.reference_model, "dataset": e.dataset,
+                               "convention": s["convention"], "sampling": s["sampling"],
+                               "min_transmittance": s["min_transmittance"],
+                               **{k: {} for m in ms for k in m.summary_keys}, **e.coverage}
+    if s["sampling"] == "random_one":
+        summary["sampling_seed"] = s["sampling_seed"]
+    for m in ms:
+        m.write(out, e, summary, arrays)
+    summary = in_order(summary, SUMMARY_ORDER)
+    write_json(out / SUMMARY, summary)
+    return summary
+
+
+def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: list[str],
+                       ms: list[Metric] | None = None) -> dict[str, np.ndarray]:
+    """What a paired bootstrap over groups needs, per group g and condition i: the registered metrics' arrays
+    (`Metric.arrays`: `present[g, i]`, the xi counts, the confusion matrices, the estimators' sums, ...) beside
+    `group_id` and `conditions`. No pickle is needed to read it back."""
+    from pairedgta.evaluation import registry
+
+    arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
+                                     "conditions": np.array(conditions, dtype=str)}
+    for m in registry.metrics() if ms is None else ms:
+        arrays.update(m.arrays(results, conditions))
+    arrays = in_order(arrays, ARRAY_ORDER)
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return arrays
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    return json.loads((path / SUMMARY).read_text())
+
+
+def read_group_counts(path: Path) -> dict[str, np.ndarray]:
+    """Per-group counts (`write_group_counts`); empty for entries written before evaluate VERSION 4."""
+    path = path / GROUP_COUNTS
+    if not path.is_file():
+        return {}
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
+    """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
+    absent), so that estimators comparing models pixel by pixel (agreement between models, ALine) need no
+    second inference pass. Label maps compress well: a few kB per image."""
+    arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
+                                     "conditions": np.array(conditions, dtype=str)}
+    for g, r in enumerate(results):
+        maps = r.get("pred") or {}
+        if not maps:
+            continue
+        shape = next(iter(maps.values())).shape
+        stack = np.full((len(conditions), *shape), IGNORE_INDEX, dtype=np.uint8)
+        for i, cond in enumerate(conditions):
+            if cond in maps:
+                stack[i] = maps[cond]
+        arrays[f"g{g:05d}"] = stack
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",
+             sampling_seed: int = 0) -> dict[str, Any]:
+    """How many groups each condition's numbers average over (under evaluate.sampling=random_one, the
+    groups that drew it); a warning when missing images make the conditions' groups differ."""
+    groups = {c: 0 for c in conditions}
+    available = dict(groups)
+    without_clean = 0
+    for g in dataset.groups:
+        if clean not in g.images:
+            without_clean += 1
+            continue
+        present = [c for c in conditions if c in g.images]
+        for c in present:
+            available[c] += 1
+        for c in sampled_conditions(g.group_id, [clean] + [c for c in present if c != clean], clean, sampling, sampling_seed):
+            groups[c] += c in groups
+    if without_clean or len(set(available.values())) > 1:
+        log.warning("evaluate [%s]: conditions are averaged over different groups: %s%s (a missing image "
+                    "leaves its group out of that condition only; see summary.json groups_per_condition)",
+                    model, ", ".join(f"{c} {n}" for c, n in groups.items()),
+                    f"; {without_clean} group(s) without the clean image {clean} skipped" if without_clean else "")
+    return {"groups_per_condition": groups, "groups_without_clean": without_clean}

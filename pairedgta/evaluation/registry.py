@@ -1,0 +1,51 @@
+"""The evaluate entry's metrics, in one ordered list: adding a metric is its class (`metric.Metric`) and one line
+here. Everything else is derived from the list: the device reductions and per-group records of
+`counting.group_counts`, the arrays of group_counts.npz, the tables `entry.write_outputs` writes, the entry's
+files (`result_files`), the readers (`reader`) and the evaluate stage's version (`stage_version`)."""
+from __future__ import annotations
+
+from typing import Any
+
+from pairedgta.evaluation import tables
+from pairedgta.evaluation.metric import Metric
+
+METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators()]
+
+# The metrics evaluate VERSION 8 was declared with. For exactly this list the stage's version stays the bare
+# VERSION, so no cached entry moved when the metrics became a registry; any other list (a metric added, removed,
+# reordered or with another version) appends its declaration, and the cache key moves by itself.
+VERSION_8_METRICS = ("xi@8", "agreement@8", "rho_valid@8", "gt_iou@8", "estimators@8")
+
+
+def metrics() -> list[Metric]:
+    """The registered metrics, read at call time (a test may extend the list)."""
+    return list(METRICS)
+
+
+def declaration(ms: list[Metric] | None = None) -> tuple[str, ...]:
+    return tuple(f"{m.name}@{m.version}" for m in (metrics() if ms is None else ms))
+
+
+def stage_version(version: str, ms: list[Metric] | None = None) -> str:
+    """The evaluate stage's version: its own `version` (the framework's), plus the metrics' declaration unless
+    it is the one VERSION 8 had."""
+    decl = declaration(ms)
+    return version if decl == VERSION_8_METRICS else f"{version}+{','.join(decl)}"
+
+
+def result_files(ms: list[Metric] | None = None) -> tuple[str, ...]:
+    """Every table of an entry: the metrics' files in registry order, then the entry's own."""
+    from pairedgta.evaluation.entry import OWN_FILES
+
+    return tuple(f for m in (metrics() if ms is None else ms) for f in m.files) + OWN_FILES
+
+
+def reader(file: str) -> Any:
+    """The metric that writes `file` (its `read` reads it)."""
+    for m in metrics():
+        if file in m.files:
+            return m
+    raise KeyError(f"no registered metric writes {file!r}; registered: {', '.join(declaration())}")
+
+
+__all__ = ["METRICS", "VERSION_8_METRICS", "metrics", "declaration", "stage_version", "result_files", "reader"]
