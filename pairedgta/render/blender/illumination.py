@@ -55,25 +55,57 @@ class NightLight:
 
     @classmethod
     def from_cfg(cls, cfg: Mapping[str, Any] | None) -> NightLight:
-        from pairedgta.errors import ConfigError
+        return _light_from_cfg(cls, "renderer.night", cfg)
 
-        cfg = dict(cfg or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(cfg) - set(known))
-        if unknown:
-            raise ConfigError(f"renderer.night: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(known)}")
-        try:
-            light = cls(**{k: float(v) for k, v in cfg.items()})
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"renderer.night: numbers expected ({exc})") from None
-        for key in known:
-            value = getattr(light, key)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ConfigError(f"renderer.night.{key}={value} is invalid; set it to a number >= 0")
-        return light
+
+@dataclasses.dataclass(frozen=True)
+class SunsetLight:
+    """The light of a low sun under cloud and haze, the part of the light model fitted to GTA V's sunset frames
+    (`experiments/fit_sunset_light.py`, `renderer.sunset`). The clear sunset is the sky model's; what it leaves
+    open is how dark a cloud deck and how bright fog are when the sun is a few degrees up: sunlight crosses the
+    deck on a slant path many times its noon length, and haze lit from the horizon glows toward the camera
+    (forward scattering) instead of the isotropic share of the noon model. Each term applies weighted by the
+    `dusk` weight of the sun's elevation (1 from -8 to 4 degrees up but for the night's share, 0 from 25 degrees
+    up and in full night), so day and night images keep every pixel:
+
+    - `overcast`: factor on the sun's light through a full cloud cover and on the cloud base's own light (the
+      sky of an overcast image, the light it sends into the scene and into the haze), scaled by the cover
+      (`cloud_cover`, or the rain's level): a clear sky is unchanged, rain's 0.9 cover nearly fully.
+    - `haze`: factor on the light that fog and rain haze scatter toward the camera (the analytic fog's colour)."""
+
+    # fitted by `python experiments/fit_sunset_light.py` (its docstring); pairedgta/conf/renderer/blender.yaml
+    # `sunset` says the same
+    overcast: float = 0.4
+    haze: float = 1.8
+
+    @classmethod
+    def from_cfg(cls, cfg: Mapping[str, Any] | None) -> SunsetLight:
+        return _light_from_cfg(cls, "renderer.sunset", cfg)
+
+
+def _light_from_cfg(cls, where: str, cfg: Mapping[str, Any] | None):
+    """A fitted light's dataclass from its config mapping: known keys, numbers >= 0, one-line errors."""
+    from pairedgta.errors import ConfigError
+
+    cfg = dict(cfg or {})
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(cfg) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(known)}")
+    try:
+        light = cls(**{k: float(v) for k, v in cfg.items()})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: numbers expected ({exc})") from None
+    for key in known:
+        value = getattr(light, key)
+        if not (math.isfinite(value) and value >= 0.0):
+            raise ConfigError(f"{where}.{key}={value} is invalid; set it to a number >= 0")
+    return light
 
 
 NIGHT = NightLight()  # the fitted night
+SUNSET = SunsetLight()  # the fitted sunset
+UNFITTED_SUNSET = SunsetLight(overcast=1.0, haze=1.0)  # the sky model's own (before the fit)
 PHYSICAL = NightLight(fill=0.0, lamps=1.0, headlights=1.0, windows=1.0)  # the physical model's own (before the fit)
 
 
@@ -96,12 +128,12 @@ def sun_transmittance(elevation_deg: float) -> np.ndarray:
     return np.exp(-np.array([0.06, 0.11, 0.24]) * airmass)
 
 
-def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]:
+def lighting(cond: Condition, night_light: NightLight = NIGHT, sunset_light: SunsetLight = SUNSET) -> dict[str, Any]:
     """All condition-dependent render parameters; continuous in every physical field. The extinction
     is the condition's own (visibility and rain rate, conditions.py), so the image and the
     transmittance map written beside it attenuate alike. `light_level` is what the camera meters
     (render/camera.py): the light falling on the scene from the sun, the sky and, at night, the lamps and the
-    city's diffuse light (`night_light`: NightLight)."""
+    city's diffuse light (`night_light`: NightLight); at a low sun, cloud and haze follow `sunset_light`."""
     el = float(cond.sun_elevation_deg)
     rain = cond.rain_level
     cloud = max(float(cond.cloud_cover), rain)
@@ -109,11 +141,14 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
     fog = cond.fog_level
     trans = sun_transmittance(el)
     sun_vis = _smoothstep(-1.0, 2.0, el)
-    sun_strength = 4.5 * sun_vis * float(trans.max()) * (1.0 - 0.92 * cloud)
     sun_color = trans / trans.max()
     sky = min(max((el + 6.0) / 36.0, 0.0), 1.0) ** 1.3  # daylight sky brightness
     warm = (1.0 - _smoothstep(0.0, 22.0, el)) * _smoothstep(-7.0, -1.0, el)
     night = 1.0 - _smoothstep(-8.0, 2.0, el)
+    dusk = (1.0 - _smoothstep(4.0, 25.0, el)) * (1.0 - night)  # SunsetLight's weight: night + dusk = 1 below 4 deg
+    # a cloud deck at a low sun (SunsetLight.overcast), in proportion to the cover
+    under_cloud = 1.0 + (sunset_light.overcast - 1.0) * cloud * dusk
+    sun_strength = 4.5 * sun_vis * float(trans.max()) * (1.0 - 0.92 * cloud) * under_cloud
     zenith = sky * ((1 - warm) * np.array([0.10, 0.24, 0.62]) + warm * np.array([0.08, 0.13, 0.34]))
     horizon = sky * ((1 - warm) * np.array([0.55, 0.64, 0.78]) + warm * np.array([1.1, 0.55, 0.28]))
     city_glow = np.array([0.012, 0.008, 0.005]) * night
@@ -121,7 +156,8 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
     horizon = horizon + city_glow
     glow = (0.9 * warm + 0.15) * sky * sun_color * (1 - cloud)
     # rain clouds are dark, and heavy rain's haze hides the city's glow from their base
-    grey = np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) + city_glow * (1.0 - 0.8 * rain)
+    grey = (np.array([0.50, 0.52, 0.56]) * (sky * (1.0 - 0.85 * rain) + 0.006) * under_cloud
+            + city_glow * (1.0 - 0.8 * rain))
     moon = 0.05 * night * (1.0 - 0.9 * cloud)  # a moonlit clear night is brighter than an overcast one
     lamps = 1.0 - _smoothstep(-3.0, 6.0, el)
     vehicle_lights = max(lamps, _smoothstep(0.2, 0.6, max(rain, fog)))
@@ -139,6 +175,7 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
         return 1.0 + (factor - 1.0) * night
     ambient = (zenith + horizon) / 2 * (1 - cloud) + grey * cloud
     fog_color = FOG_ALBEDO * (FOG_SKY * ambient + FOG_SUN * sun_strength * sun_color / (4 * math.pi))
+    fog_color = fog_color * (1.0 + (sunset_light.haze - 1.0) * dusk)  # haze lit from the horizon (SunsetLight.haze)
     light_level = (sun_strength * max(math.sin(math.radians(el)), 0.0) + sky_light + 0.04 * lamps
                    + 2.6 * float(np.mean(fill)))
     return {
@@ -151,7 +188,7 @@ def lighting(cond: Condition, night_light: NightLight = NIGHT) -> dict[str, Any]
         "fog": fog, "rain": rain, "extinction": extinction, "fog_color": fog_color,
         "lamps": lamps, "vehicle_lights": vehicle_lights,
         "window_lit": lamps, "light_level": light_level, "fill": fill,
-        "night": night,
+        "night": night, "dusk": dusk,
         "lamp_power": LAMP_POWER * at_night(night_light.lamps) * lamps,
         "lamp_emit": 25.0 * at_night(night_light.lamps) * lamps,
         "headlight_power": HEADLIGHT_POWER * at_night(night_light.headlights) * vehicle_lights,
@@ -167,8 +204,11 @@ __all__ = [
     "LAMP_POWER",
     "NIGHT",
     "PHYSICAL",
+    "SUNSET",
+    "UNFITTED_SUNSET",
     "WINDOW_EMISSION",
     "NightLight",
+    "SunsetLight",
     "lighting",
     "sun_transmittance",
     "sun_vector",

@@ -31,7 +31,7 @@ from pairedgta.errors import ConfigError, RendererError
 from pairedgta.render.base import Renderer, RenderResult
 from pairedgta.render.blender.atmosphere import FOG_MODELS
 from pairedgta.render.blender.cycles import configure_cycles, image_pixels, import_bpy, quiet_stdout
-from pairedgta.render.blender.illumination import NIGHT, NightLight, lighting
+from pairedgta.render.blender.illumination import NIGHT, SUNSET, NightLight, SunsetLight, lighting
 from pairedgta.render.blender.labels import MAX_INSTANCES, render_label_pass
 from pairedgta.render.blender.scene import (
     build_town,
@@ -64,7 +64,8 @@ class BlenderRenderer(Renderer):
                  filter_width: float = 1.5,
                  labels_per_condition: bool = False, light_tree: bool = False, lamp_radius: float = 120.0,
                  max_lamps: int = 48, max_headlights: int = 24, headlight_radius: float = 45.0,
-                 fog_model: str = "analytic", night: Mapping[str, Any] | None = None) -> None:
+                 fog_model: str = "analytic", night: Mapping[str, Any] | None = None,
+                 sunset: Mapping[str, Any] | None = None) -> None:
         super().__init__(width, height)
         checks = (
             ("width", self.width >= 8, ">= 8"), ("height", self.height >= 8, ">= 8"),
@@ -93,6 +94,7 @@ class BlenderRenderer(Renderer):
         self.seed = int(seed)
         self.camera = Camera.from_cfg(camera)
         self.night = NightLight.from_cfg(night) if night is not None else NIGHT
+        self.sunset = SunsetLight.from_cfg(sunset) if sunset is not None else SUNSET
         self.threads = int(threads)
         self.fog_model = str(fog_model)
         self.fog_extent = float(fog_extent)
@@ -261,7 +263,7 @@ class BlenderRenderer(Renderer):
 
     # ---- conditions -----------------------------------------------------------------------
     def _apply_condition(self, cond: Condition) -> dict[str, Any]:
-        p = lighting(cond, self.night)
+        p = lighting(cond, self.night, self.sunset)
         p["exposure"] = self.camera.exposure(cond, p["light_level"])
         self._shading.apply(p, self._lamps_used, self._heads_used,
                             self._town.lit_window_fraction if self._town else 0.0)
@@ -310,21 +312,22 @@ class BlenderRenderer(Renderer):
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB")).copy()
 
-    # ---- calibration (experiments/fit_night_light.py) ----------------------------------------
+    # ---- calibration (experiments/fit_night_light.py, fit_sunset_light.py) ---------------------------
     def render_linear(self, descriptor: SceneDescriptor, condition: Condition, night: NightLight | None = None,
-                      atmosphere: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
+                      atmosphere: bool = True, sunset: SunsetLight | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """The scene-referred image (H x W x 3 float32, top row first) of `descriptor` under `condition` with the
-        night light `night` (default: the renderer's), before the camera, and the condition's render parameters
-        (lighting(), with the camera's `exposure`). `atmosphere=False` leaves out the analytic fog's compositor.
-        Cycles is linear in every light's power, so images rendered with one light term at a time add up to the
-        image with all of them (up to the denoiser): what the night-light fit relies on."""
+        night light `night` and the sunset light `sunset` (default: the renderer's), before the camera, and the
+        condition's render parameters (lighting(), with the camera's `exposure`). `atmosphere=False` leaves out the
+        analytic fog's compositor. Cycles is linear in every light's power, so images rendered with one light term
+        at a time add up to the image with all of them (up to the denoiser): what the light fits rely on."""
         if _OWNER is not self or self._prepared is None or self._prepared != descriptor:
             self.prepare(descriptor)
-        saved, self.night = self.night, night or self.night
+        saved = self.night, self.sunset
+        self.night, self.sunset = night or self.night, sunset or self.sunset
         try:
             p = self._apply_condition(condition)
         finally:
-            self.night = saved
+            self.night, self.sunset = saved
         bpy = self._bpy
         sc = bpy.context.scene
         if not atmosphere:
