@@ -123,18 +123,18 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
                 first.append(time.perf_counter())
             yield item
 
-    def timed_forward(self: Any, chunk: Any) -> Any:
+    def timed_forward(self: Any, chunk: Any, *a: Any, **k: Any) -> Any:
         if not inside[0]:
-            return forward(self, chunk)
+            return forward(self, chunk, *a, **k)
         if device_type == "cuda":  # the host only queues the forward: GPU time between events
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
-            out = forward(self, chunk)
+            out = forward(self, chunk, *a, **k)
             end.record()
             t["events"].append((start, end))
             return out
         s = time.perf_counter()
-        out = forward(self, chunk)
+        out = forward(self, chunk, *a, **k)
         t["forward"] += time.perf_counter() - s
         return out
 

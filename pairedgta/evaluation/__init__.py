@@ -6,6 +6,7 @@
 * `reductions`: the device kernels the metrics' updates call;
 * `counting`: one group's forward and every registered metric's reduction and record;
 * `tables`: the built-in metrics (xi, agreement, phi/rho_valid, IoU, the label-free estimators' sums);
+* `estimator_sums`: the Gram and energy sums of issue 49's estimators (nuclear norm, energy), as metrics;
 * `entry`: one model's entry written from its groups: the metrics' tables, group_counts.npz, summary.json;
 * `shards`: the partial sums a shard job leaves for the merging run.
 """

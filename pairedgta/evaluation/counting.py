@@ -59,23 +59,24 @@ def _use(inputs: dict[str, Any]) -> None:
             v.record_stream(stream)
 
 
-def _maps(segmenter: Any, images: Any, batch: int) -> tuple[Any, Any, Any]:
+def _maps(segmenter: Any, images: Any, batch: int, needs: set[str] = frozenset()) -> dict[str, Any]:
     """labels (uint8), max probability and normalised entropy of the N images, N x H x W on the model's device,
-    in forward batches of `batch` (the same batches as ever, so the same numbers on the CPU)."""
-    labels, conf, entropy = [], [], []
+    in forward batches of `batch` (the same batches as ever, so the same numbers on the CPU); and from the same
+    forward what the registered metrics `need` ("energy", "gram"; None where the model gives none)."""
+    names = ("labels", "confidence", "entropy", "energy", "gram")
+    parts: dict[str, list[Any]] = {k: [] for k in names}
     for start in range(0, images.shape[0], batch):
         chunk = images[start : start + batch]
         if hasattr(segmenter, "predict_maps"):
-            m = segmenter.predict_maps(chunk, entropy=True)
-            lab, c, e = m.labels, m.confidence, m.entropy
+            m = segmenter.predict_maps(chunk, entropy=True, **{k: True for k in sorted(needs)})
+            got = (m.labels, m.confidence, m.entropy, m.energy, m.gram)
         else:  # a stand-in with only predict_with_entropy (the tests' fixed segmenters): host tensors
             lab, c, e = segmenter.predict_with_entropy(chunk.numpy() if isinstance(chunk, torch.Tensor) else chunk)
-            lab, c, e = torch.as_tensor(lab).to(torch.uint8), torch.as_tensor(c), torch.as_tensor(e)
-        labels.append(lab)
-        conf.append(c)
-        entropy.append(e)
-    cat = (lambda xs: xs[0] if len(xs) == 1 else torch.cat(xs, dim=0))
-    return cat(labels), cat(conf), cat(entropy)
+            got = (torch.as_tensor(lab).to(torch.uint8), torch.as_tensor(c), torch.as_tensor(e), None, None)
+        for k, v in zip(names, got):
+            parts[k].append(v)
+    cat = (lambda xs: None if any(x is None for x in xs) else xs[0] if len(xs) == 1 else torch.cat(xs, dim=0))
+    return {k: cat(v) for k, v in parts.items()}
 
 
 class GroupJob:
@@ -93,10 +94,12 @@ class GroupJob:
         self.has_gt = inputs["gt"] is not None
         with torch.inference_mode():
             _use(inputs)
-            labels, conf, entropy = _maps(segmenter, inputs["images"], batch)
+            maps = _maps(segmenter, inputs["images"], batch, {n for m in self.metrics for n in m.needs})
+            labels = maps["labels"]
             on = (lambda t: None if t is None else t.to(labels.device))  # there already, but for a stand-in model
-            ctx = GroupContext(labels, conf, entropy, self.clean, on(inputs["pseudo"]), on(inputs["targets"]),
-                               on(inputs["visible"]), s["tau_mass"], on(inputs["gt"]), use_pl)
+            ctx = GroupContext(labels, maps["confidence"], maps["entropy"], self.clean, on(inputs["pseudo"]),
+                               on(inputs["targets"]), on(inputs["visible"]), s["tau_mass"], on(inputs["gt"]), use_pl,
+                               energy=maps["energy"], gram=maps["gram"])
             out = {f"{n}/{k}": v for n, m in enumerate(self.metrics) for k, v in m.update(ctx).items()}
             out["pred"] = labels
             self.copy = reductions.HostCopy(out)

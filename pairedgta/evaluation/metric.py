@@ -3,8 +3,9 @@
 The torchmetrics update/compute contract, split where the stage splits it:
 
 * `update(ctx)`: one group's per-pixel reduction, on the model's device, from the shared `GroupContext` (label
-  maps, max probabilities, entropies and the intermediates several metrics need, each computed once); returns
-  the small tensors that cross to the host (in the one copy per group the stage makes);
+  maps, max probabilities, entropies, what the metrics' `needs` ask of the same forward, and the intermediates
+  several metrics use, each computed once); returns the small tensors that cross to the host (in the one copy
+  per group the stage makes);
 * `record(host, group)`: those arrays as plain numbers (JSON: a shard job stores them, the merging run reads
   them back), kept per group so that a bootstrap can resample groups;
 * `arrays(groups, conditions)`: what the metric adds to `group_counts.npz` (the paired comparisons across models);
@@ -40,10 +41,13 @@ class GroupContext:
     intermediates are computed on first use and kept, so no metric recomputes another's."""
 
     def __init__(self, labels: Any, confidence: Any, entropy: Any, clean: int, pseudo: Any, targets: Any,
-                 visible: Any, tau: float, gt: Any, use_pl: bool, num_classes: int = NUM_CLASSES) -> None:
+                 visible: Any, tau: float, gt: Any, use_pl: bool, num_classes: int = NUM_CLASSES,
+                 energy: Any = None, gram: Any = None) -> None:
         self.labels, self.confidence, self.entropy, self.clean = labels, confidence, entropy, clean
         self.pseudo, self.targets, self.visible, self.gt = pseudo, targets, visible, gt
         self.tau, self.use_pl, self.num_classes = tau, use_pl, num_classes
+        # from the same forward, where a metric `needs` them (None: not asked for, or the model has none)
+        self.energy, self.gram = energy, gram  # N x H x W logsumexp of the logits; N x K x K Grams
 
     @cached_property
     def void(self) -> Any:
@@ -67,6 +71,15 @@ class GroupContext:
     def same_clean(self) -> Any:
         """N x H x W: predicted as on the clean image."""
         return self.labels == self.clean_labels
+
+    @cached_property
+    def labelled(self) -> Any:
+        """N x H x W: the pixels the clean condition's ground truth labels (not void), visible in each condition:
+        those its accuracy counts. None without ground truth."""
+        if self.targets is None:
+            return None
+        keep = (self.targets[self.clean] != IGNORE_INDEX).unsqueeze(0).expand_as(self.labels)
+        return keep if self.visible is None else keep & self.visible
 
     @cached_property
     def valid(self) -> Any:
@@ -113,6 +126,7 @@ class Metric:
     field: str = ""
     files: tuple[str, ...] = ()
     summary_keys: tuple[str, ...] = ()  # summary.json keys it fills (created empty before any metric writes)
+    needs: tuple[str, ...] = ()  # what else its update reads from the forward: "energy", "gram" (`predict_maps`)
 
     @property
     def key(self) -> str:

@@ -93,13 +93,17 @@ def class_counts(labels: torch.Tensor, keep: torch.Tensor, num_classes: int = NU
     return _count_keyed(labels.long(), valid, labels.shape[0], num_classes)
 
 
-def confidence_histogram(confidence: torch.Tensor) -> torch.Tensor:
-    """N x CONF_BINS: per image the max probabilities in bins [k/1000, (k+1)/1000), 1.0 in the last; as the host
-    path binned (float64 product, truncated). Out-of-range values (a NaN that check_finite reports at the end of
-    the stage) are clamped into range so that counting never fails before that report."""
+def confidence_histogram(confidence: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+    """N x CONF_BINS: per image the max probabilities (of the pixels where `keep`, default all) in bins
+    [k/1000, (k+1)/1000), 1.0 in the last; as the host path binned (float64 product, truncated). Out-of-range
+    values (a NaN that check_finite reports at the end of the stage) are clamped into range so that counting
+    never fails before that report."""
     n = confidence.shape[0]
     bins = (confidence.double() * CONF_BINS).long().clamp_(0, CONF_BINS - 1)
-    return count(bins + _image_offsets(n, CONF_BINS, bins.device), n * CONF_BINS).view(n, CONF_BINS)
+    keys = bins + _image_offsets(n, CONF_BINS, bins.device)
+    if keep is not None:
+        keys.masked_fill_(~keep, n * CONF_BINS)  # the dropped bin
+    return count(keys, n * CONF_BINS).view(n, CONF_BINS)
 
 
 # -- float sums in numpy's order -------------------------------------------------------------------------------

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from pairedgta.evaluation import tables
+from pairedgta.evaluation import estimator_sums, tables
 from pairedgta.evaluation.metric import Metric
 
-METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators()]
+METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators(),
+                         estimator_sums.NuclearNorm(), estimator_sums.Energy()]
 
 # The metrics evaluate VERSION 8 was declared with. For exactly this list the stage's version stays the bare
 # VERSION, so no cached entry moved when the metrics became a registry; any other list (a metric added, removed,

@@ -197,7 +197,9 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
     rows = {cond: {"model": model, "condition": cond,
                    **{k: float(v[0, i]) for k, v in values.items() if k != "atc_threshold"},
                    "atc_threshold": float(values["atc_threshold"][0])} for i, cond in enumerate(conditions)}
-    pd.DataFrame(list(rows.values())).to_csv(out / ESTIMATORS, index=False)
+    # energy needs logits: a family whose output is already a distribution (Mask2Former) has none
+    logits = {cond: bool(np.isfinite(values["energy"][0, i])) for i, cond in enumerate(conditions)}
+    pd.DataFrame([{**r, "has_logits": logits[cond]} for cond, r in rows.items()]).to_csv(out / ESTIMATORS, index=False)
     return {cond: {k: v for k, v in r.items() if k not in ("model", "condition")} for cond, r in rows.items()}
 
 
@@ -335,27 +337,39 @@ EST_KEYS = ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean")
 class Estimators(Metric):
     """The label-free estimators' sums per image (pairedgta.metrics.estimators) and estimators.csv."""
 
-    name, version, files, summary_keys = "estimators", "8", (ESTIMATORS,), ("estimators",)
+    name, version, files, summary_keys = "estimators", "9", (ESTIMATORS,), ("estimators",)  # 9: ATC over labelled pixels
 
     def update(self, ctx: GroupContext) -> dict[str, Any]:
-        return {"conf_hist": reductions.confidence_histogram(ctx.confidence), "agree_clean": ctx.same_clean.sum((1, 2)),
-                "conf_blocks": reductions.block_sums(ctx.confidence), "entropy_blocks": reductions.block_sums(ctx.entropy)}
+        out = {"conf_hist": reductions.confidence_histogram(ctx.confidence), "agree_clean": ctx.same_clean.sum((1, 2)),
+               "conf_blocks": reductions.block_sums(ctx.confidence), "entropy_blocks": reductions.block_sums(ctx.entropy)}
+        if ctx.labelled is not None:  # ATC's share over the pixels its accuracy counts
+            out["conf_hist_labelled"] = reductions.confidence_histogram(ctx.confidence, ctx.labelled)
+        return out
 
     def record(self, host: dict[str, np.ndarray], group: Group) -> dict[str, dict[str, Any]]:
         h, w = group.shape
-        return {c: {"pixels": int(h * w), "conf_sum": reductions.ordered_sum(host["conf_blocks"][i]),
-                    "entropy_sum": reductions.ordered_sum(host["entropy_blocks"][i]),
-                    "conf_hist": host["conf_hist"][i].tolist(), "agree_clean": int(host["agree_clean"][i])}
-                for i, c in enumerate(group.conditions)}
+        out = {c: {"pixels": int(h * w), "conf_sum": reductions.ordered_sum(host["conf_blocks"][i]),
+                   "entropy_sum": reductions.ordered_sum(host["entropy_blocks"][i]),
+                   "conf_hist": host["conf_hist"][i].tolist(), "agree_clean": int(host["agree_clean"][i])}
+               for i, c in enumerate(group.conditions)}
+        if "conf_hist_labelled" in host:
+            for i, c in enumerate(group.conditions):
+                out[c]["conf_hist_labelled"] = host["conf_hist_labelled"][i].tolist()
+        return out
 
     def arrays(self, groups: list[dict[str, Any]], conditions: list[str]) -> dict[str, np.ndarray]:
-        """The sums `est_*[g, i]` (the histogram `est_conf_hist[g, i, bin]`)."""
+        """The sums `est_*[g, i]` (the histograms `est_conf_hist[g, i, bin]`, and of the labelled pixels
+        `est_conf_hist_labelled` where there is ground truth)."""
         arrays = {"est_pixels": _zeros(groups, conditions), "est_conf_sum": _zeros(groups, conditions, dtype=float),
                   "est_entropy_sum": _zeros(groups, conditions, dtype=float),
-                  "est_conf_hist": _zeros(groups, conditions, CONF_BINS), "est_agree_clean": _zeros(groups, conditions)}
+                  "est_conf_hist": _zeros(groups, conditions, CONF_BINS), "est_agree_clean": _zeros(groups, conditions),
+                  "est_conf_hist_labelled": _zeros(groups, conditions, CONF_BINS)}
         for g, i, e in per_condition(groups, "estimators", conditions):
-            for k in EST_KEYS:
-                arrays[f"est_{k}"][g, i] = e[k]
+            for k in (*EST_KEYS, "conf_hist_labelled"):
+                if k in e:
+                    arrays[f"est_{k}"][g, i] = e[k]
+        if not any("conf_hist_labelled" in e for _, _, e in per_condition(groups, "estimators", conditions)):
+            del arrays["est_conf_hist_labelled"]  # no ground truth: ATC has no accuracy to fit to
         return arrays
 
     def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:

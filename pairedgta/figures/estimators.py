@@ -37,6 +37,7 @@ from pairedgta.metrics.validity import GroupCounts, concat_groups
 
 NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel": "relative AC", "doc": "DoC",
          "atc": "ATC", "atc_rel": "relative ATC", "entropy": "1 − entropy",
+         "nuclear_norm": "nuclear norm (Deng et al.)", "energy": "energy (mean logsumexp)",
          "committee_agreement": "committee agreement (not GDE)", "aline_s": "ALine-S (pixel acc.)",
          "aline_d": "ALine-D (pixel acc.)", "self_agreement": "self-agreement",
          "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement"}

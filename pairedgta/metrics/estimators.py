@@ -12,9 +12,16 @@ embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mI
 - `atc`: average thresholded confidence (Garg et al., ICLR 2022, max-confidence score): the threshold t is
   the smallest histogram edge at which the clean share of pixels with confidence >= t is at most the clean
   pixel accuracy, fitted on held-out clean scenes (the scenes split in two; each half scored with the other
-  half's threshold); the estimate is the adverse share of pixels with confidence >= t. The share counts
-  every pixel, the accuracy the labelled ones (`atc_labelled_share` in the cells says how far they differ).
+  half's threshold); the estimate is the adverse share of pixels with confidence >= t. Share and accuracy
+  count the same pixels: those labelled in the clean ground truth (and visible in the condition), the pixels
+  the clean accuracy is measured on (`atc_labelled_share` in the cells: their share of all pixels).
 - `entropy`: one minus the mean normalised predictive entropy H(p) / log K.
+- `nuclear_norm`: the nuclear norm of the softmax matrix P (pixels x K) of a condition's pooled pixels (Deng et
+  al., ICML 2023: confidence and dispersity at once), normalised as they normalise it, ||P||_* / sqrt(min(N, K) N),
+  so that confident predictions spread evenly over the K classes score 1 (uniform ones 1 / K). From the summed
+  per-image Grams P^T P: the singular values of P are the square roots of the Gram's eigenvalues.
+- `energy`: the mean over pixels of logsumexp of the logits (the negative free energy at T = 1, Liu et al.,
+  NeurIPS 2020); NaN for a family whose output is already a distribution (Mask2Former: no logits).
 - `committee_agreement`: the mean over the other ranked models (other architectures and recipes) of the share
   of pixels on which the two predictions agree. Not GDE (Jiang et al., ICLR 2022), which is the agreement of
   two runs of one recipe differing in the seed only: the zoo has no such pair.
@@ -47,8 +54,8 @@ import numpy as np
 from pairedgta.metrics.validity import (GroupCounts, cell_measures, kendall_rows, spearman_rows,
                                         stack_passes)
 
-ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "committee_agreement",
-              "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
+ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "nuclear_norm", "energy",
+              "committee_agreement", "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
 # clean ground truth; none uses adverse labels
 USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "aline_s", "aline_d", "clean_miou",
                                "clean_miou_x_self_agreement"})
@@ -80,6 +87,11 @@ class EstimatorCounts:
     conf_hist: np.ndarray    # G x C x B: max softmax probability in B equal bins on [0, 1]
     agree_clean: np.ndarray  # G x C: pixels predicted as on the clean image
     group_ids: tuple[str, ...] = ()
+    # optional (None where an entry lacks them): the histogram of the pixels labelled in the clean ground truth
+    # (ATC); the K x K Gram of the softmax matrix (nuclear norm); the summed logsumexp of the logits (energy)
+    conf_hist_labelled: np.ndarray | None = None  # G x C x B
+    gram: np.ndarray | None = None                # G x C x K x K
+    energy_sum: np.ndarray | None = None          # G x C
 
     @classmethod
     def from_arrays(cls, model: str, a: Mapping[str, np.ndarray]) -> "EstimatorCounts":
@@ -87,14 +99,22 @@ class EstimatorCounts:
         if missing:
             raise ValueError(f"model {model}: no {', '.join(missing)} in the group counts")
         ids = tuple(str(g) for g in a["group_id"]) if "group_id" in a else ()
-        return cls(model, tuple(str(c) for c in a["conditions"]), *(np.asarray(a[k]) for k in COUNT_ARRAYS), ids)
+        optional = {k: np.asarray(a[f"est_{k}"]) for k in OPTIONAL if f"est_{k}" in a}
+        return cls(model, tuple(str(c) for c in a["conditions"]), *(np.asarray(a[k]) for k in COUNT_ARRAYS), ids,
+                   **optional)
+
+
+OPTIONAL = ("conf_hist_labelled", "gram", "energy_sum")
 
 
 def concat_counts(parts: Iterable[EstimatorCounts]) -> EstimatorCounts:
-    """Groups of several passes of one model, stacked (as `validity.concat_groups`)."""
+    """Groups of several passes of one model, stacked (as `validity.concat_groups`); an optional array only
+    where every pass has it."""
     parts = list(parts)
     arrays, ids = stack_passes(parts, ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean"))
-    return EstimatorCounts(parts[0].model, parts[0].conditions, *arrays, ids)
+    have = tuple(k for k in OPTIONAL if all(getattr(p, k) is not None for p in parts))
+    optional = dict(zip(have, stack_passes(parts, have)[0])) if have else {}
+    return EstimatorCounts(parts[0].model, parts[0].conditions, *arrays, ids, **optional)
 
 
 def _weigh(w: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -116,6 +136,27 @@ def average_confidence(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
 def entropy_score(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
     """1 - pooled mean normalised entropy per (resample, condition): higher = more confident."""
     return 1.0 - _ratio(_weigh(w, c.entropy_sum), _weigh(w, c.pixels))
+
+
+def nuclear_norm_score(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
+    """||P||_* / sqrt(min(N, K) N) per (resample, condition) of the pooled pixels' softmax matrix P (N x K), from
+    the weighted sum of the per-image Grams (module docstring); NaN without Grams."""
+    pixels = _weigh(w, c.pixels)
+    if c.gram is None:
+        return np.full(pixels.shape, np.nan)
+    gram = _weigh(w, c.gram)                                      # R x C x K x K
+    ok = np.isfinite(gram).all(axis=(-2, -1))
+    eig = np.linalg.eigvalsh(np.where(ok[..., None, None], gram, 0.0))
+    nuclear = np.sqrt(np.clip(eig, 0.0, None)).sum(axis=-1)      # the Gram is PSD: negatives are rounding
+    bound = np.sqrt(np.minimum(pixels, gram.shape[-1]) * pixels)
+    return np.where(ok, _ratio(nuclear, bound), np.nan)
+
+
+def energy_score(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
+    """Pooled mean logsumexp of the logits per (resample, condition); NaN without logits."""
+    if c.energy_sum is None:
+        return np.full(_weigh(w, c.pixels).shape, np.nan)
+    return _ratio(_weigh(w, c.energy_sum), _weigh(w, c.pixels))
 
 
 def self_agreement(c: EstimatorCounts, w: np.ndarray) -> np.ndarray:
@@ -295,11 +336,13 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
     c0 = g.conditions.index(clean)
     cm = cell_measures(g, w, clean, include, absent, min_images, min_pixels, rpc_floor)
     ac = average_confidence(c, w)
-    score, threshold = atc_held_out(c.conf_hist, g.cm, c0, w)
+    # share and accuracy over the same pixels: the labelled ones, where the entry has their histogram
+    score, threshold = atc_held_out(c.conf_hist if c.conf_hist_labelled is None else c.conf_hist_labelled, g.cm, c0, w)
     agreement = self_agreement(c, w)
     return {"xi": cm["xi_mean"], "xi_rel": relative(cm["xi_mean"], c0), "ac": ac, "ac_rel": relative(ac, c0),
             "doc": cm["gt_miou_clean"] + ac - ac[:, c0 : c0 + 1], "atc": score, "atc_rel": relative(score, c0),
-            "entropy": entropy_score(c, w), "self_agreement": agreement, "clean_miou": cm["gt_miou_clean"],
+            "entropy": entropy_score(c, w), "nuclear_norm": nuclear_norm_score(c, w), "energy": energy_score(c, w),
+            "self_agreement": agreement, "clean_miou": cm["gt_miou_clean"],
             "clean_miou_x_self_agreement": cm["gt_miou_clean"] * agreement, "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
             "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
 

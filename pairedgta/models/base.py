@@ -81,17 +81,28 @@ class Segmenter(abc.ABC):
             return images.float().div_(255.0)
         return images.float()
 
-    def _forward(self, chunk: torch.Tensor) -> torch.Tensor:
-        """One chunk (<= batch_size images, on the device) -> its probabilities on the device (float32)."""
+    def _scores(self, images: torch.Tensor, energy: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(probabilities, with `energy` the per-pixel logsumexp of the logits they are the softmax of): one forward
+        for both. None where the family's output is already a distribution, not a softmax of `_logits` (Mask2Former)."""
+        if energy and type(self)._probabilities.__qualname__ in SOFTMAX_OF_LOGITS:
+            logits = self._logits(images)
+            if type(self)._probabilities is Segmenter._probabilities:  # at the model's resolution: as `_probabilities`
+                logits = F.interpolate(logits.float(), size=images.shape[-2:], mode="bilinear", align_corners=False)
+            return logits.softmax(dim=1), logits.float().logsumexp(dim=1)
+        return self._probabilities(images), None
+
+    def _forward(self, chunk: torch.Tensor, energy: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor | None]:
+        """One chunk (<= batch_size images, on the device) -> its probabilities on the device (float32); with
+        `energy`, (probabilities, per-pixel logsumexp of the logits or None: `_scores`)."""
         if self.channels_last:
             chunk = chunk.contiguous(memory_format=torch.channels_last)
         try:
             if self.amp:
                 dtype = torch.bfloat16 if self.amp == "bf16" else torch.float16
                 with torch.autocast(device_type=self.device.type, dtype=dtype):
-                    probs = self._probabilities(chunk)
+                    probs, lse = self._scores(chunk, energy)
             else:
-                probs = self._probabilities(chunk)
+                probs, lse = self._scores(chunk, energy)
         except RuntimeError as exc:
             if "out of memory" in str(exc).lower():
                 raise ModelError(f"{self.name}: out of memory on {self.device}; lower model.batch_size") from None
@@ -100,7 +111,7 @@ class Segmenter(abc.ABC):
                 f"{self.name}: forward failed on a {chunk.shape[-1]}x{chunk.shape[-2]} image ({first}); "
                 "check the image size the model accepts"
             ) from None
-        return probs.float()
+        return (probs.float(), lse) if energy else probs.float()
 
     def _chunks(self, images: np.ndarray | torch.Tensor) -> Iterator[torch.Tensor]:
         x = self.to_device(images)
@@ -113,22 +124,33 @@ class Segmenter(abc.ABC):
         with torch.inference_mode():
             return _cat(list(self._chunks(images)))
 
-    def predict_maps(self, images: np.ndarray | torch.Tensor, entropy: bool = True) -> PixelMaps:
+    def predict_maps(self, images: np.ndarray | torch.Tensor, entropy: bool = True, energy: bool = False,
+                     gram: bool = False) -> PixelMaps:
         """The per-pixel maps every stage derives from the probabilities, on the device, chunk by chunk (a
         chunk's probabilities are freed before the next forward): labels (uint8), max probability and, with
-        `entropy`, the normalised entropy. Nothing crosses to the host; whether every output was finite is
-        kept as a device flag that `check_finite` reads once, at the end of a stage."""
-        labels, confidence, entropies = [], [], []
+        `entropy`, the normalised entropy; with `energy` the logsumexp of the logits (None without logits), with
+        `gram` each image's Gram matrix of its softmax matrix (`gram_matrices`). Nothing crosses to the host;
+        whether every output was finite is kept as a device flag that `check_finite` reads once, at the end of a
+        stage."""
+        labels, confidence, entropies, energies, grams = [], [], [], [], []
+        x = self.to_device(images)
         with torch.inference_mode():
-            for probs in self._chunks(images):
+            for start in range(0, x.shape[0], self.batch_size):
+                chunk = x[start : start + self.batch_size]
+                probs, lse = self._forward(chunk, energy=True) if energy else (self._forward(chunk), None)
                 conf, lab = max_and_label(probs)
                 self._note_finite(conf)
                 labels.append(lab)
                 confidence.append(conf)
+                energies.append(lse)
+                if gram:
+                    grams.append(gram_matrices(probs))
                 if entropy:
                     entropies.append(normalised_entropy_(probs))  # probs is ours and not needed after this
                 del probs
-            return PixelMaps(_cat(labels), _cat(confidence), _cat(entropies) if entropy else None)
+            lse_all = _cat(energies) if energy and all(e is not None for e in energies) else None
+            return PixelMaps(_cat(labels), _cat(confidence), _cat(entropies) if entropy else None, lse_all,
+                             _cat(grams) if gram else None)
 
     def _note_finite(self, confidence: torch.Tensor) -> None:
         """Accumulates "all outputs finite" on the device. NaN or +inf anywhere in a pixel's distribution is
@@ -177,6 +199,8 @@ class PixelMaps(NamedTuple):
     labels: torch.Tensor                 # argmax class, uint8 (int64 for more than 256 classes)
     confidence: torch.Tensor             # max probability, float32
     entropy: torch.Tensor | None = None  # normalised entropy in [0, 1], float32
+    energy: torch.Tensor | None = None   # logsumexp of the logits (negative energy), float32; None without logits
+    gram: torch.Tensor | None = None     # B x K x K: P^T P of each image's softmax matrix P (pixels x K), float64
 
 
 def to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
@@ -202,6 +226,18 @@ def max_and_label(probs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     weights = torch.arange(k, 0, -1, dtype=torch.uint8, device=probs.device).view(1, k, *([1] * (probs.ndim - 2)))
     first = ((probs == conf) * weights).amax(dim=1)
     return conf.squeeze(1), k - first
+
+
+# the families' `_probabilities` that are the softmax of their `_logits` (at input size after `Segmenter`'s upsampling)
+SOFTMAX_OF_LOGITS = ("Segmenter._probabilities", "NormalizedSegmenter._probabilities")
+
+
+def gram_matrices(probs: torch.Tensor) -> torch.Tensor:
+    """B x K x H x W probabilities -> B x K x K: P^T P of each image's pixels x K matrix P (one float32 matmul on the
+    device, handed on as float64). Grams of images add up to the Gram of their stacked pixels, whose eigenvalues
+    are the squared singular values of P."""
+    p = probs.flatten(2)
+    return torch.bmm(p, p.transpose(1, 2)).double()
 
 
 def _cat(parts: list[torch.Tensor]) -> torch.Tensor:
