@@ -295,7 +295,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
             row: dict = {"model": m.model, "condition": conds[i], "n_groups": n}
             row.update({k: float(point[k][j, 0, i]) for k in ESTIMATORS})
             row["atc_threshold"] = float(point["atc_threshold"][j, 0])
-            # ATC's accuracy counts the labelled pixels, its confidence shares every pixel: how far they differ
+            # the share of the pixels labelled in the clean ground truth, those ATC's share and accuracy count
             row["atc_labelled_share"] = float(_ratio(np.asarray(m.cm[:, c0]).sum(), np.asarray(counts[j].pixels[:, c0]).sum()))
             row.update({k: float(point[k][j, 0, i]) for k in (*TARGETS, "gt_miou_clean")})
             cells.append(row)
