@@ -1,10 +1,11 @@
-"""One group's counts from one forward pass per image: per (reference source, condition) the retained
-and reference pixels per class (xi), the confusion matrix against ground truth (IoU), the agreement
-counts, the prediction mass phi per class (rho_valid) and the label-free estimators' sums. Plain numbers
+"""One group's counts from one forward pass per image, one record per registered metric (`registry.METRICS`):
+per (reference source, condition) the retained and reference pixels per class (xi), the confusion matrix
+against ground truth (IoU), the agreement counts, the prediction mass phi per class (rho_valid), the label-free
+estimators' sums, and whatever a metric added since records. Plain numbers
 only (a shard job's partial sums are lists of these), never the predictions' probabilities, so memory
 does not grow with the image size times the number of images.
 
-The reductions run where the model runs (`reductions.group_reductions`, torch on the CPU or a GPU); what
+The metrics' updates run where the model runs (torch on the CPU or a GPU, on one shared `GroupContext`); what
 crosses to the host per group is the uint8 label maps and those counts, copied without waiting for the device.
 On a GPU the groups are pipelined: group g+1's images are copied to the device (a side stream, pinned memory)
 while group g computes, and group g-1's results are read on the host meanwhile."""
@@ -134,9 +135,10 @@ def launch_group(item: dict[str, Any], segmenter: Any, s: dict[str, Any], refere
 
 def group_counts(item: dict[str, Any], segmenter: Any, s: dict[str, Any], reference: str, use_pl: bool,
                  batch: int, model: str, dataset_name: str) -> dict[str, Any]:
-    """Everything evaluate keeps of one group (`item` from `GroupInputs`): `xi` per "<source>|<condition>"
-    the retained and reference pixels per class, `cm` per condition the confusion matrix against its
-    ground truth, `agreement` and `counts` (phi) rows, `estimators` sums and `pred` label maps."""
+    """Everything evaluate keeps of one group (`item` from `GroupInputs`): per registered metric its record under
+    its `key` (`xi` per "<source>|<condition>" the retained and reference pixels per class, `cm` per condition the
+    confusion matrix against its ground truth, `agreement` and `counts` (phi) rows, `estimators` sums, ...) and
+    `pred` the label maps."""
     return launch_group(item, segmenter, s, reference, use_pl, batch, model, dataset_name).result()
 
 
