@@ -11,7 +11,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-from pairedgta import schema
+from pairedgta import schema, stage_registry
 from pairedgta.configs import merge_variant
 from pairedgta.errors import ConfigError
 from pairedgta.schema import RunConfig
@@ -75,13 +75,10 @@ def check_cache_dir(value: Any) -> None:
             pass
     except OSError as exc:
         raise ConfigError(f"cache_dir={value} is not writable ({exc.strerror or exc}); use a writable directory") from None
-    for stage in CACHE_STAGES:  # each stage keeps its entries in a folder of its name
+    for stage in stage_registry.names():  # each stage keeps its entries in a folder of its name
         if (path / stage).exists() and not (path / stage).is_dir():
             raise ConfigError(f"cache_dir={value}: {path / stage} is a file, but the {stage} stage keeps its results in a "
                               "folder of that name; move the file away or use another cache_dir")
-
-
-CACHE_STAGES = schema.STAGES
 
 
 def passes(cfg: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:

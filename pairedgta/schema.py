@@ -15,6 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Optional
 
+from pairedgta import stage_registry
 from pairedgta.errors import ConfigError
 
 MISSING = "???"
@@ -287,7 +288,7 @@ class RunConfig:
     reference_model: Optional[str] = key("demo_segformer")  # null: the `model` group's
     model_overrides: dict[str, Any] = key({})
     variants: Optional[list[Any]] = key(None)
-    stages: list[str] = key(["generate", "pseudolabel", "evaluate", "plot"])
+    stages: list[str] = key(stage_registry.graph())  # every stage of pairedgta/stage_registry.py but the checks
     force: list[str] = key([])
     cache_dir: str = key("outputs/cache")
     cache: CacheConfig = node(CacheConfig)
@@ -312,19 +313,28 @@ class RunConfig:
     acdc: dict[str, Any] = key({})  # a second dataset node that variants refer to (experiment=night_vs_acdc)
 
     def check(self, where: str) -> None:
+        known = stage_registry.names()
         if not self.stages:
-            raise ConfigError("stages=[] runs nothing; list the stages to run, e.g. "
-                              "stages=[generate,pseudolabel,evaluate,plot] (the default) or stages=[plot]")
+            figures = ",".join(s.name for s in stage_registry.in_scope("run"))
+            raise ConfigError(f"stages=[] runs nothing; list the stages to run, e.g. "
+                              f"stages=[{','.join(stage_registry.graph())}] (the default) or stages=[{figures}]")
         for name, values in (("stages", self.stages), ("force", self.force)):
-            bad = [s for s in values if s not in STAGES]
+            bad = [s for s in values if s not in known]
             if bad:
-                raise ConfigError(f"{name}={bad} names unknown stage(s); stages are {', '.join(STAGES)}")
-        if STAGES[-1] in self.stages and len(self.stages) > 1:
-            raise ConfigError(f"stages={self.stages}: {STAGES[-1]} is a model check of its own; run it alone "
-                              f"(stages=[{STAGES[-1]}])")
+                raise ConfigError(f"{name}={bad} names unknown stage(s); stages are {', '.join(known)}")
+        check = next((s for s in self.stages if stage_registry.spec(s).scope == "check"), None)
+        if check and len(self.stages) > 1:
+            raise ConfigError(f"stages={self.stages}: {check} is a model check of its own; run it alone "
+                              f"(stages=[{check}])")
 
 
-STAGES = ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")  # the last is a model check outside the graph
+def __getattr__(name: str) -> Any:
+    """`schema.STAGES`: the stage names of pairedgta/stage_registry.py, read when asked (a spec added there is seen)."""
+    if name == "STAGES":
+        return stage_registry.names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 GROUP_NODES = ("conditions", "region", "renderer", "camera", "model", "dataset")
 IGNORED = ("hydra", "experiment")  # Hydra's own node; an experiment's name when listed as a key
 
