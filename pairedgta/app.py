@@ -14,14 +14,13 @@ from pairedgta.cache import StageCache
 from pairedgta.config_checks import check_run_config
 from pairedgta.models import run_models as loaded_once
 from pairedgta.schema import RunConfig
-from pairedgta.stages import evaluate, planning, plot, pseudolabel
+from pairedgta.stages import planning
 from pairedgta.tracking import Recorder, dataset_label, open_tracker, run_name
 
 log = logging.getLogger("pairedgta")
-# The stages after a pass's dataset is open (generate opens it: planning.open_pass), in order: each module's
-# `step(ctx, pass, state)` runs its pairedgta.stages.common.Stage units through the cache and records them.
-PASS_STAGES = (pseudolabel, evaluate)
-RUN_STAGES = (plot,)  # once over every pass: `step(ctx, passes, state)`
+# The stages run in the order of pairedgta/stage_registry.py, each through its module's `step(ctx, pass, state)`
+# (pairedgta.stages.common.Step), by scope: "dataset" opens each pass's dataset, "pass" runs over each open pass,
+# "run" once over every pass, "check" alone. The plan says which of them run (stages/planning.py Plan.steps).
 
 
 def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, Any]:
@@ -34,7 +33,7 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     models = plan.models = planning.run_models(typed, planning.model_group_overridden(task_overrides))
     cache = StageCache(typed.cache_dir, typed.cache.verify)
     tracker = open_tracker(typed)  # MLflow is a record: a failing store costs one warning, not the run
-    model_names = [m["name"] for m in models.evaluated] if plan.run_pseudo or plan.check_models else []
+    model_names = [m["name"] for m in models.evaluated] if plan.steps("pass", "check") else []
     with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything
         summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names, typed)
     return {**summary, "mlflow": tracker.ui_link()}
@@ -52,40 +51,44 @@ def _run(container: dict[str, Any], plan: planning.Plan, models: planning.RunMod
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"dataset": None, "evaluate": {}, "plot": None, "stages": results.setdefault("stages", [])}
 
-    if plan.check_models:  # Cityscapes val: a check of the models themselves, not a paired run
-        from pairedgta.stages import cityscapes_val
-
+    if checks := plan.steps("check"):  # Cityscapes val: a check of the models themselves, not a paired run
         ctx = planning.pass_context(container, cache, plan, results, typed)
-        with tracker.run(run_name(experiment, model_names, [str(container["dataset"].get("name"))])):
+        label = str(container["dataset"].get("name"))
+        state = planning.RunState(plan, models, tracker, experiment, False, summary,
+                                  passes=[planning.bare_pass(label, ctx)])
+        with tracker.run(run_name(experiment, model_names, [label])):
             _log_invocation(tracker, container)
-            return cityscapes_val.run(ctx, models.evaluated, tracker)
+            for spec in checks:
+                spec.step(ctx, state.passes[0], state)
+        return summary
 
-    passes, configs = [], planning.pass_configs(container)  # the run opens before generation: a stop there is recorded
+    configs, contexts = planning.pass_configs(container), []  # the run opens before generation: a stop is recorded
+    state = planning.RunState(plan, models, tracker, experiment, len(configs) > 1, summary)
     with tracker.run(run_name(experiment, model_names, [str(c.get("dataset", {}).get("name")) for _, c in configs])):
         _log_invocation(tracker, container)
         for label, pcfg in configs:
             ctx = planning.pass_context(pcfg, cache, plan, results, typed if pcfg is container else None)
-            p = planning.open_pass(label, ctx, plan, results)
-            passes.append((ctx, p))
+            p = planning.open_pass(label, ctx, plan)
+            for spec in plan.steps("dataset"):  # generate: renders and opens the dataset when dataset.root is null
+                spec.step(ctx, p, state)
+            contexts.append(ctx)
+            state.passes.append(p)
             if p.dataset is not None:
                 log.info("dataset %s%s: %d groups, reference %s", p.dataset.name, f" ({label})" if len(configs) > 1 else "",
                          len(p.dataset), p.dataset.reference)
                 summary["dataset"] = summary["dataset"] or str(p.dataset.root)
-        if "generate" in results:
-            summary["generate"] = str(results["generate"].path)
-        tracker.rename(run_name(experiment, model_names, [dataset_label(p.dataset.name, p.dataset_key) for _, p in passes
+        passes = state.passes
+        tracker.rename(run_name(experiment, model_names, [dataset_label(p.dataset.name, p.dataset_key) for p in passes
                                                            if p.dataset is not None]))
-        tracker.tags({"dataset": passes[0][1].dataset.name if passes[0][1].dataset else "none",
-                      "dataset_key": str(passes[0][1].dataset_key), "passes": ", ".join(p.label for _, p in passes),
+        tracker.tags({"dataset": passes[0].dataset.name if passes[0].dataset else "none",
+                      "dataset_key": str(passes[0].dataset_key), "passes": ", ".join(p.label for p in passes),
                       "models": ", ".join(model_names)})
-        state = planning.RunState(plan, models, tracker, experiment, len(passes) > 1, summary)
-        if plan.run_pseudo:
-            for ctx, p in ((c, q) for c, q in passes if q.dataset is not None):
+        if steps := plan.steps("pass"):
+            for ctx, p in ((c, q) for c, q in zip(contexts, passes) if q.dataset is not None):
                 with p.reading():  # a blank or converted image: one warning for the dataset, when its stages are done
                     p.record_dataset(tracker)
-                    for stage in PASS_STAGES:
-                        stage.step(ctx, p, state)
-        if plan.plotting:
-            for stage in RUN_STAGES:
-                stage.step(passes[0][0], [p for _, p in passes], state)
+                    for spec in steps:
+                        spec.step(ctx, p, state)
+        for spec in plan.steps("run"):  # once over every pass: the first pass's context, every pass in state.passes
+            spec.step(contexts[0], passes[0], state)
     return summary

@@ -56,21 +56,32 @@ def test_stage_files_are_named_only_by_their_stage():
 
 
 def test_app_only_orchestrates():
-    """The app runs stages from its two lists, through each module's `step`: it names no stage's files, calls no
-    stage's own functions (adding a stage is one module and one list entry), and reads no cache."""
-    import ast
+    """The app runs the stages of pairedgta/stage_registry.py through each module's `step`: it imports no stage
+    module but the planner, names no stage (adding a stage is one module and one registry line), no stage's
+    files, and reads no cache."""
+    from pairedgta import stage_registry
 
-    from pairedgta import app
-
+    stage_modules = {s.module for s in stage_registry.STAGES}
+    assert not {m for m in imports(PKG / "app.py") if m.startswith("pairedgta.stages")} - {"pairedgta.stages"}
+    assert not {m for m in imports(PKG / "app.py")} & stage_modules
     tree = ast.parse((PKG / "app.py").read_text())
+    imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module == "pairedgta.stages"
+                for a in n.names}
+    assert imported == {"planning"}, imported
     assert not string_literals(PKG / "app.py") & set(OWNED)
+    summary_keys = {k.value for n in ast.walk(tree) if isinstance(n, ast.Dict) for k in n.keys
+                    if isinstance(k, ast.Constant)}  # the returned summary's own keys ("evaluate": {model: path})
+    assert not (string_literals(PKG / "app.py") - summary_keys) & set(stage_registry.names())
     assert "glob" not in (PKG / "app.py").read_text()
-    stage_modules = {m.__name__.rsplit(".", 1)[1] for m in (*app.PASS_STAGES, *app.RUN_STAGES)}
-    called = {f"{n.func.value.id}.{n.func.attr}" for n in ast.walk(tree) if isinstance(n, ast.Call)
-              and isinstance(n.func, ast.Attribute) and isinstance(n.func.value, ast.Name) and n.func.value.id in stage_modules}
-    assert not called, f"pairedgta/app.py calls stage functions by name: {sorted(called)}"
-    for module in (*app.PASS_STAGES, *app.RUN_STAGES):
-        assert callable(getattr(module, "step", None)), module.__name__
+
+
+def test_the_planner_names_no_stage():
+    """Which stages run and where a pass keeps their results come from the registry: pairedgta/stages/planning.py
+    holds no stage name (it held 15 before the registry)."""
+    from pairedgta import stage_registry
+
+    named = {s for s in string_literals(PKG / "stages" / "planning.py") if s in stage_registry.names()}
+    assert not named, named
 
 
 def test_no_hand_made_dispatchers_left():

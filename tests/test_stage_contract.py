@@ -7,11 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from pairedgta.stages import cityscapes_val, evaluate, generate, plot, pseudolabel
-from pairedgta.stages.common import Stage, StageResult
+from pairedgta import schema, stage_registry
+from pairedgta.stages.common import Stage, StageResult, Step
 
-STAGE_CLASSES = [generate.Generate, pseudolabel.Pseudolabel, evaluate.Evaluate, plot.Plot, cityscapes_val.CityscapesVal]
-PACKAGE = Path(generate.__file__).resolve().parents[1]
+SPECS = list(stage_registry.STAGES)
+STAGE_CLASSES = [spec.stage_class for spec in SPECS]
+PACKAGE = Path(stage_registry.__file__).resolve().parent
 
 
 def _members(proto: type) -> dict[str, object]:
@@ -31,12 +32,41 @@ def test_each_stage_has_every_member_of_the_contract(cls):
             assert have == want, f"{cls.__name__}.{name}{have} differs from Stage.{name}{want}"
 
 
-@pytest.mark.parametrize("cls", STAGE_CLASSES, ids=lambda c: c.__name__)
-def test_each_stage_names_its_result_and_folder(cls):
-    fields = cls.__dataclass_fields__
+@pytest.mark.parametrize("spec", SPECS, ids=lambda s: s.name)
+def test_each_stage_names_its_result_and_folder(spec):
+    """The Stage class hashes and stores under the name its registry line declares."""
+    fields = spec.stage_class.__dataclass_fields__
     assert issubclass(fields["result_cls"].default, StageResult)
-    assert fields["name"].default in ("generate", "pseudolabel", "evaluate", "plot", "cityscapes_val")
-    assert isinstance(fields["version"].default, str)
+    assert fields["name"].default == spec.name
+    assert isinstance(fields["version"].default, str) and spec.version == fields["version"].default
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=lambda s: s.name)
+def test_each_stage_has_the_one_step_signature(spec):
+    """The app calls every stage the same way: `step(ctx: Context, p: PassResult, state: RunState) -> None`."""
+    want = inspect.signature(Step.__call__)
+    have = inspect.signature(spec.step)
+    assert [(p.name, p.annotation) for p in have.parameters.values()] == \
+        [(p.name, p.annotation) for p in list(want.parameters.values())[1:]], f"{spec.module}.step{have}"
+    assert have.return_annotation == want.return_annotation
+
+
+def test_each_registry_line_is_consistent():
+    """Upstream stages come first, a pass holds each slot once, and a stage's options node is a node of the run's
+    config (pairedgta/schema.py) with its YAML in pairedgta/conf/config.yaml."""
+    import yaml
+
+    seen: list[str] = []
+    conf = yaml.safe_load((PACKAGE / "conf" / "config.yaml").read_text())
+    nodes = {f.name for f in schema.RunConfig.__dataclass_fields__.values() if f.metadata.get("node")}
+    for spec in SPECS:
+        assert set(spec.needs) <= set(seen), f"{spec.name} needs {spec.needs}, listed after it"
+        assert spec.node is None or (spec.node in nodes and spec.node in conf), spec
+        assert spec.slot is None or spec.scope in ("dataset", "pass"), spec
+        seen.append(spec.name)
+    slots = [s.slot for s in SPECS if s.slot]
+    assert len(slots) == len(set(slots))
+    assert schema.STAGES == tuple(seen) and schema.RunConfig().stages == stage_registry.graph() == conf["stages"]
 
 
 def test_only_the_runner_hashes_a_stage():

@@ -15,7 +15,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -30,7 +30,10 @@ from pairedgta.metrics import ConfusionMatrix
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
-from pairedgta.tracking import Recorder, bundle, dataset_label, run_name
+from pairedgta.tracking import bundle, dataset_label, run_name
+
+if TYPE_CHECKING:  # planning reads this module's spec, not the module
+    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -144,18 +147,20 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
     return metrics
 
 
-def run(ctx: Context, models: list[dict[str, Any]], tracker: Recorder) -> dict[str, Any]:
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step (scope "check", run alone; `p` holds no dataset): every evaluated model on the Cityscapes
+    split, each in a nested MLflow run, and its mIoU against the published one in the run's summary."""
     dataset = open_dataset(ctx.cfg["dataset"])
     if not isinstance(dataset, CityscapesSplit):
         raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")
     dataset_key = f"cityscapes:{dataset.fingerprint()}"
+    tracker = state.recorder
     tracker.tags({"dataset": dataset.name, "dataset_key": dataset_key, "split": dataset.split})
-    summary: dict[str, Any] = {
-        "dataset": str(dataset.root), "evaluate": {}, "plot": None, "cityscapes_val": {},
-        "stages": ctx.results.setdefault("stages", []),
-    }
+    summary = state.summary
+    summary["dataset"] = str(dataset.root)
+    summary[STAGE] = {}
     with image_notes(f"dataset {dataset.name}"):  # a blank or converted image: one warning, after every model
-        for model_cfg in models:
+        for model_cfg in state.models.evaluated:
             name = model_cfg["name"]
             with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
                 result = check_model(ctx, dataset, dataset_key, model_cfg)
@@ -176,5 +181,4 @@ def run(ctx: Context, models: list[dict[str, Any]], tracker: Recorder) -> dict[s
             if warning:
                 log.warning("%s", warning)
             summary["evaluate"][name] = str(result.path)
-            summary["cityscapes_val"][name] = {"miou": s["miou"], "published_miou": published, "warning": warning}
-    return summary
+            summary[STAGE][name] = {"miou": s["miou"], "published_miou": published, "warning": warning}

@@ -17,7 +17,7 @@ import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -40,6 +40,9 @@ from pairedgta.stages.common import (
     torch_threads,
 )
 from pairedgta.stages.pseudolabel import PseudoLabels
+
+if TYPE_CHECKING:  # planning reads this module's spec, not the module
+    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.evaluate")
 VERSION = "8"  # the framework's; the registered metrics' versions join it past VERSION 8 (registry.stage_version). 8: label-free estimator sums (est_* in group_counts.npz), estimators.csv, predictions.npz; 7: top-M rho_valid only over frames that show the class, no zero-width interval, xi.csv `classes`; 6: metric.min_transmittance (xi.csv column); 2: metric conventions recorded in every output; mIoU over TP+FP+FN > 0; 3: groups_per_condition under random_one
@@ -268,14 +271,12 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
     return result
 
 
-def step(ctx: Context, p: Any, state: Any) -> None:
-    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): every model's evaluation,
-    each in a nested MLflow run; with plot.collect_cached, the cached evaluations of other models too."""
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step for one pass: every model's evaluation, each in a nested MLflow run; with
+    plot.collect_cached, the cached evaluations of other models too."""
     from pairedgta.tracking import bundle, dataset_label, run_name, xi_table
 
     plan, recorder = state.plan, state.recorder
-    if not plan.run_eval:
-        return
     collect = plan.plotting and ctx.run.plot.collect_cached
     for model_cfg in state.models.evaluated:
         name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]

@@ -21,7 +21,7 @@ import time
 import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -38,6 +38,9 @@ from pairedgta.scene.sampling import build_region, region_for_scene
 from pairedgta.cache import SHARED_WORK
 from pairedgta.schema import GenerateConfig, PairingConfig, RunConfig, ValidationConfig, as_dict
 from pairedgta.stages.common import Context, StageResult, run_cached, stage_key
+
+if TYPE_CHECKING:  # planning reads this module's spec, not the module
+    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.generate")
 VERSION = "7"  # 2: descriptors carry the ambient population; 3: per-town ground materials;
@@ -449,6 +452,35 @@ def will_compute(ctx: Context) -> bool:
 
 
 def run(ctx: Context) -> GeneratedData:
+    """The dataset of `ctx`'s config, cached (the step below, and scripts that only need the data)."""
     result = run_cached(ctx, Generate(ctx))
     assert isinstance(result, GeneratedData)
     return result
+
+
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step for one pass (scope "dataset"): render the pass's dataset when `dataset.root` is null and
+    open it; a pass whose root names a dataset (opened by planning.open_pass) skips it."""
+    from pairedgta.datasets import open_dataset
+
+    dcfg, plan = dict(ctx.cfg["dataset"]), state.plan
+    if dcfg.get("root") is not None:
+        if Generate.name in plan.stages:
+            log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))
+        return
+    if plan.steps("pass") and will_compute(ctx):
+        from pairedgta.models.availability import check_available
+
+        check_available([*state.models.evaluated, state.models.reference])  # before minutes of rendering
+    gen = run(ctx)
+    state.summary["generate"] = str(gen.path)
+    if not gen.complete:  # a shard job: other shards still have scenes to render
+        if plan.steps("pass", "run"):
+            raise ConfigError(
+                "generate.shard is set and other shards' scenes are still missing: run the remaining shards, "
+                "then the later stages without generate.shard/num_shards"
+            )
+        return
+    dataset = open_dataset(dcfg, ctx.grid, root=gen.path)
+    p.dataset, p.dataset_key, p.generate = dataset, f"generate:{gen.key}", gen
+    p.grid = dataset.grid or ctx.grid

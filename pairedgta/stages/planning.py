@@ -8,6 +8,9 @@ plot stage draws all of them into shared figures (night_vs_acdc, pairing_ablatio
 Models reach a run through one channel: the composed `model` group (with the user's `model.<key>=`
 overrides) serves wherever the run uses that model, evaluated or as reference; every other name in
 `models` or `reference_model` is read from the same config group and `model_overrides.<name>` applies.
+
+Which stages run, and where a pass keeps their results, follows from pairedgta/stage_registry.py: this module
+names no stage.
 """
 from __future__ import annotations
 
@@ -23,28 +26,28 @@ from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
 from pairedgta.models import check_model_config, model_config, with_defaults
-from pairedgta.stages import evaluate, generate
-from pairedgta import schema
+from pairedgta import schema, stage_registry
 from pairedgta.schema import MISSING
 from pairedgta.stages.common import Context
 from pairedgta.tracking.recorder import Recorder
 
 log = logging.getLogger("pairedgta")
-CHECK_STAGE = "cityscapes_val"  # a check of the models themselves, outside the paired graph
 
 
 @dataclass
 class PassResult:
-    """One dataset variant of the run and its stage results."""
+    """One dataset variant of the run and its stage results: each stage's result in the slot its spec names
+    (pairedgta/stage_registry.py), read and set as an attribute (`p.generate`, `p.pseudo`, `p.evaluations`)."""
 
     label: str
     cfg: dict[str, Any]
     grid: ConditionGrid
     dataset: PairedDataset | None = None
     dataset_key: str | None = None
-    generate: generate.GeneratedData | None = None
-    pseudo: Any = None  # pseudolabel.PseudoLabels
-    evaluations: list[evaluate.EvaluateResult] = field(default_factory=list)
+    results: dict[str, Any] = field(default_factory=stage_registry.empty_slots)
+
+    def __post_init__(self) -> None:
+        _install_slots()  # a stage registered since import (a test's toy stage) gets its attribute too
 
     @functools.cached_property
     def run(self) -> schema.RunConfig:
@@ -67,28 +70,56 @@ class PassResult:
         return image_notes(f"dataset {self.label}")
 
 
+class _Slot:
+    """`p.<slot>` of a pass: its entry in `p.results`, the result of the stage that declares that slot."""
+
+    def __init__(self, slot: str) -> None:
+        self.slot = slot
+
+    def __get__(self, p: PassResult | None, owner: type | None = None) -> Any:
+        if p is None:
+            return self
+        try:
+            return p.results[self.slot]
+        except KeyError:
+            raise AttributeError(f"no stage of this run declares the slot {self.slot!r}") from None
+
+    def __set__(self, p: PassResult, value: Any) -> None:
+        p.results[self.slot] = value
+
+
+def _install_slots() -> None:
+    for spec in stage_registry.slotted():
+        slot = str(spec.slot)
+        if isinstance(PassResult.__dict__.get(slot), _Slot):
+            continue
+        if hasattr(PassResult, slot) or slot in PassResult.__dataclass_fields__:
+            raise ValueError(f"stage {spec.name}: slot={slot!r} is already an attribute of a pass; name another slot")
+        setattr(PassResult, slot, _Slot(slot))
+
+
+_install_slots()
+
+
 @dataclass
 class Plan:
     stages: list[str]
     force: set[str]
-    needs: set[str]  # upstream stages the requested figures read
+    needs: set[str]  # upstream stages the requested stages' config makes them read (the figures')
     models: Any = None  # RunModels, once resolved: checked for availability before a new dataset is rendered
+
+    def runs(self, name: str) -> bool:
+        """Whether a stage runs: listed in `stages`, read by a listed stage's config, or upstream of either."""
+        return name in stage_registry.with_upstream([*self.stages, *self.needs])
+
+    def steps(self, *scopes: str) -> list[stage_registry.StageSpec]:
+        """The stages of these scopes that run, in the order they run."""
+        return [s for s in stage_registry.in_scope(*scopes) if self.runs(s.name)]
 
     @property
     def plotting(self) -> bool:
-        return "plot" in self.stages
-
-    @property
-    def run_pseudo(self) -> bool:
-        return bool({"pseudolabel", "evaluate"} & (set(self.stages) | self.needs))
-
-    @property
-    def run_eval(self) -> bool:
-        return "evaluate" in self.stages or "evaluate" in self.needs
-
-    @property
-    def check_models(self) -> bool:
-        return CHECK_STAGE in self.stages
+        """Whether a stage over every pass (the figures) runs: it reads what the pass stages leave."""
+        return bool(self.steps("run"))
 
 
 @dataclass
@@ -109,6 +140,7 @@ class RunState:
     multi: bool            # several passes: names carry the pass label
     summary: dict[str, Any]
     model_runs: list[tuple[str | None, str, str]] = field(default_factory=list)  # (nested run, model, pass)
+    passes: list[PassResult] = field(default_factory=list)  # every pass of the run, as opened so far
 
 
 def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
@@ -120,11 +152,12 @@ def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
         raise ConfigError(f"device={device!r}; use cpu, cuda or auto")
     check_cuda(device)
     sourced = figures.sourced(cfg)
-    if sourced and set(stages) != {"plot"}:  # e.g. Table 1 from plot.table_csv: a file, not this run's data
+    over_passes = [s.name for s in stage_registry.in_scope("run")]
+    if sourced and not set(stages) <= set(over_passes):  # e.g. Table 1 from plot.table_csv: a file, not this run's data
         raise ConfigError(f"{', '.join(sorted(set(sourced.values())))} draws {', '.join(sourced)} from that file and runs no "
-                          f"data stage; use stages=[plot] (stages={stages})")
-    needs = figures.needed_stages(cfg) if "plot" in stages else set()
-    if not (sourced and set(stages) == {"plot"}):
+                          f"data stage; use stages=[{','.join(over_passes)}] (stages={stages})")
+    needs = set().union(*(stage_registry.spec(name).needs_of(cfg) for name in stages))
+    if not sourced:
         check_renderer(cfg)
     return Plan(stages, force, needs)
 
@@ -240,7 +273,8 @@ def check_roots(container: dict[str, Any]) -> None:
     A run that only draws figures from files given to it (plot.table_csv, plot.frame_counts_csv) reads none."""
     from pairedgta.figures import sourced
 
-    if sourced(container) and list(container.get("stages") or []) == ["plot"]:
+    stages = list(container.get("stages") or [])
+    if sourced(container) and stages and all(stage_registry.spec(s).scope == "run" for s in stages):
         return
     for _label, cfg in pass_configs(container):
         d = cfg["dataset"]
@@ -256,38 +290,27 @@ def check_roots(container: dict[str, Any]) -> None:
                               f"(the one that holds its images)")
 
 
-def open_pass(label: str, ctx: Context, plan: Plan, results: dict[str, Any]) -> PassResult:
-    """The pass's dataset: generated by the generate stage when `dataset.root` is null, else read."""
+def open_pass(label: str, ctx: Context, plan: Plan) -> PassResult:
+    """The pass, with its dataset open when `dataset.root` names one; a stage of scope "dataset" (generate)
+    opens a generated one (`dataset.root: null`) in its step."""
     cfg, grid = ctx.cfg, ctx.grid
     dcfg = dict(cfg["dataset"])
     if not DATASETS.meta(dcfg.get("kind")).get("paired"):
+        checks = ",".join(s.name for s in stage_registry.in_scope("check"))
         raise ConfigError(
             f"dataset={dcfg.get('name')} is not a paired dataset: it feeds the model check "
-            f"(+experiment=cityscapes_val_check, stages=[{CHECK_STAGE}]), not {', '.join(plan.stages)}"
+            f"(+experiment=cityscapes_val_check, stages=[{checks}]), not {', '.join(plan.stages)}"
         )
-    if not ({"generate", "pseudolabel", "evaluate"} & (plan.needs | set(plan.stages))):
+    if not plan.steps("dataset", "pass") or dcfg.get("root") is None:
         # figures drawn from given files (cost.csv, the authors' CSVs) read no dataset
-        return _typed(PassResult(label, cfg, grid), ctx)
-    if dcfg.get("root") is None:
-        if plan.models is not None and plan.run_pseudo and generate.will_compute(ctx):
-            from pairedgta.models.availability import check_available
-
-            check_available([*plan.models.evaluated, plan.models.reference])  # before minutes of rendering
-        gen = generate.run(ctx)
-        results["generate"] = gen
-        if not gen.complete:  # a shard job: other shards still have scenes to render
-            if {"pseudolabel", "evaluate"} & (plan.needs | set(plan.stages)) or plan.plotting:
-                raise ConfigError(
-                    "generate.shard is set and other shards' scenes are still missing: run the remaining shards, "
-                    "then the later stages without generate.shard/num_shards"
-                )
-            return _typed(PassResult(label, cfg, grid), ctx)
-        dataset = open_dataset(dcfg, grid, root=gen.path)
-        return _typed(PassResult(label, cfg, dataset.grid or grid, dataset, f"generate:{gen.key}", generate=gen), ctx)
-    if "generate" in plan.stages:
-        log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))
+        return bare_pass(label, ctx)
     dataset = open_dataset(dcfg, grid)
     return _typed(PassResult(label, cfg, dataset.grid or grid, dataset, f"external:{dataset.fingerprint()}"), ctx)
+
+
+def bare_pass(label: str, ctx: Context) -> PassResult:
+    """A pass with no dataset open (yet): a generated one before its step, a check's, one of figures from files."""
+    return _typed(PassResult(label, ctx.cfg, ctx.grid), ctx)
 
 
 def pass_context(cfg: dict[str, Any], cache: Any, plan: Plan, results: dict[str, Any],
@@ -305,4 +328,4 @@ def _typed(result: PassResult, ctx: Context) -> PassResult:
 
 
 __all__ = ["PassResult", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",
-           "check_roots", "open_pass", "pass_context"]
+           "check_roots", "open_pass", "bare_pass", "pass_context"]

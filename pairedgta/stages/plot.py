@@ -21,14 +21,15 @@ from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
+from pairedgta import stage_registry
 from pairedgta.cache import require_intact
 from pairedgta.figures import FigureOptions, figure, figures_of, sourced
 from pairedgta.jsonio import write_json
 from pairedgta.schema import RunConfig, as_dict
 from pairedgta.stages.common import Context, StageResult, Unsharded, run_cached
 
-if TYPE_CHECKING:  # planning imports this module when it plans
-    from pairedgta.stages.planning import PassResult
+if TYPE_CHECKING:  # planning reads this module's spec, not the module
+    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.plot")
 VERSION = "12"  # 12: issue 49's estimator statistics (BCa over scenes and models, paired differences, Holm, leave one illumination out, ALine, held-out ATC, committee agreement, estimator_pairs.csv), n_frames in every rho table, rPC undefined below its floor; 11: the reference model is not ranked (xi_models, table1_xi), the estimators' permutation test under the joint null; 10: the photometry figure; the validity figure draws no interval as a hollow marker at the configured level; 9: robustness curves of severity ladders; 5: the ranking figure says why a class has no rho_valid in terms of phi; 6: one title line per selection
@@ -116,12 +117,13 @@ def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str,
     inputs: dict[str, str] = {}
     for i, p in enumerate(passes):
         tag = f"{i}:{p.label}"
-        if p.generate is not None:
-            inputs[f"{tag}/generate"] = p.generate.key
-        if p.pseudo is not None:
-            inputs[f"{tag}/pseudolabel"] = p.pseudo.key
-        for j, e in enumerate(sorted(p.evaluations, key=lambda e: e.key)):
-            inputs[f"{tag}/evaluate/{j}"] = e.key
+        for spec in stage_registry.slotted():  # every pass stage's result, in graph order
+            held = p.results[spec.slot]
+            if spec.many:
+                for j, e in enumerate(sorted(held, key=lambda e: e.key)):
+                    inputs[f"{tag}/{spec.name}/{j}"] = e.key
+            elif held is not None:
+                inputs[f"{tag}/{spec.name}"] = held.key
     for name in figures:
         # a figure that reads files of its own (cost.csv, the paper's timings) puts their hashes in the key
         cache_key = figure(name).keyer()
@@ -131,20 +133,17 @@ def plot_key(ctx: Context, passes: list[Any]) -> tuple[dict[str, Any], dict[str,
     return config, inputs
 
 
-def run(ctx: Context, passes: list[Any]) -> Figures:
-    for e in (e for p in passes for e in p.evaluations):
-        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
-    result = run_cached(ctx, Plot(ctx, passes))
-    assert isinstance(result, Figures)
-    return result
-
-
-def step(ctx: Context, passes: list[Any], state: Any) -> None:
-    """The app's step over all passes (RunState in pairedgta.stages.planning): the figures, in the run's MLflow
-    record, and each model's own figures in that model's nested run."""
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step over all passes (scope "run": called once, with the first pass and its context; every pass
+    is in `state.passes`): the figures, in the run's MLflow record, and each model's own figures in that model's
+    nested run."""
     from pairedgta.tracking import bundle
 
-    figures, recorder = run(ctx, passes), state.recorder
+    passes = state.passes
+    for e in (e for q in passes for e in q.evaluations):
+        require_intact(e.path, "evaluate")  # a collected evaluation missing a file must not drop out silently
+    figures, recorder = run_cached(ctx, Plot(ctx, passes)), state.recorder
+    assert isinstance(figures, Figures)
     state.summary["plot"] = str(figures.path)
     own_runs = {(model, label) for _, model, label in state.model_runs}
     recorder.stage_files(bundle("plot", figures.key), figures.hit, figures.files_except(own_runs), "figures")

@@ -6,7 +6,7 @@ import csv
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -20,6 +20,9 @@ from pairedgta.models import shared_segmenter
 from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached, torch_threads
 
 from pairedgta.lazy import lazy_module
+
+if TYPE_CHECKING:  # planning reads this module's spec, not the module
+    from pairedgta.stages.planning import PassResult, RunState
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
@@ -178,18 +181,12 @@ class Pseudolabel(Unsharded):
             return compute(self.ctx, self.dataset, out, self.model_cfg, self.ctx.run.pseudolabel.tau)
 
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: dict[str, Any]) -> PseudoLabels:
-    result = run_cached(ctx, Pseudolabel(ctx, dataset, dataset_key, model_cfg))
-    assert isinstance(result, PseudoLabels)
-    return result
-
-
-def step(ctx: Context, p: Any, state: Any) -> None:
-    """The app's step for one pass (pairedgta.stages.planning.PassResult, RunState): the reference model's
-    pseudo-labels, their files in the run's MLflow record."""
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step for one pass: the reference model's pseudo-labels, their files in the run's MLflow record."""
     from pairedgta.tracking import bundle
 
-    p.pseudo = run(ctx, p.dataset, p.dataset_key, state.models.reference)
+    p.pseudo = run_cached(ctx, Pseudolabel(ctx, p.dataset, p.dataset_key, state.models.reference))
+    assert isinstance(p.pseudo, PseudoLabels)
     state.summary.setdefault("pseudolabel", str(p.pseudo.path))
     state.recorder.stage_files(bundle("pseudolabel", p.pseudo.key), p.pseudo.hit, p.pseudo.artifacts(),
                                f"pseudolabel/{p.label}" if state.multi else "pseudolabel")
