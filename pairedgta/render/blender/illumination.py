@@ -65,8 +65,8 @@ class SunsetLight:
     open is how dark a cloud deck and how bright fog are when the sun is a few degrees up: sunlight crosses the
     deck on a slant path many times its noon length, and haze lit from the horizon glows toward the camera
     (forward scattering) instead of the isotropic share of the noon model. Each term applies weighted by the
-    `dusk` weight of the sun's elevation (1 from -8 to 4 degrees up but for the night's share, 0 from 25 degrees
-    up and in full night), so day and night images keep every pixel:
+    `dusk` weight of the sun's elevation (1 with the sun 2 to 4 degrees up; 0 from 25 degrees up and, as the night
+    weight takes over, from 8 degrees down), so day and night images keep every pixel (a clear sunset's too):
 
     - `overcast`: factor on the sun's light through a full cloud cover and on the cloud base's own light (the
       sky of an overcast image, the light it sends into the scene and into the haze), scaled by the cover
