@@ -117,6 +117,33 @@ def develop_all(renderer, scenes: list[dict], grid, light: NightLight) -> list[d
     return out
 
 
+def cached_renders(renderer, out: Path, what: dict, seeds: list[int], n: int, base: list[str], grid, t0: float,
+                   render=None) -> tuple[list[dict], list, list]:
+    """The fit's renders of `n` scenes per seed, kept under `out` named by `what` (what decides them), so a rerun
+    with another grid of light values renders nothing. `render(renderer, descriptor, grid)`: a fit's own parts
+    (default: this fit's `render_parts`)."""
+    store = out / f"renders-{hashlib.sha256(canonical_json(what).encode()).hexdigest()[:12]}.pkl"
+    scenes, labels, descriptors = [], [], []
+    if store.is_file():
+        scenes, descriptors = pickle.loads(store.read_bytes())
+        labels = [parts[grid.reference]["labels"] for parts in scenes]
+        print(f"renders from {store}")
+        return scenes, labels, descriptors
+    for seed in seeds:
+        run = schema.parse(OmegaConf.to_container(compose_cfg([*base, f"seed={seed}"]), resolve=True))
+        region = build_region(run.region)
+        for k in range(n):
+            descriptor, _ = build_descriptor(k, run.generate, region)
+            parts = (render or render_parts)(renderer, descriptor, grid)
+            scenes.append(parts)
+            labels.append(parts[grid.reference]["labels"])
+            descriptors.append(descriptor)
+            print(f"seed {seed} scene {k}: rendered ({time.perf_counter() - t0:.0f} s)", flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    store.write_bytes(pickle.dumps((scenes, descriptors)))
+    return scenes, labels, descriptors
+
+
 def sets(seeds: list[int], n: int, subset: int) -> dict[str, list[int]]:
     """Scene index sets (into the seeds' scenes in order): each seed's, and its runs of `subset` scenes."""
     found: dict[str, list[int]] = {}
@@ -219,30 +246,12 @@ def main() -> None:
     gta = {"luma": float(gta_row["luma_ratio_median"]), "contrast": float(gta_row["contrast_ratio_median"])}
 
     t0 = time.perf_counter()
-    scenes, labels, descriptors = [], [], []
     # the renders, kept for a rerun with another grid: named by what decides them
     what = {"seeds": args.seeds, "scenes": args.scenes, "renderer": cfg["renderer"], "grid": grid.names,
             "blender": renderer_versions("blender"), "generate": VERSION,
             "code": [sha256_file(f) for f in sorted(BACKEND.glob("*.py"))]}
-    store = args.out / f"renders-{hashlib.sha256(canonical_json(what).encode()).hexdigest()[:12]}.pkl"
     with build_renderer(cfg["renderer"]) as renderer:
-        if store.is_file():
-            scenes, descriptors = pickle.loads(store.read_bytes())
-            labels = [parts[grid.reference]["labels"] for parts in scenes]
-            print(f"renders from {store}")
-        for seed in args.seeds if not scenes else []:
-            run = schema.parse(OmegaConf.to_container(compose_cfg([*base, f"seed={seed}"]), resolve=True))
-            region = build_region(run.region)
-            for k in range(args.scenes):
-                descriptor, _ = build_descriptor(k, run.generate, region)
-                parts = render_parts(renderer, descriptor, grid)
-                scenes.append(parts)
-                labels.append(parts[grid.reference]["labels"])
-                descriptors.append(descriptor)
-                print(f"seed {seed} scene {k}: rendered ({time.perf_counter() - t0:.0f} s)", flush=True)
-        if not store.is_file():
-            args.out.mkdir(parents=True, exist_ok=True)
-            store.write_bytes(pickle.dumps((scenes, descriptors)))
+        scenes, labels, descriptors = cached_renders(renderer, args.out, what, args.seeds, args.scenes, base, grid, t0)
 
         chosen = sets(args.seeds, args.scenes, args.subset)
         points = []

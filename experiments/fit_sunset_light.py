@@ -40,28 +40,23 @@ on scenes 1-6), Sunset-FOGGY luma 0.503-0.549 and contrast 0.466-0.486 (before 0
 from __future__ import annotations
 
 import argparse
-import hashlib
 import itertools
 import math
-import pickle
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from fit_night_light import BACKEND, check_groups, sets  # the script's folder (sys.path[0])
+from fit_night_light import BACKEND, cached_renders, check_groups, sets  # the script's folder (sys.path[0])
 from omegaconf import OmegaConf
 
-from pairedgta import schema
-from pairedgta.cache import canonical_json
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.conditions import build_condition_grid
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.photometry import band_checks, group_rows, physics_checks, summarise
 from pairedgta.render import build_renderer, renderer_versions
 from pairedgta.render.blender.illumination import SUNSET, SunsetLight, lighting
-from pairedgta.scene.sampling import build_region
-from pairedgta.stages.generate import VERSION, build_descriptor
+from pairedgta.stages.generate import VERSION
 from pairedgta.testing.cli import compose_cfg
 
 TERMS = ("overcast", "haze")
@@ -204,31 +199,14 @@ def main() -> None:
     gta = {"luma": float(gta_row["luma_ratio_median"]), "contrast": float(gta_row["contrast_ratio_median"])}
 
     t0 = time.perf_counter()
-    scenes, labels, descriptors = [], [], []
     # the renders, kept for a rerun with another grid: named by what decides them (the fitted sunset does not)
     renderer_cfg = {k: v for k, v in cfg["renderer"].items() if k != "sunset"}
     what = {"seeds": args.seeds, "scenes": args.scenes, "renderer": renderer_cfg, "grid": grid.names,
             "blender": renderer_versions("blender"), "generate": VERSION, "fit": "sunset-2",
             "code": [sha256_file(f) for f in sorted(BACKEND.glob("*.py"))]}
-    store = args.out / f"renders-{hashlib.sha256(canonical_json(what).encode()).hexdigest()[:12]}.pkl"
     with build_renderer(cfg["renderer"]) as renderer:
-        if store.is_file():
-            scenes, descriptors = pickle.loads(store.read_bytes())
-            labels = [parts[grid.reference]["labels"] for parts in scenes]
-            print(f"renders from {store}")
-        for seed in args.seeds if not scenes else []:
-            run = schema.parse(OmegaConf.to_container(compose_cfg([*base, f"seed={seed}"]), resolve=True))
-            region = build_region(run.region)
-            for k in range(args.scenes):
-                descriptor, _ = build_descriptor(k, run.generate, region)
-                parts = render_parts(renderer, descriptor, grid)
-                scenes.append(parts)
-                labels.append(parts[grid.reference]["labels"])
-                descriptors.append(descriptor)
-                print(f"seed {seed} scene {k}: rendered ({time.perf_counter() - t0:.0f} s)", flush=True)
-        if not store.is_file():
-            args.out.mkdir(parents=True, exist_ok=True)
-            store.write_bytes(pickle.dumps((scenes, descriptors)))
+        scenes, labels, descriptors = cached_renders(renderer, args.out, what, args.seeds, args.scenes, base, grid, t0,
+                                                      render_parts)
 
         chosen = sets(args.seeds, args.scenes, args.subset)
         points = []
