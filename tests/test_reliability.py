@@ -612,9 +612,9 @@ def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
     seen: list[int] = []
     original = Segmenter._forward
 
-    def spy(self, images):
+    def spy(self, images, **kwargs):  # kwargs: what predict_maps asks of the same forward (energy=)
         seen.append(torch.get_num_threads())
-        return original(self, images)
+        return original(self, images, **kwargs)
 
     monkeypatch.setattr(Segmenter, "_forward", spy)  # every forward: predict_maps, predict and predict_proba alike
     outputs = []
