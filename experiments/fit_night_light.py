@@ -117,6 +117,45 @@ def develop_all(renderer, scenes: list[dict], grid, light: NightLight) -> list[d
     return out
 
 
+def scene_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every light fit shares: which scenes, at which size."""
+    ap.add_argument("--seeds", type=int, nargs="+", default=[2, 3], help="the scenes' seeds (generate.seed)")
+    ap.add_argument("--scenes", type=int, default=8, help="scenes per seed")
+    ap.add_argument("--subset", type=int, default=6, help="every run of this many consecutive scenes must pass too")
+    ap.add_argument("--size", default="256x128", help="WIDTHxHEIGHT of the renders")
+    ap.add_argument("--samples", type=int, default=2)
+
+
+def run_arguments(ap: argparse.ArgumentParser, out: str) -> argparse.Namespace:
+    """The shared last options, then the parsed command line."""
+    ap.add_argument("--verify", action="store_true", help="render the chosen point and print the model's error")
+    ap.add_argument("--out", type=Path, default=Path("outputs") / out)
+    ap.add_argument("--check-groups", type=Path, default=None, metavar="CSV",
+                    help="no fit: the checks on every run of --subset consecutive groups of an experiment's "
+                         "photometry_groups.csv")
+    args = ap.parse_args()
+    return args
+
+
+def setup(args: argparse.Namespace, condition: str) -> tuple[list[str], dict, dict, object, dict]:
+    """The fit's config (overrides, composed config, photometry settings, condition grid) and GTA V's median luma
+    and contrast ratios of `condition`; `--check-groups` alone checks a CSV and exits."""
+    if args.check_groups:
+        raise SystemExit(0 if check_groups(args.check_groups, args.subset) else 1)
+    width, height = (int(v) for v in args.size.split("x"))
+
+    base = ["+experiment=photometric_calibration", f"renderer.width={width}", f"renderer.height={height}",
+            f"renderer.samples={args.samples}"]
+    cfg = OmegaConf.to_container(compose_cfg(base), resolve=True)
+    settings = cfg["photometry"]
+    grid = build_condition_grid(cfg["conditions"])
+    from pairedgta.figures.photometry import reference_table
+
+    gta_row = reference_table().set_index("condition").loc[condition]
+    gta = {"luma": float(gta_row["luma_ratio_median"]), "contrast": float(gta_row["contrast_ratio_median"])}
+    return base, cfg, settings, grid, gta
+
+
 def cached_renders(renderer, out: Path, what: dict, seeds: list[int], n: int, base: list[str], grid, t0: float,
                    render=None) -> tuple[list[dict], list, list]:
     """The fit's renders of `n` scenes per seed, kept under `out` named by `what` (what decides them), so a rerun
@@ -212,11 +251,7 @@ def check_groups(path: Path, subset: int) -> bool:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[2, 3], help="the scenes' seeds (generate.seed)")
-    ap.add_argument("--scenes", type=int, default=8, help="scenes per seed")
-    ap.add_argument("--subset", type=int, default=6, help="every run of this many consecutive scenes must pass too")
-    ap.add_argument("--size", default="256x128", help="WIDTHxHEIGHT of the renders")
-    ap.add_argument("--samples", type=int, default=2)
+    scene_arguments(ap)
     ap.add_argument("--max-contrast", type=float, default=0.22,
                     help="Night-RAIN's median contrast ratio on every set at most this (the issue's 0.25, less a margin "
                          "for the step to 512x256)")
@@ -225,25 +260,8 @@ def main() -> None:
     ap.add_argument("--lamps", type=float, nargs="+", default=[0.5, 1.0])
     ap.add_argument("--headlights", type=float, nargs="+", default=[0.02, 0.03, 0.05, 0.1, 1.0])
     ap.add_argument("--windows", type=float, nargs="+", default=[0.05, 0.1, 0.2, 1.0])
-    ap.add_argument("--verify", action="store_true", help="render the chosen point and print the model's error")
-    ap.add_argument("--out", type=Path, default=Path("outputs/fit_night_light"))
-    ap.add_argument("--check-groups", type=Path, default=None, metavar="CSV",
-                    help="no fit: the checks on every run of --subset consecutive groups of an experiment's "
-                         "photometry_groups.csv")
-    args = ap.parse_args()
-    if args.check_groups:
-        raise SystemExit(0 if check_groups(args.check_groups, args.subset) else 1)
-    width, height = (int(v) for v in args.size.split("x"))
-
-    base = ["+experiment=photometric_calibration", f"renderer.width={width}", f"renderer.height={height}",
-            f"renderer.samples={args.samples}"]
-    cfg = OmegaConf.to_container(compose_cfg(base), resolve=True)
-    settings = cfg["photometry"]
-    grid = build_condition_grid(cfg["conditions"])
-    from pairedgta.figures.photometry import reference_table
-
-    gta_row = reference_table().set_index("condition").loc["Night-RAIN"]
-    gta = {"luma": float(gta_row["luma_ratio_median"]), "contrast": float(gta_row["contrast_ratio_median"])}
+    args = run_arguments(ap, "fit_night_light")
+    base, cfg, settings, grid, gta = setup(args, "Night-RAIN")
 
     t0 = time.perf_counter()
     # the renders, kept for a rerun with another grid: named by what decides them

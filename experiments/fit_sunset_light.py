@@ -43,21 +43,24 @@ import argparse
 import itertools
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from fit_night_light import BACKEND, cached_renders, check_groups, sets  # the script's folder (sys.path[0])
-from omegaconf import OmegaConf
+from fit_night_light import (  # the script's folder (sys.path[0])
+    BACKEND,
+    cached_renders,
+    run_arguments,
+    scene_arguments,
+    sets,
+    setup,
+)
 
 from pairedgta.cityscapes import CLASS_NAMES
-from pairedgta.conditions import build_condition_grid
 from pairedgta.filehash import sha256_file
 from pairedgta.metrics.photometry import band_checks, group_rows, physics_checks, summarise
 from pairedgta.render import build_renderer, renderer_versions
 from pairedgta.render.blender.illumination import SUNSET, SunsetLight, lighting
 from pairedgta.stages.generate import VERSION
-from pairedgta.testing.cli import compose_cfg
 
 TERMS = ("overcast", "haze")
 PROBE = SunsetLight(overcast=0.5, haze=0.5)  # a SunsetLight unlike any fitted one: what it leaves alone, none does
@@ -165,11 +168,7 @@ def evaluate(images, labels, grid, settings, gta, chosen: dict[str, list[int]], 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[2, 3], help="the scenes' seeds (generate.seed)")
-    ap.add_argument("--scenes", type=int, default=8, help="scenes per seed")
-    ap.add_argument("--subset", type=int, default=6, help="every run of this many consecutive scenes must pass too")
-    ap.add_argument("--size", default="256x128", help="WIDTHxHEIGHT of the renders")
-    ap.add_argument("--samples", type=int, default=2)
+    scene_arguments(ap)
     ap.add_argument("--rain-margin", type=float, default=0.01,
                     help="Sunset-RAIN's median luma at least this under Sunset-EXTRASUNNY's on every set")
     ap.add_argument("--band-margin", type=float, default=0.05,
@@ -178,25 +177,8 @@ def main() -> None:
                     help="feasible points within this of the least error are as near GTA V: the least change wins")
     ap.add_argument("--overcast", type=float, nargs="+", default=[round(0.1 + 0.05 * i, 2) for i in range(19)])
     ap.add_argument("--haze", type=float, nargs="+", default=[round(0.6 + 0.1 * i, 2) for i in range(20)])
-    ap.add_argument("--verify", action="store_true", help="render the chosen point and print the model's error")
-    ap.add_argument("--out", type=Path, default=Path("outputs/fit_sunset_light"))
-    ap.add_argument("--check-groups", type=Path, default=None, metavar="CSV",
-                    help="no fit: the checks on every run of --subset consecutive groups of an experiment's "
-                         "photometry_groups.csv")
-    args = ap.parse_args()
-    if args.check_groups:
-        raise SystemExit(0 if check_groups(args.check_groups, args.subset) else 1)
-    width, height = (int(v) for v in args.size.split("x"))
-
-    base = ["+experiment=photometric_calibration", f"renderer.width={width}", f"renderer.height={height}",
-            f"renderer.samples={args.samples}"]
-    cfg = OmegaConf.to_container(compose_cfg(base), resolve=True)
-    settings = cfg["photometry"]
-    grid = build_condition_grid(cfg["conditions"])
-    from pairedgta.figures.photometry import reference_table
-
-    gta_row = reference_table().set_index("condition").loc["Sunset-FOGGY"]
-    gta = {"luma": float(gta_row["luma_ratio_median"]), "contrast": float(gta_row["contrast_ratio_median"])}
+    args = run_arguments(ap, "fit_sunset_light")
+    base, cfg, settings, grid, gta = setup(args, "Sunset-FOGGY")
 
     t0 = time.perf_counter()
     # the renders, kept for a rerun with another grid: named by what decides them (the fitted sunset does not)
