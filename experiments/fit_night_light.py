@@ -98,6 +98,15 @@ def render_parts(renderer, descriptor, grid) -> dict[str, dict]:
 
 def develop_all(renderer, scenes: list[dict], grid, light: NightLight) -> list[dict[str, np.ndarray]]:
     """The 8-bit images of every scene and condition under `light`, developed in one call per exposure."""
+    return develop_linear(renderer, scenes, grid,
+                          lambda part, cond: part["base"] + sum(getattr(light, t) * s for t, s in part["shares"].items()),
+                          lambda cond: lighting(cond, light)["light_level"])
+
+
+def develop_linear(renderer, scenes: list[dict], grid, linear, light_level) -> list[dict[str, np.ndarray]]:
+    """Every fit's development: `linear(part, cond)` the modelled scene-referred image of a part not rendered in
+    full, `light_level(cond)` what sets the camera's exposure; parts with an "image" are kept as rendered. One
+    develop call per exposure."""
     camera = renderer.camera
     stacks: dict[float, list[tuple[int, str, np.ndarray]]] = {}
     for i, parts in enumerate(scenes):
@@ -105,9 +114,8 @@ def develop_all(renderer, scenes: list[dict], grid, light: NightLight) -> list[d
             part = parts[cond.name]
             if "image" in part:
                 continue
-            linear = part["base"] + sum(getattr(light, t) * s for t, s in part["shares"].items())
-            ev = round(camera.exposure(cond, lighting(cond, light)["light_level"]), 6)
-            stacks.setdefault(ev, []).append((i, cond.name, linear))
+            ev = round(camera.exposure(cond, light_level(cond)), 6)
+            stacks.setdefault(ev, []).append((i, cond.name, linear(part, cond)))
     out: list[dict[str, np.ndarray]] = [{n: p["image"] for n, p in parts.items() if "image" in p} for parts in scenes]
     for ev, items in stacks.items():
         h = items[0][2].shape[0]

@@ -49,6 +49,7 @@ import pandas as pd
 from fit_night_light import (  # the script's folder (sys.path[0])
     BACKEND,
     cached_renders,
+    develop_linear,
     run_arguments,
     scene_arguments,
     sets,
@@ -111,23 +112,10 @@ def model(part: dict, u: float, haze: float) -> np.ndarray:
 
 def develop_all(renderer, scenes: list[dict], grid, light: SunsetLight) -> list[dict[str, np.ndarray]]:
     """The 8-bit images of every scene and condition under `light`, developed in one call per exposure."""
-    camera = renderer.camera
-    stacks: dict[float, list[tuple[int, str, np.ndarray]]] = {}
-    for i, parts in enumerate(scenes):
-        for cond in grid:
-            part = parts[cond.name]
-            if "image" in part:
-                continue
-            u = 1.0 + (light.overcast - 1.0) * weight(cond, renderer.night)
-            ev = round(camera.exposure(cond, lighting(cond, renderer.night, light)["light_level"]), 6)
-            stacks.setdefault(ev, []).append((i, cond.name, model(part, u, light.haze)))
-    out: list[dict[str, np.ndarray]] = [{n: p["image"] for n, p in parts.items() if "image" in p} for parts in scenes]
-    for ev, items in stacks.items():
-        h = items[0][2].shape[0]
-        developed = renderer.develop(np.concatenate([x for _, _, x in items]), ev)
-        for j, (i, name, _) in enumerate(items):
-            out[i][name] = developed[j * h:(j + 1) * h]
-    return out
+    return develop_linear(
+        renderer, scenes, grid,
+        lambda part, cond: model(part, 1.0 + (light.overcast - 1.0) * weight(cond, renderer.night), light.haze),
+        lambda cond: lighting(cond, renderer.night, light)["light_level"])
 
 
 def evaluate(images, labels, grid, settings, gta, chosen: dict[str, list[int]], rain_margin: float,
