@@ -76,6 +76,32 @@ def render_towns(cfg: dict, grid, towns: range, scenes_per_town: int, scene_seed
     return np.stack(images), np.stack(labels), seconds
 
 
+def adverse_towns(cfg: dict) -> list[tuple[int, str]]:
+    """`data.adverse`: (town seed, condition) of the extra training towns, the conditions in turn, so the
+    model sees each of them on its own towns (never the Day renders of the same scenes)."""
+    ad = cfg["data"].get("adverse") or {}
+    conditions = list(ad.get("conditions") or [])
+    if not conditions:
+        return []
+    return [(ad["town_seed"] + i, conditions[i % len(conditions)]) for i in range(ad["towns"])]
+
+
+def render_adverse(cfg: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """The extra non-Day training images of `data.adverse` (each town rendered in its one condition, labelled
+    exactly as the Day renders are): the zoo members whose robustness comes from their data, not augmentation."""
+    ad = cfg["data"].get("adverse") or {}
+    images, labels, seconds = [], [], 0.0
+    for town, condition in adverse_towns(cfg):
+        grid = build_condition_grid({**cfg["conditions"], "reference": condition, "only": [condition]})
+        x, y, s = render_towns(cfg, grid, range(town, town + 1), ad["scenes_per_town"], cfg["data"]["scene_seed"])
+        images.append(x)
+        labels.append(y)
+        seconds += s
+    if not images:
+        return np.zeros((0,), np.uint8), np.zeros((0,), np.uint8), 0.0
+    return np.concatenate(images), np.concatenate(labels), seconds
+
+
 DATA_FORMAT = 1
 
 
@@ -83,7 +109,8 @@ def data_fingerprint(cfg: dict) -> str:
     """What makes two exported data folders the same: the data section (but where it is read from) and the
     renderer, region, camera and condition that drew the scenes."""
     keep = {k: cfg.get(k) for k in ("renderer", "region", "camera", "condition")}
-    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to", "workers")}
+    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to", "workers")
+                    and not (k == "adverse" and not adverse_towns(cfg))}  # Day-only recipes keep their fingerprint
     return hashlib.sha256(canonical_json(keep).encode()).hexdigest()[:16]
 
 
@@ -412,6 +439,23 @@ def check_config(cfg: dict) -> None:
         ("out_dir", cfg.get("out_dir"), isinstance(cfg.get("out_dir"), str) and cfg["out_dir"].strip() != "",
          "a directory for the trained model"),
     ]
+    ad = d.get("adverse") or {}
+    known = [c.name for c in build_condition_grid({**cfg["conditions"], "only": None})]
+    conds = ad.get("conditions") or []
+    checks += [
+        ("data.adverse.conditions", conds, isinstance(conds, list) and all(c in known for c in conds),
+         f"a list of conditions of the grid ({', '.join(known)})"),
+        ("data.adverse.towns", ad.get("towns", 0), _number(ad.get("towns", 0), 0 if not conds else 1, inf, True),
+         "an integer >= 1 (the extra towns, each rendered in one of the conditions)" if conds else "an integer >= 0"),
+    ]
+    if conds:
+        checks.append(("data.adverse.scenes_per_town", ad.get("scenes_per_town"),
+                       _number(ad.get("scenes_per_town"), 1, inf, True), "an integer >= 1"))
+        mine = {t for t, _ in adverse_towns(cfg)} if all(_number(ad.get(k), 0, inf, True) for k in ("town_seed", "towns")) else set()
+        taken = set(range(d["train_town_seed"], d["train_town_seed"] + d["train_towns"])) | set(
+            range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]))
+        checks.append(("data.adverse.town_seed", ad.get("town_seed"), bool(mine) and not (mine & taken),
+                       "an integer whose data.adverse.towns seeds miss the training and validation towns"))
     for key, value, ok, want in checks:
         if not ok:
             raise SystemExit(f"train_demo config: {key}={value!r} is invalid; set it to {want}")
@@ -420,7 +464,8 @@ def check_config(cfg: dict) -> None:
 def state_key(cfg: dict) -> str:
     """Checkpoints belong to one recipe: everything but how long and how fast it runs."""
     keep = {k: cfg[k] for k in ("model_name", "data", "arch", "augment", "loss", "seed", "renderer", "region")}
-    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to")}
+    keep["data"] = {k: v for k, v in cfg["data"].items() if k not in ("from_dir", "export_to")
+                    and not (k == "adverse" and not adverse_towns(cfg))}  # Day-only recipes keep their checkpoints
     keep["train"] = {k: v for k, v in cfg["train"].items()
                      if k not in ("steps", "threads", "eval_every", "checkpoint_every", "device", "loader_workers")}
     if cfg["train"].get("loader_workers"):  # another batch stream: seeded per step
@@ -458,7 +503,10 @@ def main(dcfg: DictConfig) -> None:
                                                         d["train_scenes_per_town"], d["scene_seed"])
         val_x, val_y, val_render_s = render_towns(cfg, grid, range(d["val_town_seed"], d["val_town_seed"] + d["val_towns"]),
                                                   d["val_scenes_per_town"], d["scene_seed"] + 100_000)
-        render_s = train_render_s + val_render_s
+        extra_x, extra_y, extra_render_s = render_adverse(cfg)
+        if len(extra_x):
+            train_x, train_y = np.concatenate([train_x, extra_x]), np.concatenate([train_y, extra_y])
+        render_s = train_render_s + val_render_s + extra_render_s
     if d.get("export_to"):
         export_data(cfg, ROOT / d["export_to"], {"train": (train_x, train_y), "val": (val_x, val_y)}, render_s)
         return
@@ -540,24 +588,41 @@ FAMILY_TEXT = {
 }
 
 
+def halve_safetensors(path: Path, metadata: dict | None = None) -> None:
+    """Rewrite a safetensors file with its floating tensors in float16 (its metadata kept, or `metadata`): the
+    package's weights stay small (every loader computes in float32; a SegFormer folder's config keeps
+    dtype float32, so transformers upcasts on load). Written under a temporary name and renamed."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = dict(f.metadata() or {}) if metadata is None else metadata
+        state = {k: f.get_tensor(k) for k in f.keys()}
+    state = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in state.items()}
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(state, str(tmp), metadata=meta)
+    os.replace(tmp, path)
+
+
 def save_weights(cfg: dict, model: torch.nn.Module, out: Path) -> None:
     """SegFormer: a transformers folder (config, safetensors, preprocessor). The project's families: the
-    state dict as model.safetensors, loaded strictly by the model config's `checkpoint_path`."""
+    state dict as model.safetensors, loaded strictly by the model config's `checkpoint_path`. Both in
+    float16 (`halve_safetensors`)."""
     if cfg["arch"].get("family", "segformer") == "segformer":
         from transformers import SegformerImageProcessor
 
         model.save_pretrained(out, safe_serialization=True)
         SegformerImageProcessor(do_resize=False, image_mean=MEAN.flatten().tolist(),
                                 image_std=STD.flatten().tolist()).save_pretrained(out)
+        halve_safetensors(out / "model.safetensors")
         return
     from safetensors.torch import save_file
 
-    # half precision: the package's weights stay small (the loader computes in float32)
-    state = {k: (v.detach().half() if v.is_floating_point() else v.detach()).contiguous()
-             for k, v in model.state_dict().items()}
+    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
     tmp = out / "model.safetensors.tmp"
     save_file(state, str(tmp), metadata={"family": cfg["arch"]["family"], "model": cfg["model_name"]})
     os.replace(tmp, out / "model.safetensors")
+    halve_safetensors(out / "model.safetensors")
 
 
 def recipe_text(cfg: dict) -> str:
@@ -578,6 +643,18 @@ def recipe_text(cfg: dict) -> str:
     return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else "")
 
 
+def seen_text(cfg: dict, n_train: int) -> list[str]:
+    towns = adverse_towns(cfg)
+    if not towns:
+        return ["only on synthetic daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels.",
+                "It never saw rain, fog, sunset or night."]
+    ad = cfg["data"]["adverse"]
+    n_extra = len(towns) * ad["scenes_per_town"]
+    return [f"on synthetic scenes of the embedded Blender renderer, with exact labels: {n_train - n_extra} daytime "
+            f"(Day-EXTRASUNNY) scenes and {n_extra} ({n_extra / n_train:.0%}) scenes of {len(towns)} other towns under "
+            + ", ".join(ad["conditions"]) + " (each town in one condition)."]
+
+
 def trained_on(t: dict) -> str:
     if t.get("device_name"):
         return f"{t['device_name']} ({t.get('loader_workers', 0)} batch workers)"
@@ -596,7 +673,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
     floor = max(0.0, m - cfg["miou_floor_margin"])
     card = {
         "model": name, "family": family, "parameters": n_params, "arch": cfg["arch"],
-        **({} if family == "segformer" else {"weights_dtype": "float16"}),
+        "weights_dtype": "float16",
         "data": {"renderer": cfg["renderer"]["backend"], "region": cfg["region"]["name"], "condition": cfg["condition"],
                  "resolution": [cfg["renderer"]["height"], cfg["renderer"]["width"]], "train_images": n_train,
                  "val_images": n_val, **{k: v for k, v in d.items() if k not in ("objects", "camera", "workers")}},
@@ -613,14 +690,14 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
     lines = [
         f"# {name}", "",
         f"A compact {FAMILY_TEXT[family]} ({n_params / 1e6:.2f} M parameters) trained by `experiments/train_demo_model.py`",
-        "only on synthetic daytime (Day-EXTRASUNNY) scenes of the embedded Blender renderer, with exact labels. It",
-        "never saw rain, fog, sunset or night. It demonstrates the method offline; it is not a Cityscapes model.", "",
+        *seen_text(cfg, n_train),
+        "It demonstrates the method offline; it is not a Cityscapes model.", "",
         f"- command: `{cfg.get('command') or 'python experiments/train_demo_model.py'}`",
         f"- data: {n_train} training scenes from {d['train_towns']} towns, {n_val} validation scenes from "
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
-        *([] if family == "segformer" else ["- weights: float16 (model.safetensors; loaded as float32)"]),
+        "- weights: float16 (model.safetensors; loaded as float32)",
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.0f} min training on {trained_on(t)}", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],

@@ -240,6 +240,10 @@ class ValidityConfig:
     permutations: int = key(10000, ok=lambda v: v >= 0, use="use an integer >= 0 (0 = no permutation p-value)")
     rpc_min_clean_miou: float = key(0.1, ok=lambda v: 0.0 <= v < 1.0,
                                     use="use a clean mIoU in [0, 1): below it rPC is undefined (0 = no floor)")
+    twins: list[list[str]] = key([], ok=lambda v: all(isinstance(p, list) and len(p) == 2 and p[0] != p[1]
+                                                      and all(isinstance(x, str) for x in p) for p in v),
+                                 use="use a list of [model, its twin] pairs: two runs of one recipe differing in the "
+                                     "seed only (GDE), e.g. [[demo_ddrnet_short, demo_ddrnet_short_seed1]]")
 
 
 REFERENCE_SOURCES = ("pseudo_label", "ground_truth", "both")

@@ -21,21 +21,23 @@ from pairedgta.stages.planning import run_models
 
 # canonical_json(model_hash_config(model_config(name))) hashed, recorded on main before the model YAMLs dropped
 # their repeated defaults (pairedgta/conf/model/*.yaml, commit 9b7d028): every stage key of every model must stay
+# (the zoo's demo_* lines since: their weights halved to float16, and the in-package checkpoint_path weights
+# of the project's families fingerprinted like a model.path folder's, so retrained weights are no cache hit)
 MAIN_MODEL_HASHES = {
     "ddrnet_23": "e1c069512e12e3e3",
     "deeplabv3plus_r101": "add489c5a39054ff",
-    "demo_ddrnet": "d782691ddf576435",
-    "demo_ddrnet_short": "673a71f408dbf686",
-    "demo_deeplabv3plus": "183e1bd3d388abdd",
-    "demo_deeplabv3plus_noaug": "8cf7d3b54c7bce66",
-    "demo_deeplabv3plus_short": "7f84202e1bc8e4f7",
-    "demo_deeplabv3plus_strong": "b60c222b4977770c",
-    "demo_pidnet": "4bfbacd2571aadf0",
-    "demo_pidnet_partial": "d6d65de5b5f87f4a",
-    "demo_segformer": "e064e2febc8091cb",
-    "demo_segformer_noaug": "ca43b53cffe5c4b8",
-    "demo_segformer_small": "3a909a358614b42c",
-    "demo_segformer_small_noaug": "06cba581a79fc5f5",
+    "demo_ddrnet": "c8011817c9ad6e0f",
+    "demo_ddrnet_short": "33d7cb8a67395932",
+    "demo_deeplabv3plus": "bbef99b06f640c07",
+    "demo_deeplabv3plus_noaug": "a64807336bb5f6f9",
+    "demo_deeplabv3plus_short": "db6ca88c734d4372",
+    "demo_deeplabv3plus_strong": "20ae9211b8795b77",
+    "demo_pidnet": "485cabc40fb1f5e2",
+    "demo_pidnet_partial": "59d918fcb385a623",
+    "demo_segformer": "30c8c666235562eb",
+    "demo_segformer_noaug": "cba8d7279ef566af",
+    "demo_segformer_small": "67c80f7c5a7bf18b",
+    "demo_segformer_small_noaug": "fc3ed0662d830802",
     "mask2former_swin_l": "ec9ca293df9bda9f",
     "mask2former_swin_s": "19e1dc4bb6cf533e",
     "pidnet_m": "0ca204edc2f9552e",

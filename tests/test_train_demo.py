@@ -158,6 +158,21 @@ def test_recipe_values_are_checked_up_front_with_the_key_named():
         tdm.check_config({**cfg, "model_name": "../x"})
     with pytest.raises(SystemExit, match="work_dir=''"):
         tdm.check_config({**cfg, "work_dir": ""})
+    adverse = {"conditions": ["Night-EXTRASUNNY", "Day-RAIN"], "towns": 4, "scenes_per_town": 8, "town_seed": 1100}
+    tdm.check_config({**cfg, "data": {**cfg["data"], "adverse": adverse}})
+    assert tdm.adverse_towns({**cfg, "data": {**cfg["data"], "adverse": adverse}}) == [
+        (1100, "Night-EXTRASUNNY"), (1101, "Day-RAIN"), (1102, "Night-EXTRASUNNY"), (1103, "Day-RAIN")]
+    for change, message in ((dict(conditions=["Night-SNOW"]), "data.adverse.conditions=['Night-SNOW'] is invalid"),
+                            (dict(towns=0), "data.adverse.towns=0 is invalid"),
+                            (dict(town_seed=1040), "data.adverse.town_seed=1040 is invalid; set it to an integer whose"),
+                            (dict(town_seed=5000), "data.adverse.town_seed=5000 is invalid"),
+                            (dict(scenes_per_town=0), "data.adverse.scenes_per_town=0")):
+        with pytest.raises(SystemExit, match=re.escape(message)):
+            tdm.check_config({**cfg, "data": {**cfg["data"], "adverse": {**adverse, **change}}})
+    # a Day-only recipe keeps its checkpoint key and data fingerprint with the (empty) adverse section
+    day_only = {**cfg, "data": {k: v for k, v in cfg["data"].items() if k != "adverse"}}
+    assert tdm.state_key(day_only) == tdm.state_key(cfg) and tdm.data_fingerprint(day_only) == tdm.data_fingerprint(cfg)
+    assert tdm.state_key({**cfg, "data": {**cfg["data"], "adverse": adverse}}) != tdm.state_key(cfg)
     tdm.check_config({**cfg, "loss": {**cfg["loss"], "ohem_thresh": None}})  # plain cross-entropy is allowed
     tdm.check_config({**cfg, "augment": {**cfg["augment"], "rare_class_sampling": {"temperature": 0.05, "min_pixels": 16}}})
 
@@ -197,6 +212,16 @@ def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     model = build_segmenter("demo_segformer", path=str(out))
     probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
     assert probs.shape[-2:] == (64, 128) and probs.shape[-3] == 19
+    # shipped in float16 (the package stays small), computed in float32
+    assert _dtypes(out / "model.safetensors") == {"F16"} and card["weights_dtype"] == "float16"
+    assert {p.dtype for p in model.module.parameters()} == {torch.float32}
+
+
+def _dtypes(path: Path) -> set[str]:
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        return {f.get_slice(k).get_dtype() for k in f.keys() if f.get_slice(k).get_dtype().startswith("F")}
 
 
 def test_every_zoo_member_composes_builds_within_4m_parameters_and_matches_its_model_config():
@@ -252,12 +277,21 @@ def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_pat
             "renderer.width=128", "renderer.height=64", "renderer.samples=1", "renderer.denoise=false",
             "data.train_towns=1", "data.train_scenes_per_town=1", "data.val_towns=1", "data.val_scenes_per_town=1",
             "augment.crop=[32,64]", "arch.planes=4", "arch.spp_planes=4", "arch.head_planes=8",
-            "train.batch_size=2", "train.warmup=1", "train.eval_every=2", "train.checkpoint_every=1", "train.steps=2"]
+            "train.batch_size=2", "train.warmup=1", "train.eval_every=2", "train.checkpoint_every=1", "train.steps=2",
+            "data.adverse.conditions=[Night-EXTRASUNNY]", "data.adverse.towns=1", "data.adverse.scenes_per_town=1"]
     run = run_app_in_process(tdm.main, args[1:], tmp_path)  # the CLI in this process: the first test ran it fresh
     assert run.returncode == 0, run.stderr[-2000:]
     card = json.loads((out / "model_card.json").read_text())
     assert card["family"] == "ddrnet" and card["model"] == "demo_ddrnet" and "zoo=demo_ddrnet" in card["command"]
-    assert "demo_ddrnet" in (out / "README.md").read_text()
+    readme = (out / "README.md").read_text()
+    assert "demo_ddrnet" in readme and "1 daytime (Day-EXTRASUNNY) scenes and 1 (50%) scenes of 1 other towns under Night-EXTRASUNNY" in readme
+    assert card["data"]["train_images"] == 2 and card["data"]["adverse"]["conditions"] == ["Night-EXTRASUNNY"]
+    assert _dtypes(out / "model.safetensors") == {"F16"} and card["weights_dtype"] == "float16"
+    # the adverse town was rendered under the night light: darker than the daytime town
+    from pairedgta.datasets import load_image
+    night = list((tmp_path / "cache").rglob("Night-EXTRASUNNY.png"))
+    day = list((tmp_path / "cache").rglob("Day-EXTRASUNNY.png"))
+    assert night and day and np.mean(load_image(night[0])) < 0.5 * np.mean(load_image(day[0]))
 
     from pairedgta.errors import ModelError
     from pairedgta.models import build_segmenter

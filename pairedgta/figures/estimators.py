@@ -38,7 +38,7 @@ from pairedgta.metrics.validity import GroupCounts, concat_groups
 NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel": "relative AC", "doc": "DoC",
          "atc": "ATC", "atc_rel": "relative ATC", "entropy": "1 − entropy",
          "nuclear_norm": "nuclear norm (Deng et al.)", "energy": "energy (mean logsumexp)",
-         "committee_agreement": "committee agreement (not GDE)", "aline_s": "ALine-S (pixel acc.)",
+         "committee_agreement": "committee agreement (not GDE)", "gde": "GDE (agreement with its twin)", "aline_s": "ALine-S (pixel acc.)",
          "aline_d": "ALine-D (pixel acc.)", "self_agreement": "self-agreement",
          "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
@@ -49,7 +49,8 @@ def settings(opts: FigureOptions) -> dict[str, Any]:
     metric, boot = opts.run.metric, opts.run.metric.bootstrap
     return {"permutations": metric.validity.permutations, "resamples": boot.resamples, "confidence": boot.confidence,
             "seed": boot.seed, "reference_model": opts.run.reference_model,
-            "rpc_min_clean_miou": metric.validity.rpc_min_clean_miou}
+            "rpc_min_clean_miou": metric.validity.rpc_min_clean_miou,
+            "twins": [list(map(str, pair)) for pair in (metric.validity.twins or [])]}
 
 
 def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict[str, str]]:
@@ -105,7 +106,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
     cells, stats, pairs = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
                            refs, conv.absent, s["resamples"], s["confidence"], s["seed"], s["permutations"],
-                           conv.min_images, conv.min_pixels, s["rpc_min_clean_miou"])
+                           conv.min_images, conv.min_pixels, s["rpc_min_clean_miou"], twins=s["twins"])
     cells_df, stats_df, pairs_df = pd.DataFrame(cells), pd.DataFrame(stats), pd.DataFrame(pairs, columns=PAIR_COLUMNS)
     cells_df["convention"] = stats_df["convention"] = pairs_df["convention"] = conv.name
     cells_df.to_csv(out / "estimator_cells.csv", index=False)
@@ -164,7 +165,9 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
             f"(H0: no difference). Holm: adjusted over the estimators of one target. DoC, ATC and clean GT mIoU use "
             f"the clean condition's ground truth; no estimator uses a label of an adverse condition. Every pair of "
             f"estimators: estimator_pairs.csv. ATC's threshold is fitted on held-out clean scenes (the scenes in two "
-            f"halves, each scored with the threshold of the other half's clean images).{_atc_pixels(cells)}\n"]
+            f"halves, each scored with the threshold of the other half's clean images). GDE is defined for the models "
+            f"trained twice (metric.validity.twins) and judged over those alone, its − ξ on the same models."
+            f"{_atc_pixels(cells)}\n"]
     for t in TARGETS:
         part = stats[stats["target"] == t].set_index(["estimator", "scope"])
         order = sorted(ESTIMATORS, key=lambda e: -np.nan_to_num(part.loc[(e, "within_mean"), "spearman"], nan=-9))
@@ -172,11 +175,12 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
         for e in order:
             w, pooled, loco = part.loc[(e, "within_mean")], part.loc[(e, "pooled")], part.loc[(e, "loco")]
             loio = part.loc[(e, "loio")] if (e, "loio") in part.index else None
-            rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else ""), _num(w["spearman"]),
+            few = f" ({int(w['n_models'])} models)" if w["n_models"] != first["n_models"] else ""
+            rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else "") + few, _num(w["spearman"]),
                          _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
                          _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
                          _num(w["p_permutation_holm"], "{:.4f}"),
-                         ("–" if e == "xi" else f"{w['spearman_minus_xi']:+.2f} "
+                         ("–" if e == "xi" else _num(w["spearman_minus_xi"], "{:+.2f}") + " "
                           + _ci(w["spearman_minus_xi_ci_low"], w["spearman_minus_xi_ci_high"])),
                          "–" if e == "xi" else _num(w["p_minus_xi"], "{:.3f}"),
                          "–" if e == "xi" else _num(w["p_minus_xi_holm"], "{:.3f}"),

@@ -28,7 +28,7 @@ from pairedgta.metrics.validity import (GroupCounts, _interval, defined_models, 
 from pairedgta.metrics.estimators import (ATC_FOLDS, COLUMNS, COUNT_ARRAYS, ESTIMATORS, EstimatorCounts, MIN_RANKED,
                                           PROBIT_EPS, STATS, TARGETS, USES_CLEAN_LABELS, _ratio, aline, atc,
                                           atc_held_out, atc_threshold, average_confidence, committee_agreement,
-                                          concat_counts, entropy_score, estimator_values, model_values,
+                                          concat_counts, entropy_score, estimator_values, model_values, twin_indices,
                                           pairwise_agreement, pixel_accuracy, relative, self_agreement)
 
 
@@ -247,7 +247,8 @@ PAIR_COLUMNS = ("target", "estimator_a", "estimator_b", "n_models", "n_groups", 
 def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray, scored: np.ndarray,
             clean: str, include: np.ndarray, reference: Iterable[str] = (), absent: str = "nan",
             resamples: int = 1000, confidence: float = 0.95, seed: int = 0, permutations: int = 10000,
-            min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> tuple[list[dict], list[dict], list[dict]]:
+            min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0,
+            twins: Iterable[Sequence[str]] = ()) -> tuple[list[dict], list[dict], list[dict]]:
     """-> (cells, stats, pairs). `models`/`counts`: every evaluated model (in the same order); the reference
     model(s) are left out of the ranking; `agree`/`scored` (`pairwise_agreement`) cover the ranked
     models, in their order. `cells`: one row per (ranked model, adverse condition) with every estimator,
@@ -255,7 +256,9 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     condition, `within_mean`, `pooled`, `loco` (leave one condition out), `loio` (leave one illumination
     out: Day, Sunset, Night, where the grid names them) and `loio_<illumination>` (that fold alone); every
     MAE with its BCa interval over scenes and models (see the module's docstring). `pairs`: per target, the
-    difference of the within-condition mean Spearman of every two estimators (PAIR_COLUMNS).
+    difference of the within-condition mean Spearman of every two estimators (PAIR_COLUMNS). `twins`: pairs of
+    ranked models that are two runs of one recipe (GDE's twins); an estimator defined for some models only
+    (GDE) is judged over those, and its differences to the others over the models both are defined for.
 
     Intervals of `within_mean` over scenes and models (`*_model_ci_*`, the paired differences to xi and
     between estimators) are BCa over resamples that draw the scenes and the models at once, the same draws
@@ -283,11 +286,12 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     if len(adverse) < 2:
         raise ValueError("at least 2 adverse conditions are needed (the mean over conditions, leave one out)")
     args = (clean, include, absent, min_images, min_pixels, rpc_floor)
-    point = estimator_values(models, counts, agree, scored, np.ones((1, n)), *args)
+    twin = twin_indices([m.model for m in models], twins)
+    point = estimator_values(models, counts, agree, scored, np.ones((1, n)), *args, twin=twin)
     w = resample_weights(n, max(resamples, 0), seed).astype(float).reshape(max(resamples, 0), n)
-    boot = estimator_values(models, counts, agree, scored, w, *args) if len(w) else None
+    boot = estimator_values(models, counts, agree, scored, w, *args, twin=twin) if len(w) else None
     # leave one scene out: the scenes' jackknife of every estimator and target
-    jack = estimator_values(models, counts, agree, scored, 1.0 - np.eye(n), *args) if len(w) and n >= 3 else None
+    jack = estimator_values(models, counts, agree, scored, 1.0 - np.eye(n), *args, twin=twin) if len(w) and n >= 3 else None
 
     cells = []
     for j, m in enumerate(models):
@@ -307,38 +311,72 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
     pairs: list[dict] = []
     defined = {t: np.flatnonzero(defined_models(point[t][:, 0, adverse])) for t in TARGETS}
     by_light = illumination_folds([conds[i] for i in adverse])   # leave one illumination out, where there are two
+    finite = {e: defined_models(point[e][:, 0, adverse]) for e in ESTIMATORS}   # GDE: the twins only
     for t in TARGETS:
         sub = defined[t]                                                   # the models whose target is defined
         if len(sub) < 3:  # two models rank-correlate at +-1: no statistic (their NaN targets make it NaN)
             sub = np.arange(len(models))
-        draws, enough = model_draws(len(sub), len(w), seed)
-        within: dict[str, Resampled] = {}
+        on = {e: sub[finite[e][sub]] if not finite[e][sub].all() else sub for e in ESTIMATORS}
+        memo: dict[tuple, Resampled] = {}
+
+        def judged(e: str, models_of: np.ndarray, t: str = t) -> Resampled:
+            """The within-condition mean Spearman of estimator e over the models `models_of`, resampled with
+            the draws of that model set (the same draws for every estimator judged on it: paired)."""
+            key = (e, tuple(models_of))
+            if len(models_of) < 3:   # fewer than 3 models: no rank statistic (GDE without twins)
+                return Resampled(math.nan, None, ())
+            if key not in memo:
+                draws, enough = model_draws(len(models_of), len(w), seed)
+                px, py = point[e][models_of][:, 0][:, adverse], point[t][models_of][:, 0][:, adverse]
+                joint = jackknives = None
+                if boot is not None:
+                    bx, by = boot[e][models_of][:, :, adverse], boot[t][models_of][:, :, adverse]
+                    joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, spearman_rows, draws)), np.nan)
+                jackknives = () if jack is None else (
+                    _mean_over_conditions(within_condition(jack[e][models_of][:, :, adverse], jack[t][models_of][:, :, adverse])),
+                    drop_one_model(px, py, spearman_rows))
+                memo[key] = Resampled(float(np.mean(within_condition(px[:, None], py[:, None], spearman_rows)[0])),
+                                      joint, jackknives)
+            return memo[key]
+
         means: dict[str, dict] = {}
         for e in ESTIMATORS:
-            base = {"estimator": e, "target": t, "n_models": len(defined[t]), "n_undefined": len(models) - len(defined[t]),
+            own = on[e]
+            base = {"estimator": e, "target": t, "n_models": len(own), "n_undefined": len(models) - len(own),
                     "n_groups": n, "uses_clean_labels": e in USES_CLEAN_LABELS, "resamples": len(w),
                     "confidence": confidence}
-            px, py = point[e][sub][:, 0][:, adverse], point[t][sub][:, 0][:, adverse]    # M x C'
+            if len(own) < 3:   # defined for too few models (GDE where the zoo has no twins): every value NaN
+                means[e] = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(own) * len(adverse),
+                                p_permutation=math.nan, permutations=permutations)
+                rows_of[e, t] = [dict(base, scope=conds[i], n_conditions=1, n_cells=len(own)) for i in adverse] + [
+                    means[e], dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(own) * len(adverse))] + [
+                    dict(base, scope=sc, n_conditions=len(adverse), n_cells=len(own) * len(adverse))
+                    for sc in (["loco", "loio"] if by_light else ["loco"])] + [
+                    dict(base, scope=f"loio_{light}", n_conditions=len(held), n_cells=len(own) * len(held))
+                    for light, held in by_light.items()]
+                continue
+            draws, enough = model_draws(len(own), len(w), seed)
+            px, py = point[e][own][:, 0][:, adverse], point[t][own][:, 0][:, adverse]    # M x C'
             bx = by = jx = jy = None
             if boot is not None:
-                bx, by = boot[e][sub][:, :, adverse], boot[t][sub][:, :, adverse]        # M x R x C'
+                bx, by = boot[e][own][:, :, adverse], boot[t][own][:, :, adverse]        # M x R x C'
             if jack is not None:
-                jx, jy = jack[e][sub][:, :, adverse], jack[t][sub][:, :, adverse]        # M x G x C'
+                jx, jy = jack[e][own][:, :, adverse], jack[t][own][:, :, adverse]        # M x G x C'
             loco = mae_with_intervals(px, py, bx, by, jx, jy, draws, [[a] for a in range(len(adverse))], confidence)
-            rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(sub),
+            rows = {conds[i]: dict(base, scope=conds[i], n_conditions=1, n_cells=len(own),
                                    **_mae_columns(loco["per_fold"][a], loco["per_fold_baseline"][a]))
                     for a, i in enumerate(adverse)}
-            holdouts = [dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
+            holdouts = [dict(base, scope="loco", n_conditions=len(adverse), n_cells=len(own) * len(adverse),
                              **_mae_columns(loco["mae"][0], loco["mae_baseline"][0]))]
             if by_light:
                 loio = mae_with_intervals(px, py, bx, by, jx, jy, draws, list(by_light.values()), confidence)
-                holdouts.append(dict(base, scope="loio", n_conditions=len(adverse), n_cells=len(sub) * len(adverse),
+                holdouts.append(dict(base, scope="loio", n_conditions=len(adverse), n_cells=len(own) * len(adverse),
                                      **_mae_columns(loio["mae"][0], loio["mae_baseline"][0])))
-                holdouts += [dict(base, scope=f"loio_{light}", n_conditions=len(held), n_cells=len(sub) * len(held),
+                holdouts += [dict(base, scope=f"loio_{light}", n_conditions=len(held), n_cells=len(own) * len(held),
                                   **_mae_columns(loio["per_fold"][f], loio["per_fold_baseline"][f]))
                              for f, (light, held) in enumerate(by_light.items())]
-            mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
-            pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(sub) * len(adverse))
+            mean = dict(base, scope="within_mean", n_conditions=len(adverse), n_cells=len(own) * len(adverse))
+            pooled = dict(base, scope="pooled", n_conditions=len(adverse), n_cells=len(own) * len(adverse))
             for name, fn in STATS:
                 p = within_condition(px[:, None], py[:, None], fn)[0]                     # C'
                 b = within_condition(bx, by, fn) if bx is not None else None              # R x C', scenes only
@@ -352,11 +390,8 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                     joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, fn, draws)), np.nan)
                 jackknives = () if jx is None else (_mean_over_conditions(within_condition(jx, jy, fn)),
                                                     drop_one_model(px, py, fn))
-                stat = Resampled(float(np.mean(p)), joint, jackknives)
-                lo, hi = stat.interval(confidence)
+                lo, hi = Resampled(float(np.mean(p)), joint, jackknives).interval(confidence)
                 mean.update({f"{name}_model_ci_low": lo, f"{name}_model_ci_high": hi})
-                if name == "spearman":
-                    within[e] = stat
                 bp = None
                 if bx is not None:
                     bp = fn(bx.transpose(1, 2, 0).reshape(len(w), -1), by.transpose(1, 2, 0).reshape(len(w), -1))
@@ -371,7 +406,8 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
         for e, h in zip(ESTIMATORS, holm([means[e]["p_permutation"] for e in ESTIMATORS])):
             means[e]["p_permutation_holm"] = h
         for e in ESTIMATORS:
-            d = within[e] - within["xi"]    # xi - xi: 0 on every resample, no interval and no p (not a certainty)
+            common = np.intersect1d(on[e], on["xi"])   # on the models both are defined for: the same draws
+            d = judged(e, common) - judged("xi", common)   # xi - xi: 0 on every resample, no interval and no p (not a certainty)
             lo, hi = d.interval(confidence)
             means[e].update(spearman_minus_xi=d.point, spearman_minus_xi_ci_low=lo, spearman_minus_xi_ci_high=hi,
                             p_minus_xi=d.pvalue())
@@ -380,10 +416,11 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
         family = []
         for a, ea in enumerate(ESTIMATORS):
             for eb in ESTIMATORS[a + 1:]:
-                d = within[ea] - within[eb]
+                common = np.intersect1d(on[ea], on[eb])
+                d = judged(ea, common) - judged(eb, common)
                 lo, hi = d.interval(confidence)
-                family.append({"target": t, "estimator_a": ea, "estimator_b": eb, "n_models": len(defined[t]),
-                               "n_groups": n, "spearman_a": within[ea].point, "spearman_b": within[eb].point,
+                family.append({"target": t, "estimator_a": ea, "estimator_b": eb, "n_models": len(common),
+                               "n_groups": n, "spearman_a": judged(ea, common).point, "spearman_b": judged(eb, common).point,
                                "difference": d.point, "ci_low": lo, "ci_high": hi, "p": d.pvalue(),
                                "resamples": len(w), "confidence": confidence})
         for row, h in zip(family, holm([r["p"] for r in family])):

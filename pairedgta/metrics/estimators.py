@@ -23,8 +23,11 @@ embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mI
 - `energy`: the mean over pixels of logsumexp of the logits (the negative free energy at T = 1, Liu et al.,
   NeurIPS 2020); NaN for a family whose output is already a distribution (Mask2Former: no logits).
 - `committee_agreement`: the mean over the other ranked models (other architectures and recipes) of the share
-  of pixels on which the two predictions agree. Not GDE (Jiang et al., ICLR 2022), which is the agreement of
-  two runs of one recipe differing in the seed only: the zoo has no such pair.
+  of pixels on which the two predictions agree. Not GDE, which is the next one.
+- `gde`: generalization disagreement equality (Jiang et al., ICLR 2022) on pixels: the share of pixels on which
+  a model agrees with its twin, a second run of the same recipe differing in the seed only (the pairs named in
+  metric.validity.twins). Defined for the twins only (NaN for the others); judged over those models alone
+  (`pairedgta.metrics.estimator_study.compare`), with its difference to xi on the same models.
 - `aline_s`, `aline_d`: agreement-on-the-line (Baek et al., NeurIPS 2022) on pixels: across the ranked
   models, the probit of each pair's pixel agreement under the condition is fitted as a line of its probit on
   the clean image (least squares over the pairs, per condition). ALine-S carries each model's probit clean
@@ -55,7 +58,7 @@ from pairedgta.metrics.validity import (GroupCounts, cell_measures, kendall_rows
                                         stack_passes)
 
 ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "nuclear_norm", "energy",
-              "committee_agreement", "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
+              "committee_agreement", "gde", "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
 # clean ground truth; none uses adverse labels
 USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "aline_s", "aline_d", "clean_miou",
                                "clean_miou_x_self_agreement"})
@@ -285,6 +288,37 @@ def committee_agreement(agree: np.ndarray, scored: np.ndarray, w: np.ndarray) ->
         return np.moveaxis(np.nanmean(share, axis=-1), -1, 0)
 
 
+def gde(agree: np.ndarray, scored: np.ndarray, w: np.ndarray, twin: Sequence[int]) -> np.ndarray:
+    """M x R x C: per model the pooled pixel agreement share with its twin (`twin[j]`: the twin's index among
+    the M models, -1 for none: NaN)."""
+    share = _ratio(_weigh(w, agree), _weigh(w, scored))   # R x C x M x M
+    out = np.full((share.shape[-1], *share.shape[:2]), np.nan)
+    for j, k in enumerate(twin):
+        if k >= 0:
+            out[j] = share[:, :, j, k]
+    return out
+
+
+def twin_indices(names: Sequence[str], twins: Iterable[Sequence[str]]) -> np.ndarray:
+    """Each model's twin's index among `names` (-1 where it has none, or its twin is not among them), from
+    the pairs of metric.validity.twins; a model in two pairs is refused (a twin is one other run)."""
+    index = {n: i for i, n in enumerate(names)}
+    out = np.full(len(names), -1)
+    seen: set[str] = set()
+    for pair in twins:
+        pair = [str(x) for x in pair]
+        if len(pair) != 2 or pair[0] == pair[1]:
+            raise ValueError(f"metric.validity.twins: {pair} is not a pair of two models; write [model, its twin]")
+        if seen & set(pair):
+            raise ValueError(f"metric.validity.twins: {', '.join(sorted(seen & set(pair)))} is in two pairs; "
+                             "a model has at most one twin")
+        seen |= set(pair)
+        a, b = pair
+        if a in index and b in index:
+            out[index[a]], out[index[b]] = index[b], index[a]
+    return out
+
+
 def _probit(p: np.ndarray) -> np.ndarray:
     from scipy.special import ndtri
 
@@ -355,9 +389,11 @@ def relative(values: np.ndarray, clean: int) -> np.ndarray:
 
 def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], agree: np.ndarray,
                      scored: np.ndarray, weights: np.ndarray, clean: str, include: np.ndarray, absent: str = "nan",
-                     min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0) -> dict[str, np.ndarray]:
+                     min_images: int = 0, min_pixels: int = 0, rpc_floor: float = 0.0,
+                     twin: Sequence[int] | None = None) -> dict[str, np.ndarray]:
     """Every estimator and target, M x R x C, for group weights R x G (a row of ones = the data itself),
-    plus `atc_threshold` (M x R). `agree`/`scored`: `pairwise_agreement` over the same models, in order."""
+    plus `atc_threshold` (M x R). `agree`/`scored`: `pairwise_agreement` over the same models, in order;
+    `twin`: `twin_indices` of the same models (None: no twins, GDE all NaN)."""
     if agree.shape[-1] != len(models) or agree.shape[0] != models[0].cm.shape[0]:
         raise ValueError(f"pairwise agreement of {agree.shape[-1]} models over {agree.shape[0]} groups for "
                          f"{len(models)} models over {models[0].cm.shape[0]} groups")
@@ -368,6 +404,7 @@ def estimator_values(models: Sequence[GroupCounts], counts: Sequence[EstimatorCo
             out.setdefault(k, []).append(v)
     stacked = {k: np.stack(v) for k, v in out.items()}
     stacked["committee_agreement"] = committee_agreement(agree, scored, w)
+    stacked["gde"] = gde(agree, scored, w, [-1] * len(models) if twin is None else twin)
     c0 = models[0].conditions.index(clean)
     accuracy = np.stack([pixel_accuracy(np.asarray(g.cm)[:, c0 : c0 + 1], w)[:, 0] for g in models])   # M x R
     stacked["aline_s"], stacked["aline_d"] = aline(agree, scored, accuracy, c0, w)

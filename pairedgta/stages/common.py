@@ -82,8 +82,11 @@ def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
         if root.is_dir():
             files += sorted(p for p in root.iterdir() if p.suffix in (".safetensors", ".bin", ".pt", ".pth", ".json"))
     ckpt = model_cfg.get("checkpoint_path")
-    if ckpt and Path(ckpt).is_file():
-        files.append(Path(ckpt))
+    if ckpt:  # a pkg:// file is the zoo's, inside the package: retrained weights must not be a cache hit either
+        from pairedgta.models.checkpoint import resolve_checkpoint_path
+
+        if (ckpt := resolve_checkpoint_path(ckpt)).is_file():
+            files.append(ckpt)
     if not files:
         return None
     from pairedgta.filehash import default
