@@ -693,7 +693,9 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         *seen_text(cfg, n_train),
         "It demonstrates the method offline; it is not a Cityscapes model.", "",
         f"- command: `{cfg.get('command') or 'python experiments/train_demo_model.py'}`",
-        f"- data: {n_train} training scenes from {d['train_towns']} towns, {n_val} validation scenes from "
+        f"- data: {n_train} training scenes from {d['train_towns']} towns"
+        + (f" (and {len(adverse_towns(cfg))} adverse-condition towns)" if adverse_towns(cfg) else "")
+        + f", {n_val} validation scenes from "
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",

@@ -345,6 +345,20 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     # the committee agreement from the predictions files is in the cells
     assert cells["committee_agreement"].between(0, 1).all()
 
+    assert cells["gde"].isna().all() and "GDE" in md  # no twins configured: GDE undefined, its row says so
+    # twins: GDE is their agreement with each other, from the same predictions files
+    twin_cfg = {**cfg, "metric": {**cfg["metric"], "validity": {"permutations": 100,
+                                                                 "twins": [["demo_ddrnet", "m4"], ["demo_pidnet", "demo_segformer_noaug"]]}}}
+    draw([p], out, FigureOptions(["png"], 40, schema.parse(twin_cfg)))
+    cells = pd.read_csv(out / "estimator_cells.csv").set_index(["model", "condition"])
+    assert cells["gde"].between(0, 1).all()
+    np.testing.assert_allclose(cells.loc["demo_ddrnet", "gde"].to_numpy(), cells.loc["m4", "gde"].to_numpy())
+    stats = pd.read_csv(out / "estimators.csv").set_index(["estimator", "target", "scope"])
+    assert stats.loc[("gde", "rpc", "within_mean"), "n_models"] == 4
+    bad = {**cfg, "metric": {**cfg["metric"], "validity": {"permutations": 100, "twins": [["demo_ddrnet", "m5"]]}}}
+    with pytest.raises(ConfigError, match=r"metric.validity.twins names m5, not among the ranked models"):
+        draw([p], out, FigureOptions(["png"], 40, schema.parse(bad)))
+
     # a model evaluated before the estimator sums, or without predictions: one line naming the fix
     (tmp_path / "eval" / "m4" / "predictions.npz").unlink()
     with pytest.raises(ConfigError, match=r"predictions.npz.*force=\[evaluate\]"):

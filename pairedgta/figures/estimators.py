@@ -102,6 +102,10 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
                           f"({', '.join(ranked) or 'none'}); evaluate at least {MIN_RANKED} besides it (models=[...])")
     conv = convention_from_config(as_dict(opts.run.metric))
     s = settings(opts)
+    unknown = sorted({m for pair in s["twins"] for m in pair} - set(ranked))
+    if unknown:
+        raise ConfigError(f"metric.validity.twins names {', '.join(unknown)}, not among the ranked models "
+                          f"({', '.join(ranked)}); fix the name, add it to models=[...] or drop its pair")
     clean = opts.run.metric.rho.clean_condition or passes[0].grid.reference
     agree, scored = agreement([m for m in models if m.model in ranked], paths, len(passes))
     cells, stats, pairs = compare(models, counts, agree, scored, clean, mean_mask(NUM_CLASSES, CLASS_NAMES, conv.mean_exclude),
