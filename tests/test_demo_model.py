@@ -26,7 +26,11 @@ from pairedgta.testing.cli import compose_cfg
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
 ZOO = ("demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet", "demo_deeplabv3plus",
        "demo_deeplabv3plus_noaug", "demo_ddrnet_short", "demo_pidnet_partial", "demo_deeplabv3plus_short",
-       "demo_deeplabv3plus_strong", "demo_segformer_small", "demo_segformer_small_noaug")
+       "demo_deeplabv3plus_strong", "demo_segformer_small", "demo_segformer_small_noaug",
+       # trained on more than augmentation changes: other towns and seeds, adverse data, another scale; twins
+       "demo_ddrnet_short_seed1", "demo_deeplabv3plus_adverse", "demo_deeplabv3plus_towns", "demo_deeplabv3plus_night",
+       "demo_deeplabv3plus_night_seed1", "demo_deeplabv3plus_lowres", "demo_segformer_adverse",
+       "demo_segformer_small_adverse", "demo_segformer_small_adverse_seed1", "demo_segformer_noaug_adverse")
 CONDITIONS = ("Day-EXTRASUNNY", "Day-RAIN", "Sunset-EXTRASUNNY", "Night-EXTRASUNNY", "Night-FOGGY")
 TAU = 0.6  # the main job's pseudo-label confidence
 
@@ -47,12 +51,11 @@ def test_zoo_weights_ship_load_offline_strictly_and_are_small(name):
     files = {p.name for p in (WEIGHTS / name).iterdir()}
     assert {"model.safetensors", "model_card.json", "README.md"} <= files
     assert (WEIGHTS / name / "model.safetensors").stat().st_size <= 16 * 2**20
-    if c_dtype := card(name).get("weights_dtype"):  # the zoo's newer members ship half-precision weights
-        from safetensors.torch import load_file
+    from safetensors.torch import load_file
 
-        assert c_dtype == "float16"
-        assert {str(v.dtype) for v in load_file(str(WEIGHTS / name / "model.safetensors")).values()} <= {
-            "torch.float16", "torch.int64"}
+    assert card(name)["weights_dtype"] == "float16"  # every member: the wheel stays under PyPI's 100 MB file limit
+    assert {str(v.dtype) for v in load_file(str(WEIGHTS / name / "model.safetensors")).values()} <= {
+        "torch.float16", "torch.int64"}
     c = card(name)
     assert c["model"] == name and c["data"]["condition"] == "Day-EXTRASUNNY" and c["val_miou"] >= 0.35
     assert c["parameters"] <= 4_000_000 and c.get("command", "").startswith("python experiments/train_demo_model.py")
@@ -61,13 +64,14 @@ def test_zoo_weights_ship_load_offline_strictly_and_are_small(name):
     assert model_config(name)["family"] == c.get("family", "segformer")
     probs = seg.predict_proba(torch.rand(1, 3, 64, 128))
     assert probs.shape == (1, 19, 64, 128)
+    assert {p.dtype for p in seg.module.parameters()} == {torch.float32}  # half on disk, float32 in the forward
 
 
 def test_the_zoo_stays_small_and_every_member_is_usable():
-    """The package's weights stay within 80 MB in all, and every folder under weights/ is a zoo member
-    with a model config (`model=<name>`) and is tested here."""
+    """The package's weights stay within 90 MB in all (the wheel under PyPI's 100 MB file limit), and every
+    folder under weights/ is a zoo member with a model config (`model=<name>`) and is tested here."""
     total = sum(f.stat().st_size for f in WEIGHTS.rglob("*") if f.is_file())
-    assert total <= 80 * 2**20, f"{total / 2**20:.1f} MB of weights"
+    assert total <= 90 * 2**20, f"{total / 2**20:.1f} MB of weights"
     members = {d.name for d in WEIGHTS.iterdir() if d.is_dir() and not d.name.startswith(("_", "."))}
     assert members == set(ZOO)
     for name in members:

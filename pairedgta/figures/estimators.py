@@ -224,7 +224,7 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
             # short lines: a long title would make tight_layout spread the columns apart
             ax.set_title(textwrap.fill(NAMES[e] + (" (clean labels)" if e in USES_CLEAN_LABELS else ""), 26), fontsize=6)
             ax.set_xlabel("rPC")
-        bx = fig.add_subplot(grid[rows, :])
+        bx = fig.add_subplot(grid[rows, :2])
         part = stats[(stats["target"] == "rpc") & (stats["scope"] == "within_mean")].sort_values("spearman")
         y = np.arange(len(part))
         for offset, kind, color, label in ((0.15, "", "black", "bootstrap over scenes"),
@@ -241,14 +241,31 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
         bx.axvline(0, color="0.6", lw=0.6)
         bx.set_xlim(-1.05, 1.05)
         bx.set_yticks(y)
-        bx.set_yticklabels([NAMES[e] for e in part["estimator"]])
+        n_all = int(part["n_models"].max())
+        bx.set_yticklabels([NAMES[e] + (f" ({int(n)} models)" if n != n_all else "")
+                            for e, n in zip(part["estimator"], part["n_models"])])
         bx.set_xlabel("mean within-condition Spearman with rPC")
-        bx.set_title(f"{int(part['n_models'].iloc[0])} models, {int(part['n_groups'].iloc[0])} scenes")
+        bx.set_title(f"{n_all} models, {int(part['n_groups'].iloc[0])} scenes")
+        # the verdicts: each estimator minus xi, paired on the same scene and model draws (BCa), both targets
+        dx = fig.add_subplot(grid[rows, 2:], sharey=bx)
+        for offset, t, color in ((0.15, "rpc", "black"), (-0.15, "gt_miou", "tab:blue")):
+            rows_t = stats[(stats["target"] == t) & (stats["scope"] == "within_mean")].set_index("estimator")
+            rows_t = rows_t.loc[part["estimator"]]
+            v = rows_t["spearman_minus_xi"].to_numpy(float)
+            lo, hi = rows_t["spearman_minus_xi_ci_low"].to_numpy(float), rows_t["spearman_minus_xi_ci_high"].to_numpy(float)
+            has = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(v) & (part["estimator"].to_numpy() != "xi")
+            dx.errorbar(v[has], (y + offset)[has], xerr=[np.maximum(v[has] - lo[has], 0), np.maximum(hi[has] - v[has], 0)],
+                        fmt="s", color=color, ms=2.5, capsize=1.5, lw=0.8,
+                        label=f"− ξ, {TARGET_TEXT[t]} ({level:.0%} paired BCa, scenes + models)")
+        dx.axvline(0, color="0.6", lw=0.6)
+        dx.tick_params(labelleft=False)
+        dx.set_xlabel("difference to ξ's mean within-condition Spearman")
+        dx.set_title("paired differences to ξ (0 inside: tied)")
         handles, labels = [], []
-        for ax in (axes[0], bx):  # the conditions' colours, then the two intervals
+        for ax in (axes[0], bx, dx):  # the conditions' colours, then the intervals
             h, lab = ax.get_legend_handles_labels()
             handles += h
             labels += lab
-        fig.tight_layout(rect=(0, 0.05, 1, 1))
-        fig.legend(handles, labels, loc="lower center", ncol=min(6, len(labels)), frameon=False, fontsize=5.5)
+        fig.tight_layout(rect=(0, 0.07, 1, 1))
+        fig.legend(handles, labels, loc="lower center", ncol=min(5, len(labels)), frameon=False, fontsize=5.5)
         return save(fig, out, opts.stem("estimators", "all"), opts.formats, opts.dpi)

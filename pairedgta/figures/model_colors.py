@@ -13,9 +13,19 @@ MODEL_DISPLAY = {
     "demo_ddrnet": "demo DDRNet", "demo_pidnet": "demo PIDNet",
     "demo_deeplabv3plus": "demo DeepLabV3+", "demo_deeplabv3plus_noaug": "demo DeepLabV3+ no-aug",
     "demo_ddrnet_short": "demo DDRNet short", "demo_pidnet_partial": "demo PIDNet partial-aug",
+    "demo_ddrnet_short_seed1": "demo DDRNet short seed 1", "demo_deeplabv3plus_adverse": "demo DeepLabV3+ adverse data",
+    "demo_deeplabv3plus_towns": "demo DeepLabV3+ other towns", "demo_deeplabv3plus_night": "demo DeepLabV3+ night-tuned",
+    "demo_deeplabv3plus_night_seed1": "demo DeepLabV3+ night-tuned seed 1",
+    "demo_deeplabv3plus_lowres": "demo DeepLabV3+ low-res", "demo_segformer_adverse": "demo SegFormer adverse-tuned",
+    "demo_segformer_small_adverse": "demo SegFormer small adverse-tuned",
+    "demo_segformer_small_adverse_seed1": "demo SegFormer small adverse-tuned seed 1",
+    "demo_segformer_noaug_adverse": "demo SegFormer no-aug adverse-tuned",
 }
 # a fixed colour per model, so a model has the same colour in every figure of every run
-MODEL_ORDER = list(MODEL_DISPLAY) + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"]
+# (the zoo's members added later come after the tiny test models, so that no earlier model changes colour)
+_LATER = list(MODEL_DISPLAY)[list(MODEL_DISPLAY).index("demo_ddrnet_short_seed1"):]
+MODEL_ORDER = ([m for m in MODEL_DISPLAY if m not in _LATER]
+               + ["tiny_segformer", "tiny_mask2former", "tiny_deeplabv3plus", "tiny_pidnet", "tiny_ddrnet"] + _LATER)
 # matplotlib's (and seaborn's) "tab10" then "Dark2" qualitative palettes, as hex; tests/test_figures.py
 # checks them against matplotlib's
 MODEL_PALETTE = (
