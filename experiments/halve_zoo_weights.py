@@ -13,12 +13,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_demo_model import halve_safetensors  # noqa: E402
+from train_demo_model import WEIGHTS_LINE as LINE, halve_safetensors  # noqa: E402
 
 from pairedgta.jsonio import write_json  # noqa: E402
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
-LINE = "- weights: float16 (model.safetensors; loaded as float32)"
 
 
 def is_half(path: Path) -> bool:

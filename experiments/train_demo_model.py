@@ -588,6 +588,9 @@ FAMILY_TEXT = {
 }
 
 
+WEIGHTS_LINE = "- weights: float16 (model.safetensors; loaded as float32)"  # the model card README's line
+
+
 def halve_safetensors(path: Path, metadata: dict | None = None) -> None:
     """Rewrite a safetensors file with its floating tensors in float16 (its metadata kept, or `metadata`): the
     package's weights stay small (every loader computes in float32; a SegFormer folder's config keeps
@@ -699,7 +702,7 @@ def write_model(cfg: dict, model, n_params: int, cm: ConfusionMatrix, history: l
         f"{d['val_towns']} held-out towns, {cfg['renderer']['width']}x{cfg['renderer']['height']}",
         f"- training: {recipe_text(cfg)}",
         f"- validation mIoU (held-out towns, Cityscapes convention): {m:.3f}; test floor {floor:.3f}",
-        "- weights: float16 (model.safetensors; loaded as float32)",
+        WEIGHTS_LINE,
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.0f} min training on {trained_on(t)}", "",
         "| class | IoU |", "|---|---|",
         *[f"| {CLASS_NAMES[c]} | {iou[c]:.3f} |" for c in range(NUM_CLASSES) if not np.isnan(iou[c])],

@@ -319,24 +319,24 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
         on = {e: sub[finite[e][sub]] if not finite[e][sub].all() else sub for e in ESTIMATORS}
         memo: dict[tuple, Resampled] = {}
 
-        def judged(e: str, models_of: np.ndarray, t: str = t) -> Resampled:
-            """The within-condition mean Spearman of estimator e over the models `models_of`, resampled with
-            the draws of that model set (the same draws for every estimator judged on it: paired)."""
-            key = (e, tuple(models_of))
+        def judged(e: str, models_of: np.ndarray, fn: Callable = spearman_rows, t: str = t) -> Resampled:
+            """The within-condition mean rank correlation `fn` of estimator e with the target over the models
+            `models_of`, resampled with the draws of that model set (the same draws for every estimator judged
+            on it: paired), with its jackknives of scenes and models."""
+            key = (e, tuple(models_of), fn)
             if len(models_of) < 3:   # fewer than 3 models: no rank statistic (GDE without twins)
                 return Resampled(math.nan, None, ())
             if key not in memo:
                 draws, enough = model_draws(len(models_of), len(w), seed)
                 px, py = point[e][models_of][:, 0][:, adverse], point[t][models_of][:, 0][:, adverse]
-                joint = jackknives = None
-                if boot is not None:
+                joint = None
+                if boot is not None:   # scenes and models drawn together
                     bx, by = boot[e][models_of][:, :, adverse], boot[t][models_of][:, :, adverse]
-                    joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, spearman_rows, draws)), np.nan)
+                    joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, fn, draws)), np.nan)
                 jackknives = () if jack is None else (
-                    _mean_over_conditions(within_condition(jack[e][models_of][:, :, adverse], jack[t][models_of][:, :, adverse])),
-                    drop_one_model(px, py, spearman_rows))
-                memo[key] = Resampled(float(np.mean(within_condition(px[:, None], py[:, None], spearman_rows)[0])),
-                                      joint, jackknives)
+                    _mean_over_conditions(within_condition(jack[e][models_of][:, :, adverse], jack[t][models_of][:, :, adverse], fn)),
+                    drop_one_model(px, py, fn))
+                memo[key] = Resampled(float(np.mean(within_condition(px[:, None], py[:, None], fn)[0])), joint, jackknives)
             return memo[key]
 
         means: dict[str, dict] = {}
@@ -355,7 +355,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                     dict(base, scope=f"loio_{light}", n_conditions=len(held), n_cells=len(own) * len(held))
                     for light, held in by_light.items()]
                 continue
-            draws, enough = model_draws(len(own), len(w), seed)
+            draws, _ = model_draws(len(own), len(w), seed)   # the MAE intervals' model draws
             px, py = point[e][own][:, 0][:, adverse], point[t][own][:, 0][:, adverse]    # M x C'
             bx = by = jx = jy = None
             if boot is not None:
@@ -385,12 +385,7 @@ def compare(models: Sequence[GroupCounts], counts: Sequence[EstimatorCounts], ag
                     rows[conds[i]].update({name: float(p[a]), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
                 lo, hi = interval(None if b is None else _mean_over_conditions(b))
                 mean.update({name: float(np.mean(p)), f"{name}_ci_low": lo, f"{name}_ci_high": hi})
-                joint = None
-                if bx is not None:   # scenes and models drawn together
-                    joint = np.where(enough, _mean_over_conditions(within_condition(bx, by, fn, draws)), np.nan)
-                jackknives = () if jx is None else (_mean_over_conditions(within_condition(jx, jy, fn)),
-                                                    drop_one_model(px, py, fn))
-                lo, hi = Resampled(float(np.mean(p)), joint, jackknives).interval(confidence)
+                lo, hi = judged(e, own, fn).interval(confidence)
                 mean.update({f"{name}_model_ci_low": lo, f"{name}_model_ci_high": hi})
                 bp = None
                 if bx is not None:
