@@ -6,6 +6,9 @@
 # The wheels are unpacked into a folder of their own on PYTHONPATH (no pip, nothing installed into the machine's
 # Python; a module the machine has already is left alone). Extra arguments go to `gpu_check.py run`
 # (e.g. --budget 420 --steps ratio forward). Results: $OUT (sent back), to copy into experiments/results/ and commit.
+# The run sends the checkout, 64 MiB at most, and the zoo's weights are 85 MiB: before the call move every
+# pairedgta/models/weights/<member> but the main job's four (demo_segformer, demo_segformer_noaug, demo_ddrnet,
+# demo_pidnet) out of the tree, and `git checkout pairedgta/models/weights` after it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
