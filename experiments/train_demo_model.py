@@ -591,26 +591,32 @@ FAMILY_TEXT = {
 WEIGHTS_LINE = "- weights: float16 (model.safetensors; loaded as float32)"  # the model card README's line
 
 
-def halve_safetensors(path: Path, metadata: dict | None = None) -> None:
-    """Rewrite a safetensors file with its floating tensors in float16 (its metadata kept, or `metadata`): the
-    package's weights stay small (every loader computes in float32; a SegFormer folder's config keeps
-    dtype float32, so transformers upcasts on load). Written under a temporary name and renamed."""
-    from safetensors import safe_open
+def save_half(state: dict[str, torch.Tensor], path: Path, metadata: dict[str, str]) -> None:
+    """A state dict as safetensors with its floating tensors in float16: the package's weights stay small
+    (every loader computes in float32; a SegFormer folder's config keeps dtype float32, so transformers upcasts
+    on load). Written under a temporary name and renamed."""
     from safetensors.torch import save_file
 
-    with safe_open(str(path), framework="pt") as f:
-        meta = dict(f.metadata() or {}) if metadata is None else metadata
-        state = {k: f.get_tensor(k) for k in f.keys()}
-    state = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in state.items()}
+    state = {k: (v.detach().half() if v.is_floating_point() else v.detach()).contiguous() for k, v in state.items()}
     tmp = path.with_name(path.name + ".tmp")
-    save_file(state, str(tmp), metadata=meta)
+    save_file(state, str(tmp), metadata=metadata)
     os.replace(tmp, path)
+
+
+def halve_safetensors(path: Path) -> None:
+    """Rewrite a safetensors file in float16 (`save_half`), its metadata kept."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        metadata = dict(f.metadata() or {})
+        state = {k: f.get_tensor(k) for k in f.keys()}
+    save_half(state, path, metadata)
 
 
 def save_weights(cfg: dict, model: torch.nn.Module, out: Path) -> None:
     """SegFormer: a transformers folder (config, safetensors, preprocessor). The project's families: the
     state dict as model.safetensors, loaded strictly by the model config's `checkpoint_path`. Both in
-    float16 (`halve_safetensors`)."""
+    float16 (`save_half`)."""
     if cfg["arch"].get("family", "segformer") == "segformer":
         from transformers import SegformerImageProcessor
 
@@ -619,13 +625,7 @@ def save_weights(cfg: dict, model: torch.nn.Module, out: Path) -> None:
                                 image_std=STD.flatten().tolist()).save_pretrained(out)
         halve_safetensors(out / "model.safetensors")
         return
-    from safetensors.torch import save_file
-
-    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
-    tmp = out / "model.safetensors.tmp"
-    save_file(state, str(tmp), metadata={"family": cfg["arch"]["family"], "model": cfg["model_name"]})
-    os.replace(tmp, out / "model.safetensors")
-    halve_safetensors(out / "model.safetensors")
+    save_half(model.state_dict(), out / "model.safetensors", {"family": cfg["arch"]["family"], "model": cfg["model_name"]})
 
 
 def recipe_text(cfg: dict) -> str:

@@ -128,6 +128,11 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     return files, metrics
 
 
+def _label(e: str, n_models: float, n_all: float) -> str:
+    """An estimator's name, with its model count where it is judged over fewer models than the rest (GDE)."""
+    return NAMES[e] + (f" ({int(n_models)} models)" if n_models != n_all else "")
+
+
 def _num(v: float, fmt: str = "{:.2f}") -> str:
     return "–" if v is None or not math.isfinite(v) else fmt.format(v)
 
@@ -179,8 +184,8 @@ def markdown(stats: pd.DataFrame, refs: set[str], confidence: float, cells: pd.D
         for e in order:
             w, pooled, loco = part.loc[(e, "within_mean")], part.loc[(e, "pooled")], part.loc[(e, "loco")]
             loio = part.loc[(e, "loio")] if (e, "loio") in part.index else None
-            few = f" ({int(w['n_models'])} models)" if w["n_models"] != first["n_models"] else ""
-            rows.append([NAMES[e] + (" *" if e in USES_CLEAN_LABELS else "") + few, _num(w["spearman"]),
+            rows.append([_label(e, w["n_models"], first["n_models"]) + (" *" if e in USES_CLEAN_LABELS else ""),
+                         _num(w["spearman"]),
                          _ci(w["spearman_ci_low"], w["spearman_ci_high"]),
                          _ci(w["spearman_model_ci_low"], w["spearman_model_ci_high"]), _num(w["p_permutation"], "{:.4f}"),
                          _num(w["p_permutation_holm"], "{:.4f}"),
@@ -242,8 +247,7 @@ def _figure(cells: pd.DataFrame, stats: pd.DataFrame, out: Path, opts: FigureOpt
         bx.set_xlim(-1.05, 1.05)
         bx.set_yticks(y)
         n_all = int(part["n_models"].max())
-        bx.set_yticklabels([NAMES[e] + (f" ({int(n)} models)" if n != n_all else "")
-                            for e, n in zip(part["estimator"], part["n_models"])])
+        bx.set_yticklabels([_label(e, n, n_all) for e, n in zip(part["estimator"], part["n_models"])])
         bx.set_xlabel("mean within-condition Spearman with rPC")
         bx.set_title(f"{n_all} models, {int(part['n_groups'].iloc[0])} scenes")
         # the verdicts: each estimator minus xi, paired on the same scene and model draws (BCa), both targets
