@@ -35,8 +35,21 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
     tracker = open_tracker(typed)  # MLflow is a record: a failing store costs one warning, not the run
     model_names = [m["name"] for m in models.evaluated] if plan.steps("pass", "check") else []
     with loaded_once(), closing(tracker):  # closed: a background tracker has logged everything
+        if model_names:
+            preflight(models, typed.device)
         summary = _run(container, plan, models, cache, tracker, tracker.experiment, model_names, typed)
     return {**summary, "mlflow": tracker.ui_link()}
+
+
+def preflight(models: planning.RunModels, device: str) -> None:
+    """A researcher's model (a model source) is loaded and probed before any stage writes: a missing file, a file of
+    another format, a wrong output is its one line now, not after the scenes are rendered. Loaded once: the stages
+    reuse it (pairedgta/models: shared_segmenter)."""
+    from pairedgta.models import is_source, shared_segmenter
+
+    for cfg in [*models.evaluated, models.reference]:
+        if is_source(cfg):
+            shared_segmenter(cfg, device=device)
 
 
 def _log_invocation(tracker: Recorder, container: dict[str, Any]) -> None:

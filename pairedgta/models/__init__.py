@@ -19,6 +19,7 @@ import logging
 from typing import Any, Iterator, Mapping
 
 from pairedgta.configs import group_option, group_options
+from pairedgta.models.contract import CONTRACT_OPTIONS, check_contract
 from pairedgta.errors import ConfigError
 from pairedgta.models.base import Segmenter, resolve_device
 from pairedgta.models.runtime import MODEL_KEYS as RUNTIME_OPTION_KEYS
@@ -36,6 +37,15 @@ FAMILIES.register("mask2former", "pairedgta.models.mask2former:build")
 FAMILIES.register("deeplabv3plus", "pairedgta.models.deeplabv3plus:architecture", **IN_PROJECT)
 FAMILIES.register("pidnet", "pairedgta.models.pidnet:architecture", **IN_PROJECT)
 FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:architecture", **IN_PROJECT)
+# Model sources: a researcher's own model in one format (`model=<source>`), loaded by the source's module and run
+# under the one input/output contract and label map of pairedgta/models/contract.py (its `build_source`).
+SOURCE = {"via": "pairedgta.models.contract:build_source", "filled": CONTRACT_OPTIONS, "source": True}
+FAMILIES.register("hf", "pairedgta.models.sources.hf:load", **SOURCE)
+FAMILIES.register("torchvision", "pairedgta.models.sources.torchvision:load", **SOURCE)
+FAMILIES.register("smp", "pairedgta.models.sources.smp:load", **SOURCE)
+FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE)
+FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE)
+FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")
 _RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
@@ -59,6 +69,8 @@ def with_defaults(cfg: Mapping[str, Any]) -> dict[str, Any]:
     the sources without importing torch: pairedgta/registry.py). So a YAML that omits a default hashes exactly
     as one that spells it out."""
     out = dict(cfg)
+    if not out.get("name") and is_source(out):
+        out["name"] = default_name(out)
     defaults = runtime_defaults()
     family = out.get("family")
     if isinstance(family, str) and family in FAMILIES:  # an unknown one: check_model_config says so
@@ -69,6 +81,23 @@ def with_defaults(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def default_name(cfg: Mapping[str, Any]) -> str:
+    """A source model's name when the config gives none: its file's or folder's name, the hub id's last part, the
+    factory's name; so two models of a sweep (`-m model.path=a.onnx,b.onnx`) are told apart in every table."""
+    import re
+    from pathlib import PurePath
+
+    for key in ("path", "checkpoint_path", "hub_id"):
+        if cfg.get(key):
+            stem = PurePath(str(cfg[key]).rstrip("/")).name
+            stem = stem.split(".")[0] if key != "hub_id" else stem
+            if stem:
+                return re.sub(r"[^A-Za-z0-9_.-]+", "_", stem)
+    if cfg.get("target"):
+        return str(cfg["target"]).rsplit(":", 1)[-1]
+    return str(cfg.get("family") or "model")
+
+
 def family_keys(family: str) -> set[str]:
     """The keys a model config of `family` may set: its builder's arguments and the runtime options."""
     keys = FAMILIES.declared_keys(family)  # from the source: no torch/transformers import for a check
@@ -76,10 +105,21 @@ def family_keys(family: str) -> set[str]:
     return (keys - {"runtime"}) | set(RUNTIME_OPTION_KEYS)
 
 
+def is_source(cfg: Mapping[str, Any]) -> bool:
+    """Whether the config is a researcher's model through a model source (not a family of the zoo)."""
+    family = cfg.get("family")
+    return isinstance(family, str) and family in FAMILIES and bool(FAMILIES.meta(family).get("source"))
+
+
 def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     """Unknown keys of a model config are the same one-line error before anything is built."""
     from pairedgta.registry import check_keys
 
+    if is_source(cfg):
+        check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
+        check_contract(cfg, f"{where} ({cfg.get('name')})")
+        RuntimeOptions.from_config(cfg)
+        return
     examples = {"mean": "[0.485,0.456,0.406]", "std": "[0.229,0.224,0.225]"}
     for key, example in examples.items():  # per RGB channel: a wrong length is a reshape traceback in the model
         value = cfg.get(key)
@@ -149,4 +189,4 @@ def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Seg
 
 
 __all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
-           "resolve_device", "FAMILIES", "RUNTIME_KEYS"]
+           "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source"]

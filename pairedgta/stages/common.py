@@ -68,25 +68,55 @@ class Context:
             self.run = schema.parse(self.cfg)
 
 
-def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
-    """Content hash of local weights (model.path, model.checkpoint_path): replacing a file behind an
-    unchanged path must not be a cache hit. Hub ids are pinned by name only."""
-    import hashlib
+WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth", ".json", ".onnx", ".pt2", ".data", ".tsv", ".txt")
 
+
+def model_files(model_cfg: dict[str, Any]) -> list[Path]:
+    """Every local file a model's numbers depend on: its weights folder (model.path, a folder or one file: an ONNX
+    graph and its external data, a .pt2, an HF or SMP folder), model.checkpoint_path, a label TSV (model.labels) and
+    the module of a `model=python` factory (model.target, found without importing it)."""
     from pairedgta.models.hf_common import PACKAGE_DIR
 
     files: list[Path] = []
     path = model_cfg.get("path")
     if path:
-        root = PACKAGE_DIR / str(path)[len("pkg://"):] if str(path).startswith("pkg://") else Path(path)
+        root = PACKAGE_DIR / str(path)[len("pkg://"):] if str(path).startswith("pkg://") else Path(path).expanduser()
         if root.is_dir():
-            files += sorted(p for p in root.iterdir() if p.suffix in (".safetensors", ".bin", ".pt", ".pth", ".json"))
+            files += sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in WEIGHT_SUFFIXES)
+        elif root.is_file():
+            files.append(root)
+            if root.suffix == ".onnx":  # external data lies beside the graph (pairedgta/models/sources/onnx.py)
+                files += sorted(p for p in root.parent.iterdir() if p.is_file() and p != root
+                                and p.name.startswith(root.stem) and p.suffix in (".data", ".bin", ".weight"))
     ckpt = model_cfg.get("checkpoint_path")
     if ckpt:  # a pkg:// file is the zoo's, inside the package: retrained weights must not be a cache hit either
         from pairedgta.models.checkpoint import resolve_checkpoint_path
 
         if (ckpt := resolve_checkpoint_path(ckpt)).is_file():
             files.append(ckpt)
+    labels = model_cfg.get("labels")
+    if isinstance(labels, str) and ("/" in labels or labels.endswith((".tsv", ".txt"))):
+        if (table := Path(labels).expanduser()).is_file():
+            files.append(table)
+    target = model_cfg.get("target")
+    if isinstance(target, str) and ":" in target:
+        import importlib.util
+
+        try:
+            spec = importlib.util.find_spec(target.split(":")[0])
+        except (ImportError, ValueError):
+            spec = None
+        if spec is not None and spec.origin and Path(spec.origin).is_file():
+            files.append(Path(spec.origin))
+    return files
+
+
+def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
+    """Content hash of every local file of the model (`model_files`): replacing a file behind an unchanged path must
+    not be a cache hit, and restoring it is one again. Hub ids are pinned by name (and model.revision) only."""
+    import hashlib
+
+    files = model_files(model_cfg)
     if not files:
         return None
     from pairedgta.filehash import default

@@ -210,6 +210,8 @@ def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
     `models=[...]` lists the evaluated models; when the user chose `model=` on the command line (e.g. a
     sweep `-m model=a,b`), the chosen model replaces that list for this job."""
     primary = dict(run.model)
+    if not primary.get("name"):  # a source model named by its file (pairedgta/models: default_name)
+        primary = with_defaults(primary)
     names = list(run.models or [])
     if names and model_chosen and names != [primary["name"]]:
         log.info("model=%s replaces the experiment's models=%s for this job", primary["name"], names)
