@@ -180,7 +180,7 @@ def step_check(rep: Report, device: str) -> None:
     import numpy as np
     import torch
 
-    from pairedgta.evaluation import reductions
+    from pairedgta.evaluation import reductions, registry
     from pairedgta.models.base import max_and_label, normalised_entropy_
 
     g = torch.Generator().manual_seed(0)
@@ -193,7 +193,7 @@ def step_check(rep: Report, device: str) -> None:
         p = probs.to(dev)
         conf, labels = max_and_label(p)
         entropy = normalised_entropy_(p.clone())
-        out = reductions.group_reductions(labels, conf, entropy, 0, pseudo.to(dev), None, visible.to(dev), 0.5,
+        out = registry.group_reductions(labels, conf, entropy, 0, pseudo.to(dev), None, visible.to(dev), 0.5,
                                           None, True)
         return {"labels": labels.cpu(), "conf": conf.cpu(), "entropy": entropy.cpu(),
                 **{key: v.cpu() for key, v in out.items()}}

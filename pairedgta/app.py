@@ -19,7 +19,7 @@ from pairedgta.tracking import Recorder, dataset_label, open_tracker, run_name
 
 log = logging.getLogger("pairedgta")
 # The stages run in the order of pairedgta/stage_registry.py, each through its module's `step(ctx, pass, state)`
-# (pairedgta.stages.common.Step), by scope: "dataset" opens each pass's dataset, "pass" runs over each open pass,
+# (pairedgta.stages.planning.Step), by scope: "dataset" opens each pass's dataset, "pass" runs over each open pass,
 # "run" once over every pass, "check" alone. The plan says which of them run (stages/planning.py Plan.steps).
 
 

@@ -46,7 +46,7 @@ class StageSpec:
 
     @property
     def step(self) -> Callable[..., None]:
-        """The app's entry point: `step(ctx, p, state)` (pairedgta.stages.common.Step)."""
+        """The app's entry point: `step(ctx, p, state)` (pairedgta.stages.planning.Step)."""
         return self.load().step
 
     @property

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from pairedgta import schema, stage_registry
-from pairedgta.stages.common import Stage, StageResult, Step
+from pairedgta.stages.common import Stage, StageResult
+from pairedgta.stages.planning import Step
 
 SPECS = list(stage_registry.STAGES)
 STAGE_CLASSES = [spec.stage_class for spec in SPECS]

@@ -172,20 +172,6 @@ def image_sums(values: torch.Tensor) -> list[float]:
     return [ordered_sum(row) for row in block_sums(values).cpu().numpy()]
 
 
-# -- one group ----------------------------------------------------------------------------------------------------
-def group_reductions(labels: torch.Tensor, confidence: torch.Tensor, entropy: torch.Tensor, clean: int,
-                     pseudo: torch.Tensor, targets: torch.Tensor | None, visible: torch.Tensor | None,
-                     tau: float, gt: torch.Tensor | None, use_pl: bool,
-                     num_classes: int = NUM_CLASSES) -> dict[str, torch.Tensor]:
-    """Every registered metric's device tensors of one group (`metric.GroupContext` says what the arguments
-    are), in one dict: what `counting.GroupJob` copies to the host, for a check outside the stage."""
-    from pairedgta.evaluation import registry
-    from pairedgta.evaluation.metric import GroupContext
-
-    ctx = GroupContext(labels, confidence, entropy, clean, pseudo, targets, visible, tau, gt, use_pl, num_classes)
-    return {k: v for m in registry.metrics() for k, v in m.update(ctx).items()}
-
-
 _STREAMS: dict[tuple[str, str], Any] = {}
 
 
@@ -225,4 +211,4 @@ class HostCopy:
 
 
 __all__ = ["CONF_BINS", "SUM_BLOCK", "LANES", "count", "xi_counts", "confusion", "class_counts", "confidence_histogram",
-           "block_sums", "ordered_sum", "image_sums", "group_reductions", "HostCopy"]
+           "block_sums", "ordered_sum", "image_sums", "HostCopy"]

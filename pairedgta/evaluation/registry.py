@@ -6,8 +6,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from pairedgta.cityscapes import NUM_CLASSES
+
 from pairedgta.evaluation import estimator_sums, tables
-from pairedgta.evaluation.metric import Metric
+from pairedgta.evaluation.metric import GroupContext, Metric
 
 METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators(),
                          estimator_sums.NuclearNorm(), estimator_sums.Energy()]
@@ -41,6 +43,15 @@ def result_files(ms: list[Metric] | None = None) -> tuple[str, ...]:
     return tuple(f for m in (metrics() if ms is None else ms) for f in m.files) + OWN_FILES
 
 
+def group_reductions(labels: Any, confidence: Any, entropy: Any, clean: int, pseudo: Any, targets: Any, visible: Any,
+                     tau: float, gt: Any, use_pl: bool, num_classes: int = NUM_CLASSES) -> dict[str, Any]:
+    """Every registered metric's device tensors of one group (`metric.GroupContext` says what the arguments
+    are), in one dict: what `counting.GroupJob` copies to the host, for a check outside the stage
+    (experiments/gpu_check.py)."""
+    ctx = GroupContext(labels, confidence, entropy, clean, pseudo, targets, visible, tau, gt, use_pl, num_classes)
+    return {k: v for m in metrics() for k, v in m.update(ctx).items()}
+
+
 def reader(file: str) -> Any:
     """The metric that writes `file` (its `read` reads it)."""
     for m in metrics():
@@ -49,4 +60,4 @@ def reader(file: str) -> Any:
     raise KeyError(f"no registered metric writes {file!r}; registered: {', '.join(declaration())}")
 
 
-__all__ = ["METRICS", "VERSION_8_METRICS", "metrics", "declaration", "stage_version", "result_files", "reader"]
+__all__ = ["METRICS", "VERSION_8_METRICS", "metrics", "declaration", "stage_version", "result_files", "reader", "group_reductions"]

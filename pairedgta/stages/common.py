@@ -5,16 +5,13 @@ import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Protocol
+from typing import Any, Iterator, Protocol
 
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.models.runtime import SPEED_ONLY_KEYS
 from pairedgta.schema import RunConfig
-
-if TYPE_CHECKING:  # planning builds on this module
-    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta")
 
@@ -170,15 +167,6 @@ class Stage(Protocol):
     def build_shard(self, key: str) -> Path | None:
         """This shard's part of the work, stored where the unsharded build finds it; the folder that holds the
         parts while other shards' are missing, None when every part is there (then the runner builds)."""
-
-
-class Step(Protocol):
-    """A stage module's `step`, the one entry point the app calls for every stage (pairedgta/stage_registry.py):
-    `p` is the pass (scopes dataset, pass and check), or the first pass for a stage over every pass (scope run,
-    which reads `state.passes`). It keeps its result in its slot of `p` and records it in `state`."""
-
-    def __call__(self, ctx: Context, p: PassResult, state: RunState) -> None:
-        ...
 
 
 class Unsharded:

@@ -19,7 +19,7 @@ import functools
 import logging
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.configs import merge_variant
@@ -187,6 +187,15 @@ def check_cuda(device: str) -> None:
         raise ConfigError(f"device={device}: this machine has {count} CUDA GPU(s) (cuda:0..cuda:{count - 1})")
 
 
+class Step(Protocol):
+    """A stage module's `step`, the one entry point the app calls for every stage (pairedgta/stage_registry.py):
+    `p` is the pass (scopes dataset, pass and check), or the first pass for a stage over every pass (scope run,
+    which reads `state.passes`). It keeps its result in its slot of `p` and records it in `state`."""
+
+    def __call__(self, ctx: Context, p: PassResult, state: RunState) -> None:
+        ...
+
+
 # -- models -------------------------------------------------------------------------------------------
 def model_group_overridden(task_overrides: list[str] | None) -> bool:
     """Whether the user chose the `model` group on the command line (`model=x`, also in a sweep)."""
@@ -329,5 +338,5 @@ def _typed(result: PassResult, ctx: Context) -> PassResult:
     return result
 
 
-__all__ = ["PassResult", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",
+__all__ = ["PassResult", "Step", "Plan", "RunModels", "RunState", "make_plan", "run_models", "model_group_overridden", "pass_configs",
            "check_roots", "open_pass", "bare_pass", "pass_context"]
