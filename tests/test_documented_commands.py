@@ -120,6 +120,7 @@ def fill(cmd: str, t: dict[str, Path], tmp: Path) -> list[str]:
         (r"(acdc\.root=)(\S+)", rf"\g<1>{t['acdc']}"),
         (r"(\+experiment=cityscapes_val_check.*dataset\.root=)(\S+)", rf"\g<1>{t['cityscapes']}"),
         (r"(dataset\.root=)(/data/PairedGTA|\.\.\.|DIR)", rf"\g<1>{t['release']}"),
+        (r"(model\.path=)DIR\b", r"\g<1>/weights/my_model"),  # a source model: its files are read after the checks
         (r"(plot\.table_csv=)(\S+)", rf"\g<1>{t['table']}"), (r"(plot\.frame_counts_csv=)(\S+)", rf"\g<1>{t['counts']}"),
         (r"models=\[\.\.\.\]", "models=[tiny_segformer,tiny_ddrnet]"), (r"model=a,b(,c)?\b", "model=tiny_segformer,tiny_ddrnet"),
         (r",\.\.\.", ""), (r"\+experiment=(<name>|NAME)", "+experiment=smoke"),
