@@ -1,7 +1,8 @@
 """The table a run ends with: mean xi per model x adverse condition, read back from each evaluation's
 `summary.json` (a cached rerun reads JSON, no torch), the best model of each condition marked, as
 evaluation harnesses print their leaderboards. The reference model, whose pseudo-labels xi counts, is
-graded on its own predictions: its row is shown last, labelled as the reference, and never marked."""
+graded on its own predictions: its row is shown last, labelled as the reference, and never marked. Below it,
+one line per model whose label space cannot predict some Cityscapes classes (`unpredictable_lines`)."""
 from __future__ import annotations
 
 import json
@@ -60,3 +61,20 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
 
 def _finite(v: object) -> bool:
     return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def unpredictable_lines(evaluations: dict[str, str]) -> list[str]:
+    """One line per evaluation whose model cannot predict some Cityscapes classes (summary.json's
+    `unpredictable_classes`, `label_space`): `<model>: cannot predict <classes> (label space <space>): their xi
+    and IoU are NaN`; [] when every model can predict every class."""
+    lines = []
+    for name, path in evaluations.items():
+        summary = Path(path) / SUMMARY
+        if not summary.is_file():
+            continue
+        data = json.loads(summary.read_text())
+        classes = data.get("unpredictable_classes") or []
+        if classes:
+            lines.append(f"{name}: cannot predict {', '.join(classes)} (label space {data.get('label_space')}): "
+                         "their xi and IoU are NaN")
+    return lines

@@ -75,6 +75,7 @@ STAGES: tuple[StageSpec, ...] = (
     StageSpec("plot", "pairedgta.stages.plot", "Plot", scope="run", node="plot",
               config_needs="pairedgta.figures:needed_stages"),
     StageSpec("cityscapes_val", "pairedgta.stages.cityscapes_val", "CityscapesVal", scope="check"),
+    StageSpec("model_check", "pairedgta.stages.model_check", "ModelCheck", scope="check", needs=("generate",)),
 )
 
 

@@ -38,3 +38,37 @@ def dict_net(width: int = 8, classes: int = 19, seed: int = 0) -> DictNet:
 
 def not_a_module() -> str:
     return "a string"
+
+
+def smp_unet(seed: int = 0):
+    """A small segmentation_models_pytorch Unet (the smp source's network, as a user's own factory)."""
+    import segmentation_models_pytorch as smp
+
+    torch.manual_seed(seed)
+    return smp.Unet("resnet18", encoder_weights=None, encoder_depth=3, decoder_channels=(32, 16, 8), classes=19)
+
+
+def lraspp(seed: int = 0):
+    """torchvision's smallest segmentation builder, answering with its dict (`out`)."""
+    import torchvision.models.segmentation as tv
+
+    torch.manual_seed(seed)
+    return tv.lraspp_mobilenet_v3_large(weights=None, weights_backbone=None, num_classes=19)
+
+
+def segformer(**arch):
+    """A transformers SegFormer built from its config, as code of one's own would (output: `.logits`)."""
+    from transformers import SegformerConfig, SegformerForSemanticSegmentation
+
+    return SegformerForSemanticSegmentation(SegformerConfig(num_labels=19, **arch))
+
+
+class Logits(torch.nn.Module):
+    """A transformers model whose forward returns the logits tensor alone (what torch.export and ONNX hold)."""
+
+    def __init__(self, model: torch.nn.Module) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, x):
+        return self.model(pixel_values=x).logits

@@ -170,3 +170,17 @@ def test_vistas_65_class_head_accepted():
     assert vistas.unpredictable == ()
     assert set(resolve_labels("ade20k").unpredictable) == {"traffic sign", "rider", "train"}
     assert set(resolve_labels("coco_panoptic").unpredictable) == {"pole", "rider"}
+
+
+def test_shipped_table_read_against_the_checkpoint_names(caplog):
+    ade = resolve_labels("ade20k")
+    names = dict(enumerate(ade.source_classes))
+    assert resolve_labels("ade20k", id2label=names).target == ade.target
+    shuffled = dict(enumerate(reversed(ade.source_classes)))  # another channel order: matched by name
+    assert resolve_labels("ade20k", id2label=shuffled).target == tuple(reversed(ade.target))
+    names[0] = "walls"  # a name that differs: said, and the table's order kept
+    with caplog.at_level("WARNING", logger="pairedgta.models"):
+        assert resolve_labels("ade20k", id2label=names).target == ade.target
+    assert "'walls' vs 'wall'" in caplog.text
+    with pytest.raises(ModelError, match="set model.labels=ade20k"):
+        resolve_labels("cityscapes", id2label=dict(enumerate(ade.source_classes)))

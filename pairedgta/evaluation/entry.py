@@ -1,6 +1,13 @@
 """One model's evaluate entry from its groups' records: every registered metric's tables
 (`registry.METRICS`), the arrays they contribute to group_counts.npz, the label maps (predictions.npz) and
-summary.json. The entry's own files are named here, the metrics' files by their metrics."""
+summary.json. The entry's own files are named here, the metrics' files by their metrics.
+
+A model whose label space cannot predict some Cityscapes classes (`label_space`: a model source with
+model.labels=ade20k, coco_panoptic or a TSV that maps no channel to them) has those classes' xi and IoU NaN with
+the reason `cannot predict (label space <space>)` in xi.csv and gt_iou.csv (a `reason` column, written only in
+such an entry), its class-wise means over the classes it can predict, and summary.json's `label_space` and
+`unpredictable_classes`; both keys are absent where the model can predict every class (every zoo model), whose
+files are as they were before these keys existed."""
 from __future__ import annotations
 
 import json
@@ -14,7 +21,7 @@ from pairedgta.cityscapes import IGNORE_INDEX
 from pairedgta.datasets import PairedDataset
 from pairedgta.evaluation.inputs import sampled_conditions
 from pairedgta.evaluation.metric import Metric, ModelEvaluation
-from pairedgta.jsonio import write_json
+from pairedgta.jsonio import write_json, write_npz
 
 log = logging.getLogger("pairedgta.evaluate")
 
@@ -35,6 +42,18 @@ def in_order(d: dict[str, Any], order: tuple[str, ...]) -> dict[str, Any]:
     return {**{k: d[k] for k in order if k in d}, **{k: v for k, v in d.items() if k not in order}}
 
 
+def label_space(model_cfg: dict[str, Any]) -> tuple[str, tuple[str, ...]]:
+    """(model.labels, the Cityscapes classes it cannot predict) of a model source, from its config alone (no
+    torch, no model: a shard merge builds none); ("", ()) for a zoo family, which predicts the 19 classes."""
+    from pairedgta.models import is_source
+    from pairedgta.models.labels import resolve_labels
+
+    if not is_source(model_cfg):
+        return "", ()
+    labels = resolve_labels(model_cfg.get("labels"), where=f"model ({model_cfg.get('name')})")
+    return labels.space, labels.unpredictable
+
+
 def write_outputs(out: Path, e: ModelEvaluation, ms: list[Metric] | None = None) -> dict[str, Any]:
     """Every file of the entry into `out`, each registered metric's through its `write`; returns the summary."""
     from pairedgta.evaluation import registry
@@ -49,6 +68,9 @@ def write_outputs(out: Path, e: ModelEvaluation, ms: list[Metric] | None = None)
                                **{k: {} for m in ms for k in m.summary_keys}, **e.coverage}
     if s["sampling"] == "random_one":
         summary["sampling_seed"] = s["sampling_seed"]
+    if e.unpredictable:  # left out of xi_mean, xi_mean_gt and gt_miou; absent: every class can be predicted
+        summary["label_space"] = e.label_space
+        summary["unpredictable_classes"] = list(e.unpredictable)
     for m in ms:
         m.write(out, e, summary, arrays)
     summary = in_order(summary, SUMMARY_ORDER)
@@ -68,8 +90,7 @@ def write_group_counts(path: Path, results: list[dict[str, Any]], conditions: li
     for m in registry.metrics() if ms is None else ms:
         arrays.update(m.arrays(results, conditions))
     arrays = in_order(arrays, ARRAY_ORDER)
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+    write_npz(path, arrays)  # built in memory, then one atomic write: no ZipFile left open by a failed write
     return arrays
 
 
@@ -102,8 +123,7 @@ def write_predictions(path: Path, results: list[dict[str, Any]], conditions: lis
             if cond in maps:
                 stack[i] = maps[cond]
         arrays[f"g{g:05d}"] = stack
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+    write_npz(path, arrays)
 
 
 def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pairedgta.cityscapes import IGNORE_INDEX, NUM_CLASSES
+from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.lazy import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
@@ -115,6 +115,19 @@ class ModelEvaluation:
     settings: dict[str, Any]  # evaluation.settings.metric_settings
     groups: list[dict[str, Any]]
     coverage: dict[str, Any]  # `entry.coverage`: how many groups each condition averages over
+    # the Cityscapes classes the model's label space cannot predict (no output channel maps to them:
+    # `entry.label_space`), and that space; () for a zoo model and any model that can predict every class.
+    # Their xi and IoU are NaN with that reason and the class-wise means leave them out
+    unpredictable: tuple[str, ...] = ()
+    label_space: str = ""
+
+    def blind(self) -> np.ndarray:
+        """Boolean mask over the 19 Cityscapes classes: those the model cannot predict."""
+        return np.array([n in self.unpredictable for n in CLASS_NAMES], dtype=bool)
+
+    def blind_reason(self) -> str:
+        """The `reason` xi.csv and gt_iou.csv give such a class."""
+        return f"cannot predict (label space {self.label_space})"
 
 
 class Metric:

@@ -55,8 +55,15 @@ class ConsistencyCounts:
 
 def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
     """xi.csv: xi per (reference source, condition, class) pooled over images, its interval, and the
-    class-wise mean under the convention with its own interval."""
+    class-wise mean under the convention with its own interval.
+
+    A class the model cannot predict (`e.unpredictable`: its label space maps no output channel to it) has xi
+    and interval NaN, not the 0 its reference pixels would give, `in_mean` False and `reason`
+    `cannot predict (label space <space>)` (the column exists only in such an entry, empty on the other rows):
+    the mean and its interval are over the classes the model can predict (summary.json's
+    `unpredictable_classes` names the ones left out)."""
     s, conv = e.settings, e.settings["convention"]
+    blind = e.blind()
     xi_counts: dict[tuple[str, str], ConsistencyCounts] = {}
     for r in e.groups:
         for key, (retained, reference) in r["xi"].items():
@@ -75,6 +82,9 @@ def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
             # bootstrap cannot vary and a zero-width interval would claim certainty
             lo, hi = np.where(images < 2, np.nan, lo), np.where(images < 2, np.nan, hi)
         lo, hi = drop_zero_width(lo, hi)
+        if blind.any():  # not a measured 0: the model has no output for these classes
+            xi, lo, hi = np.array(xi), np.array(lo), np.array(hi)
+            xi[blind], lo[blind], hi[blind] = np.nan, np.nan, np.nan
         supported = support_mask(images, ref_total, conv["min_images"], conv["min_pixels"])
         ref_name = e.reference_model if source == PSEUDO_LABEL else GT
         # which classes the mean covers: the convention's classes, minus the undefined (NaN) and unsupported ones
@@ -87,6 +97,7 @@ def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
                 "images": int(images[k]), "supported": bool(supported[k]),
                 "in_mean": bool(included[k]), "n_pairs": len(a.retained), "convention": conv["name"],
                 "min_transmittance": s["min_transmittance"], "classes": 1 if included[k] else 0,
+                **({"reason": e.blind_reason() if blind[k] else ""} if blind.any() else {}),
             })
         mean = class_mean(xi, included)
         mlo, mhi = drop_zero_width(*class_mean_ci(retained, reference, included, s["resamples"], s["confidence"],
@@ -97,6 +108,7 @@ def write_xi(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
             "images": len(a.retained), "supported": bool(included.any()), "in_mean": False, "n_pairs": len(a.retained),
             "convention": conv["name"], "min_transmittance": s["min_transmittance"],
             "classes": int(included.sum()),  # how many classes the mean covers
+            **({"reason": ""} if blind.any() else {}),
         })
         summary["xi_mean" if source == PSEUDO_LABEL else "xi_mean_gt"][cond] = mean
         if source == PSEUDO_LABEL or not summary["n_pairs"].get(cond):
@@ -156,7 +168,9 @@ def write_rho_valid(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> N
 
 def write_gt_iou(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None:
     """gt_iou.csv: IoU per condition and class and the mIoU, where the condition has ground truth (no file
-    when none has)."""
+    when none has). A class the model cannot predict (`e.unpredictable`) has IoU NaN, not 0, with its
+    `reason` (a column only such an entry has), and the mIoU is over the classes the model can predict."""
+    blind = e.blind()
     confusion: dict[str, ConfusionMatrix] = {}
     for r in e.groups:
         for cond, mat in r["cm"].items():
@@ -168,20 +182,30 @@ def write_gt_iou(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None
         if cond not in confusion:
             continue
         iou = confusion[cond].iou().numpy()
-        for k in range(NUM_CLASSES):
-            rows.append({"model": e.model, "condition": cond, "class_id": k, "class_name": CLASS_NAMES[k], "iou": iou[k]})
         miou = confusion[cond].miou()
-        rows.append({"model": e.model, "condition": cond, "class_id": -1, "class_name": "mean", "iou": miou})
+        reason = {}
+        if blind.any():
+            iou = iou.copy()
+            iou[blind] = np.nan
+            defined = ~np.isnan(iou)  # as ConfusionMatrix.miou: over TP + FP + FN > 0, here of the predictable
+            miou = float(iou[defined].mean()) if defined.any() else math.nan
+            reason = {k: e.blind_reason() if blind[k] else "" for k in range(NUM_CLASSES)}
+            reason[-1] = ""  # the mean row
+        for k in range(NUM_CLASSES):
+            rows.append({"model": e.model, "condition": cond, "class_id": k, "class_name": CLASS_NAMES[k], "iou": iou[k],
+                         **({"reason": reason[k]} if reason else {})})
+        rows.append({"model": e.model, "condition": cond, "class_id": -1, "class_name": "mean", "iou": miou,
+                     **({"reason": reason[-1]} if reason else {})})
         summary["gt_miou"][cond] = miou
     pd.DataFrame(rows).to_csv(out / GT_IOU, index=False)
 
 
 def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any],
-                     arrays: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+                     arrays: dict[str, np.ndarray], blind: np.ndarray | None = None) -> dict[str, dict[str, float]]:
     """estimators.csv: per condition the label-free estimators of this model (pairedgta.metrics.estimators;
     the committee agreement and ALine need the other models and are computed where they meet, the `estimators`
-    figure) beside xi and the
-    ground-truth targets where labels exist. AC, entropy and plain agreement use no label; DoC, ATC and the
+    figure) beside xi (its class-wise mean without the classes in `blind`, those the model cannot predict,
+    as xi.csv's) and the ground-truth targets where labels exist. AC, entropy and plain agreement use no label; DoC, ATC and the
     clean mIoU use the clean condition's ground truth, as their methods use labelled source data."""
     from pairedgta.metrics.estimators import EstimatorCounts, model_values
     from pairedgta.metrics.validity import GroupCounts
@@ -192,6 +216,8 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
         return {}
     g, c = GroupCounts.from_arrays(model, arrays), EstimatorCounts.from_arrays(model, arrays)
     include = mean_mask(NUM_CLASSES, CLASS_NAMES, conv["mean_exclude"])
+    if blind is not None and np.any(blind):
+        include = include & ~np.asarray(blind, bool)
     values = model_values(g, c, np.ones((1, n)), clean, include, conv["absent"], conv["min_images"], conv["min_pixels"],
                           conv.get("rpc_min_clean_miou", 0.0))
     rows = {cond: {"model": model, "condition": cond,
@@ -373,4 +399,4 @@ class Estimators(Metric):
         return arrays
 
     def write(self, out: Path, e: ModelEvaluation, summary: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
-        summary["estimators"] = write_estimators(out, e.model, e.conditions, e.settings, arrays)
+        summary["estimators"] = write_estimators(out, e.model, e.conditions, e.settings, arrays, e.blind())

@@ -37,9 +37,11 @@ def check_available(models: Iterable[dict[str, Any]], timeout: float = 10.0) -> 
     from pairedgta.models.checkpoint import resolve_checkpoint_path
     from pairedgta.models.hf_common import pretrained_source
 
+    from pairedgta.models import is_source
+
     for cfg in models:
         name = cfg.get("name")
-        if cfg.get("random_init"):
+        if cfg.get("random_init") or is_source(cfg):  # a source model was loaded and probed before (app.preflight)
             continue
         if "checkpoint_path" in cfg or "checkpoint_file" in cfg:  # an in-project family
             path = cfg.get("checkpoint_path")

@@ -1,9 +1,9 @@
-"""Shared loading and preprocessing for the transformers families (SegFormer, Mask2Former)."""
+"""Shared loading and preprocessing for the transformers families (SegFormer, Mask2Former) and `model=hf`."""
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ModelError, reason
@@ -54,10 +54,12 @@ def pretrained_source(cfg: dict[str, Any]) -> str:
     return str(hub_id)
 
 
-def load_pretrained(model_cls: Any, cfg: dict[str, Any]) -> Any:
+def guarded_pretrained(cfg: dict[str, Any], load: Callable[[str], Any]) -> Any:
+    """`load(source)` (a from_pretrained) with a damaged folder or an unreachable hub id as one line that names
+    model.path or the hub id and the fix; shared by the transformers families and `model=hf`."""
     source = pretrained_source(cfg)
     try:
-        model = model_cls.from_pretrained(source)
+        return load(source)
     except _LOAD_ERRORS as exc:
         if cfg.get("path"):
             # a local folder whose files are corrupt, truncated or a refused pickle: say which, whole
@@ -65,13 +67,28 @@ def load_pretrained(model_cls: Any, cfg: dict[str, Any]) -> Any:
                 f"model '{cfg.get('name')}': cannot load the weights in model.path={source} ({reason(exc)}); "
                 "replace them with an intact safetensors export of the model"
             ) from None
+        revision = f" --revision {cfg['revision']}" if cfg.get("revision") else ""
         raise ModelError(
             f"model '{cfg.get('name')}': cannot load '{source}' ({reason(exc)}); offline, download the hub id "
-            f"'{cfg.get('hub_id')}' elsewhere (huggingface-cli download {cfg.get('hub_id')} --local-dir DIR) "
+            f"'{cfg.get('hub_id')}' elsewhere (huggingface-cli download {cfg.get('hub_id')}{revision} --local-dir DIR) "
             "and pass model.path=DIR"
         ) from None
+
+
+def load_pretrained(model_cls: Any, cfg: dict[str, Any]) -> Any:
+    model = guarded_pretrained(cfg, model_cls.from_pretrained)
     check_label_space(model.config, cfg)
     return model
+
+
+def query_class_scores(class_logits: torch.Tensor, mask_logits: torch.Tensor) -> torch.Tensor:
+    """Mask2Former's semantic inference, for every query-based model (Mask2Former, MaskFormer, OneFormer):
+    sum_q softmax(class_q)[:-1] * sigmoid(mask_q), B x K x h x w at the masks' resolution, float32. The last class
+    is "no object"; the caller renormalises over the K classes after upsampling (the result is no distribution)."""
+    cls = class_logits.float().softmax(dim=-1)[..., :-1]
+    masks = mask_logits.float().sigmoid()
+    # under model.amp the einsum runs in bf16/fp16; the distribution is upsampled and normalised in float32
+    return torch.einsum("bqk,bqhw->bkhw", cls, masks).float()
 
 
 def check_label_space(config: Any, cfg: dict[str, Any]) -> None:

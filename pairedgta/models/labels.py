@@ -9,6 +9,7 @@ Torch is imported only to apply a map."""
 from __future__ import annotations
 
 import csv
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from pairedgta.errors import ConfigError, ModelError
 from pairedgta.lazy import lazy_module
 
 torch = lazy_module("torch")
+log = logging.getLogger("pairedgta.models")
 
 TABLES = Path(__file__).resolve().parents[1] / "data" / "labels"
 # model.labels= names of the shipped label spaces (cityscapes: the metrics' own, no table)
@@ -138,9 +140,11 @@ def _cityscapes(num_outputs: int | None, id2label: Mapping[int, str] | None, whe
         if len(names) == NUM_CLASSES and None not in known and len(set(known)) == NUM_CLASSES:
             return LabelMap("cityscapes", tuple(names), tuple(known))  # matched by name: any channel order
         unknown = [n for n, k in zip(names, known) if k is None]
+        guess = _guess(len(names)).lstrip("; ") if len(names) != NUM_CLASSES else ""
         raise ModelError(f"{where}: the checkpoint's {len(names)} classes ({', '.join(names[:5])}, ...) are not the 19 "
-                         f"Cityscapes classes (e.g. {', '.join(unknown[:3]) or 'duplicates'}); set model.labels= to its "
-                         f"label space ({', '.join(SHIPPED[1:])}) or to a TSV mapping its classes to Cityscapes")
+                         f"Cityscapes classes (e.g. {', '.join(unknown[:3]) or 'duplicates'}); "
+                         + (guess or f"set model.labels= to its label space ({', '.join(SHIPPED[1:])}) or to a TSV "
+                            "mapping its classes to Cityscapes"))
     return LabelMap("cityscapes", CLASS_NAMES, tuple(range(NUM_CLASSES)))
 
 
@@ -151,11 +155,31 @@ def resolve_labels(spec: Any, *, id2label: Mapping[int, str] | None = None, wher
     if spec == "cityscapes":
         return _cityscapes(None, id2label, where)
     if spec in SHIPPED:
-        return read_table(TABLES / f"{spec}.tsv", spec)
+        return against_checkpoint(read_table(TABLES / f"{spec}.tsv", spec), id2label, where)
     if "/" in spec or spec.endswith((".tsv", ".txt")):
-        return read_table(Path(spec).expanduser())
+        return against_checkpoint(read_table(Path(spec).expanduser()), id2label, where)
     raise ConfigError(f"model.labels={spec!r} is unknown; choose one of {', '.join(SHIPPED)} or a path to a TSV of "
                       "'source class<TAB>Cityscapes class'")
+
+
+def against_checkpoint(table: LabelMap, id2label: Mapping[int, str] | None, where: str) -> LabelMap:
+    """A table read against the checkpoint's own class names: the same names in another channel order are reordered
+    (a checkpoint need not list its classes as the dataset does); names that differ (a synonym, a typo) are logged,
+    and the table's order is kept. Placeholder names (LABEL_0, ...) say nothing."""
+    names = [str(id2label[i]) for i in sorted(id2label)] if id2label else []
+    if not names or all(_GENERIC.match(normalise_name(n)) for n in names):
+        return table
+    rows = table.source_classes if len(names) == table.num_outputs else table.source_classes[:len(names)]
+    if [normalise_name(n) for n in names] == [normalise_name(r) for r in rows]:
+        return table
+    by_name = {normalise_name(c): t for c, t in zip(table.source_classes, table.target)}
+    if len(set(map(normalise_name, names))) == len(names) and all(normalise_name(n) in by_name for n in names):
+        log.info("%s: the checkpoint lists the classes of %s in another order; matched by name", where, table.space)
+        return LabelMap(table.space, tuple(names), tuple(by_name[normalise_name(n)] for n in names))
+    differ = [f"{i}: {n!r} vs {r!r}" for i, (n, r) in enumerate(zip(names, rows)) if normalise_name(n) != normalise_name(r)]
+    log.warning("%s: %d of the checkpoint's class names differ from model.labels=%s (%s); the table's channel order is "
+                "used: check that it is the checkpoint's", where, len(differ), table.space, "; ".join(differ[:3]))
+    return table
 
 
 def check_labels(spec: Any) -> None:

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.models.base import Segmenter
-from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params
+from pairedgta.models.hf_common import Preprocessor, load_pretrained, preprocess_params, query_class_scores
 from pairedgta.models.runtime import RuntimeOptions
 
 
@@ -29,10 +29,7 @@ class Mask2FormerSegmenter(Segmenter):
         x = self.pre(images)
         x, (h, w) = self.pre.pad(x)
         out = self.module(pixel_values=x)
-        cls = out.class_queries_logits.float().softmax(dim=-1)[..., :-1]
-        masks = out.masks_queries_logits.float().sigmoid()
-        # under model.amp the einsum runs in bf16/fp16; the distribution is upsampled and normalised in float32
-        sem = torch.einsum("bqk,bqhw->bkhw", cls, masks).float()
+        sem = query_class_scores(out.class_queries_logits, out.masks_queries_logits)
         sem = F.interpolate(sem, size=x.shape[-2:], mode="bilinear", align_corners=False)[..., :h, :w]
         sem = F.interpolate(sem, size=images.shape[-2:], mode="bilinear", align_corners=False)
         return sem / sem.sum(dim=1, keepdim=True).clamp_min(1e-6)

@@ -25,11 +25,11 @@ import pandas as pd
 from pairedgta.cache import canonical_json
 from pairedgta.datasets import PairedDataset
 from pairedgta.errors import ConfigError, PairedGTAError
-from pairedgta.evaluation import counting, entry, registry, shards, tables
+from pairedgta.evaluation import counting, entry, registry, setup_check, shards, tables
 from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.settings import conditions_for, metric_settings
 from pairedgta.schema import as_dict
-from pairedgta.models import shared_segmenter
+from pairedgta.models import is_source, shared_segmenter
 from pairedgta.conditions import headline_condition
 from pairedgta.stages.common import (
     Context,
@@ -173,7 +173,12 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
 def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
             s: dict[str, Any], reference_model: str, out: Path, parts: Path | None = None) -> dict[str, Any]:
     """Evaluate every group, or merge the partial sums that shard jobs left in `parts` and compute only
-    the groups no shard covered; the outputs are the same either way (groups in dataset order)."""
+    the groups no shard covered; the outputs are the same either way (groups in dataset order).
+
+    The Cityscapes classes the model's label space cannot predict (`entry.label_space`, from model.labels:
+    the model config is in the stage's hash, `s` stays the run's metric settings) are NaN in xi.csv and
+    gt_iou.csv with that reason, never a silent 0: the mean xi and GT mIoU are over the classes the model can
+    predict, and summary.json records which were left out (`unpredictable_classes`, `label_space`)."""
     conv = s["convention"]
     log.info("evaluate: metric convention %s (absent classes %s, mean without %s, %s agreement, rho_valid headline %s), "
              "sampling %s", conv["name"], conv["absent"], list(conv["mean_exclude"]) or "none", conv["agreement"],
@@ -186,9 +191,14 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
         done[r["group_id"]] = r
     model = str(model_cfg["name"])
     covered = entry.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
+    space, unpredictable = entry.label_space(model_cfg)
+    if unpredictable:
+        log.warning("evaluate [%s]: cannot predict %s (label space %s): their xi and IoU are NaN, the means are "
+                    "over the other classes", model, ", ".join(unpredictable), space)
     evaluation = entry.ModelEvaluation(
         dataset=dataset.name, model=model, reference_model=reference_model, conditions=conditions, settings=s,
-        groups=[done[g.group_id] for g in dataset.groups if g.group_id in done], coverage=covered)
+        groups=[done[g.group_id] for g in dataset.groups if g.group_id in done], coverage=covered,
+        unpredictable=unpredictable, label_space=space)
     return entry.write_outputs(out, evaluation)
 
 
@@ -213,6 +223,8 @@ class Evaluate:
 
     def __post_init__(self) -> None:
         self.version = registry.stage_version(self.version)  # the registered metrics' declaration, past VERSION 8
+        if is_source(self.model_cfg):  # a model source's entry holds its set-up check (zoo entries as they were)
+            self.version += setup_check.VERSION_TAG
         grid = self.dataset.grid or self.ctx.grid
         self.conditions = conditions_for(self.ctx.run.evaluate, grid)
         self.settings = metric_settings(self.ctx.run, grid.names, self.dataset.reference)
@@ -232,8 +244,13 @@ class Evaluate:
         return parts_dir(self.ctx, key)
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
-        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings,
-                       self.pseudo.reference_model(), out, parts=self.parts(key))
+        summary = compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings,
+                          self.pseudo.reference_model(), out, parts=self.parts(key))
+        if is_source(self.model_cfg):  # the first evaluation of a researcher's model: is it set up right?
+            setup_check.store(out, self.model_cfg["name"], shared_segmenter(self.model_cfg, device=self.ctx.run.device),
+                              self.dataset, setup_check.place(self.ctx.cfg, self.dataset_key, self.dataset.name),
+                              summary, threads=self.ctx.run.threads)
+        return summary
 
     def shards(self) -> tuple[int, int]:
         return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
@@ -268,7 +285,16 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: PseudoLa
     if result.complete:
         result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
         shutil.rmtree(stage.parts(result.key), ignore_errors=True)  # merged into the entry
+        if is_source(model_cfg):
+            setup_check.report(result.path)  # its one WARNING line, computed now or read from the cached entry
     return result
+
+
+def label_tags(model_cfg: dict[str, Any]) -> dict[str, str]:
+    """The MLflow tags of a model that cannot predict some Cityscapes classes: `unpredictable_classes`
+    (comma-separated) and `label_space`; none where it can predict every class (as summary.json's keys)."""
+    space, unpredictable = entry.label_space(model_cfg)
+    return {"unpredictable_classes": ",".join(unpredictable), "label_space": space} if unpredictable else {}
 
 
 def step(ctx: Context, p: PassResult, state: RunState) -> None:
@@ -297,7 +323,7 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
         with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
             recorder.params({"model": model_cfg, "metric": as_dict(ctx.run.metric), "reference_model": state.models.reference["name"]})
             recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
-                           "pass": p.label, "model": model_cfg["name"]})
+                           "pass": p.label, "model": model_cfg["name"], **label_tags(model_cfg)})
             recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics,
                                              headline=ctx.run.plot.ranking.condition))
             p.record_dataset(recorder)
