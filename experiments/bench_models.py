@@ -8,6 +8,14 @@ so the two can be compared graph by graph.
     python experiments/bench_models.py                      # the in-project families, tiny + full, batch 1 and 4
     python experiments/bench_models.py --graphs full --device cuda --amp fp32 bf16 --batches 8
     python experiments/bench_models.py --graphs full --models ddrnet_23 --device cuda --stage --csv out.csv
+    python experiments/bench_models.py --sources [--height 256 --width 512 --batches 4 --rounds 7]
+
+`--sources`: each model source (docs/models.md) against the same network run natively in torch (its normalisation,
+the network, upsampling and softmax written out by hand), on the same images: torchvision's LR-ASPP as
+`model=torchvision`, `python`, `export` (.pt2) and `onnx`; an SMP Unet as `model=smp`; a SegFormer-B0 graph as
+`model=hf`. Timings interleave the variants round by round, so a machine that speeds up or slows down during the run
+moves them together; it prints the median per call, the ratio source / native (target <= 1.10 on the CPU; ONNX
+may be faster) and the spread of the per-round ratios.
 
 `--graphs full` are the paper's eight graphs (PAPER): the in-project ones with random weights, the transformers
 ones random-initialised with the published widths (no hub access, and no image processor: they run at the
@@ -144,6 +152,120 @@ FIELDS = ["date", "device", "torch", "kind", "model", "family", "graph", "dtype"
           "error"]
 
 
+def _source_variants(root: Path, batch: int, height: int, width: int) -> list[tuple[str, str, Any, Any]]:
+    """(network, variant, native callable, segmenter) per source; the native callable maps [0, 1] images to the
+    probabilities the source must give."""
+    import warnings
+
+    import torch.nn.functional as F
+    from safetensors.torch import save_file
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import source_nets
+
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    example = torch.rand(2, 3, height, width)
+
+    def weights(module: Any, name: str) -> str:
+        save_file({k: v.contiguous() for k, v in module.state_dict().items()}, str(root / name))
+        return str(root / name)
+
+    def build(name: str, cfg: dict[str, Any]) -> Any:
+        seg = build_segmenter({"name": name, **cfg})
+        seg.batch_size = batch
+        return seg
+
+    out = []
+    tv = source_nets.lraspp().eval()
+    ckpt = weights(tv, "lraspp.safetensors")
+
+    def tv_native(x: torch.Tensor) -> torch.Tensor:
+        return tv((x - mean) / std)["out"].softmax(1)
+
+    class Out(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.net = tv
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return self.net(x)["out"]
+
+    dims = {0: torch.export.Dim("batch"), 2: 8 * torch.export.Dim("h"), 3: 8 * torch.export.Dim("w")}
+    torch.export.save(torch.export.export(Out().eval(), (example,), dynamic_shapes={"x": dims}), str(root / "lraspp.pt2"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(Out().eval(), (example,), str(root / "lraspp.onnx"), dynamo=False, input_names=["image"],
+                          output_names=["scores"], dynamic_axes={"image": {0: "b", 2: "h", 3: "w"}})
+    out += [("lraspp", "torchvision", tv_native, build("tv", {"family": "torchvision", "arch": "lraspp_mobilenet_v3_large",
+                                                               "checkpoint_path": ckpt})),
+            ("lraspp", "python", tv_native, build("py", {"family": "python", "target": "source_nets:lraspp",
+                                                         "checkpoint_path": ckpt})),
+            ("lraspp", "export", tv_native, build("ex", {"family": "export", "path": str(root / "lraspp.pt2")})),
+            ("lraspp", "onnx", tv_native, build("ox", {"family": "onnx", "path": str(root / "lraspp.onnx")}))]
+    import segmentation_models_pytorch as smp
+
+    torch.manual_seed(0)
+    unet = smp.Unet("resnet18", encoder_weights=None, classes=19).eval()
+    unet.save_pretrained(root / "unet")
+
+    def unet_native(x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        y = F.pad((x - mean) / std, (0, -w % 32, 0, -h % 32))
+        return unet(y)[..., :h, :w].softmax(1)
+
+    out.append(("unet", "smp", unet_native, build("smp", {"family": "smp", "path": str(root / "unet")})))
+    from transformers import SegformerImageProcessor
+
+    torch.manual_seed(0)
+    b0 = source_nets.segformer(depths=[2, 2, 2, 2], hidden_sizes=[32, 64, 160, 256], num_attention_heads=[1, 2, 5, 8],
+                               decoder_hidden_size=256).eval()
+    b0.save_pretrained(root / "b0")
+    SegformerImageProcessor(do_resize=False).save_pretrained(root / "b0")
+
+    def b0_native(x: torch.Tensor) -> torch.Tensor:
+        logits = b0(pixel_values=(x - mean) / std).logits
+        return F.interpolate(logits, size=x.shape[-2:], mode="bilinear", align_corners=False).softmax(1)
+
+    out.append(("segformer_b0", "hf", b0_native, build("hf", {"family": "hf", "path": str(root / "b0")})))
+    return out
+
+
+def bench_sources(batch: int, height: int, width: int, rounds: int) -> None:
+    import statistics
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        variants = _source_variants(Path(tmp), batch, height, width)
+        images = torch.rand(batch, 3, height, width, generator=torch.Generator().manual_seed(0))
+        times: dict[tuple[str, str], list[float]] = {}
+        natives: dict[str, list[float]] = {}
+        with torch.inference_mode():
+            for net, variant, native, seg in variants:  # warm-up, and the same numbers
+                diff = (seg.probabilities(images) - native(images)).abs().max().item()
+                print(f"{net:<14}{variant:<12} max |p_source - p_native| {diff:.1e}")
+            for _ in range(rounds):
+                done = set()
+                for net, variant, native, seg in variants:
+                    if net not in done:  # the native forward once per network and round, beside its sources
+                        start = time.perf_counter()
+                        native(images)
+                        natives.setdefault(net, []).append(time.perf_counter() - start)
+                        done.add(net)
+                    start = time.perf_counter()
+                    seg.probabilities(images)
+                    times.setdefault((net, variant), []).append(time.perf_counter() - start)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, batch {batch} of {height}x{width}, "
+          f"{rounds} interleaved rounds")
+    print(f"{'network':<14}{'source':<12}{'native ms/img':>14}{'source ms/img':>14}{'ratio':>8}{'per-round range':>18}")
+    for (net, variant), ts in times.items():
+        per_round = [t / n for t, n in zip(ts, natives[net])]
+        ratio = statistics.median(ts) / statistics.median(natives[net])
+        print(f"{net:<14}{variant:<12}{statistics.median(natives[net]) / batch * 1e3:>14.1f}"
+              f"{statistics.median(ts) / batch * 1e3:>14.1f}{ratio:>8.3f}"
+              f"{f'{min(per_round):.3f}-{max(per_round):.3f}':>18}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", default=list(IN_PROJECT), choices=list(TINY))
@@ -160,7 +282,13 @@ def main() -> None:
     parser.add_argument("--stage-groups", type=int, default=4)
     parser.add_argument("--workers", default="auto")
     parser.add_argument("--csv", default=None, help="append one row per measurement")
+    parser.add_argument("--sources", action="store_true", help="the model sources against native torch (above)")
+    parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args()
+    if args.sources:
+        height, width = (args.height, args.width) if {"--height", "--width"} & set(sys.argv) else (256, 512)
+        bench_sources(max(args.batches) if "--batches" in sys.argv else 4, height, width, args.rounds)
+        return
     if args.graphs == ["full"] and args.families == list(IN_PROJECT) and "--families" not in sys.argv:
         args.families = list(TINY)  # --graphs full: the paper's eight, transformers families included
 

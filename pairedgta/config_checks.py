@@ -207,6 +207,8 @@ def check_run_config(cfg: dict[str, Any]) -> RunConfig:
         check_stage_keys(run, set(condition_names(pcfg)), where)
     for i, name in enumerate(typed[0][2].models or []):
         _known_model(name, f"models[{i}]")
+    for i, name in enumerate(typed[0][2].report.population or []):  # the model report's population
+        _known_model(name, f"report.population[{i}]")
     return typed[0][2]
 
 

@@ -285,6 +285,16 @@ class CostConfig:
 
 
 @dataclass(frozen=True)
+class ReportConfig:
+    """The model_report figure (+experiment=model_report): the chosen `model` placed against a population."""
+    population: Optional[list[str]] = key(None, ok=lambda v: len(v) >= 1 and len(v) == len(set(v)),
+                                          use="use a list of model names without repeats, e.g. "
+                                              "report.population=[demo_ddrnet,demo_pidnet] (null = the offline zoo)")
+    worst_conditions: int = key(3, ok=lambda v: v >= 1, use="use a number of conditions >= 1")
+    worst_cases: int = key(4, ok=lambda v: v >= 0, use="use a number of images >= 0 (0 = no qualitative cases)")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """The composed config of one run (or of one pass of a run with `variants`)."""
     name: str = key("default")
@@ -306,6 +316,7 @@ class RunConfig:
     plot: PlotConfig = node(PlotConfig)
     metric: MetricConfig = node(MetricConfig)
     cost: CostConfig = node(CostConfig)
+    report: ReportConfig = node(ReportConfig)
     photometry: dict[str, Any] = key({})  # bands and limits of the photometry figure (its defaults live there)
     # the chosen group options: checked by their builders, which know the option's keys
     conditions: dict[str, Any] = key({})

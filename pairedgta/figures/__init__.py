@@ -68,6 +68,9 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec("distribution", "pairedgta.figures.distribution:draw", needs="pseudolabel"),
     FigureSpec("contact_sheet", "pairedgta.figures.contact_sheet:draw", needs="generate"),
     FigureSpec("robustness", "pairedgta.figures.robustness:draw", needs="evaluate"),  # only on a severity ladder
+    # keyed by who is reported against whom (the same evaluations can hold another subject's report)
+    FigureSpec("model_report", "pairedgta.figures.model_report:draw", needs="evaluate",
+               key="pairedgta.figures.report_population:cache_key"),
     # keyed by the files they read besides the stages' (cost.csv, the paper's timings, the authors' CSVs)
     FigureSpec("cost", "pairedgta.figures.cost:draw", needs="generate", unless="cost.csv",
                key="pairedgta.figures.cost:cache_key"),
@@ -97,12 +100,18 @@ class FigureOptions:
     # file name -> the model (and pass) a figure shows alone; the plot stage saves it so each model's
     # MLflow run can carry its own figures
     owners: dict[str, dict[str, str]] = field(default_factory=dict)
+    # file name -> what it is, for the pages the run points to in the terminal (a model report), hit or miss
+    pages: dict[str, str] = field(default_factory=dict)
 
     def own(self, paths: list[Path], model: str, label: str) -> list[Path]:
         """Record `paths` as figures of one model of one pass; returns them."""
         for path in paths:
             self.owners[Path(path).name] = {"model": str(model), "pass": str(label)}
         return paths
+
+    def point(self, path: Path, what: str) -> None:
+        """Record `path` as a page the run names in the terminal (`what: <path>`), on a cache hit too."""
+        self.pages[Path(path).name] = str(what)
 
     @property
     def plot(self) -> Any:

@@ -217,16 +217,28 @@ def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
     """The composed config of every model the run evaluates and of its reference model.
 
     `models=[...]` lists the evaluated models; when the user chose `model=` on the command line (e.g. a
-    sweep `-m model=a,b`), the chosen model replaces that list for this job."""
+    sweep `-m model=a,b`), the chosen model replaces that list for this job. A run that draws the model report
+    evaluates the chosen model and its population instead (pairedgta/figures/report_population.py), the model first."""
+    from pairedgta.figures import report_population
+
     primary = dict(run.model)
     if not primary.get("name"):  # a source model named by its file (pairedgta/models: default_name)
         primary = with_defaults(primary)
     names = list(run.models or [])
-    if names and model_chosen and names != [primary["name"]]:
+    reference = run.reference_model or primary["name"]
+    if report_population.draws_report(run):
+        population, left_out = report_population.members(run, primary["name"], reference)
+        for name in left_out:
+            log.info("report: %s is left out of the population (%s)", name,
+                     "the model reported" if name == primary["name"] else "the reference model: not ranked")
+        if names:
+            log.info("report: %s placed against report.population; models=%s is not evaluated", primary["name"], names)
+        log.info("report: %s placed against %d model(s): %s", primary["name"], len(population), ", ".join(population))
+        names = [primary["name"], *population]
+    elif names and model_chosen and names != [primary["name"]]:
         log.info("model=%s replaces the experiment's models=%s for this job", primary["name"], names)
         names = [primary["name"]]
     names = names or [primary["name"]]
-    reference = run.reference_model or primary["name"]
     used = list(dict.fromkeys(names + [reference]))
     overrides = dict(run.model_overrides)
     unused = [n for n in overrides if n not in used]
@@ -307,7 +319,7 @@ def open_pass(label: str, ctx: Context, plan: Plan) -> PassResult:
     cfg, grid = ctx.cfg, ctx.grid
     dcfg = dict(cfg["dataset"])
     if not DATASETS.meta(dcfg.get("kind")).get("paired"):
-        checks = ",".join(s.name for s in stage_registry.in_scope("check"))
+        checks = ",".join(s.name for s in stage_registry.in_scope("check") if not s.needs)  # those reading no pass
         raise ConfigError(
             f"dataset={dcfg.get('name')} is not a paired dataset: it feeds the model check "
             f"(+experiment=cityscapes_val_check, stages=[{checks}]), not {', '.join(plan.stages)}"

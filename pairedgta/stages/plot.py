@@ -60,6 +60,12 @@ class Figures(StageResult):
         path = self.path / "metrics.json"
         return json.loads(path.read_text()) if path.is_file() else {}
 
+    def pages(self) -> list[tuple[Path, str]]:
+        """The pages the run names in the terminal (a model report): (file, what it is)."""
+        path = self.path / "pages.json"
+        pages = json.loads(path.read_text()) if path.is_file() else {}
+        return [(self.path / name, what) for name, what in sorted(pages.items()) if (self.path / name).is_file()]
+
 
 def options(run: RunConfig, passes: list[PassResult]) -> FigureOptions:
     return FigureOptions(list(run.plot.formats), int(run.plot.dpi), run, multi=len(passes) > 1)
@@ -79,6 +85,8 @@ def make_plots(ctx: Context, passes: list[PassResult], out: Path) -> dict[str, A
     clean_metrics = {k: float(v) for k, v in metrics.items() if v is not None and not math.isnan(float(v))}
     write_json(out / "metrics.json", clean_metrics, sort_keys=True)
     write_json(out / "owners.json", opts.owners, sort_keys=True)
+    if opts.pages:
+        write_json(out / "pages.json", opts.pages, sort_keys=True)
     return {"figures": [p.name for p in files], "metrics": clean_metrics}
 
 
@@ -145,6 +153,8 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
     figures, recorder = run_cached(ctx, Plot(ctx, passes)), state.recorder
     assert isinstance(figures, Figures)
     state.summary["plot"] = str(figures.path)
+    for page, what in figures.pages():
+        log.info("%s: %s", what, page)
     own_runs = {(model, label) for _, model, label in state.model_runs}
     recorder.stage_files(bundle("plot", figures.key), figures.hit, figures.files_except(own_runs), "figures")
     recorder.metrics(figures.metrics())
