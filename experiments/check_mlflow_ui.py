@@ -10,8 +10,9 @@ downloaded and the page reaches nothing but 127.0.0.1):
   direct-link       `#/experiments/<id>?workflowType=machine_learning` opens on the runs
   chart-models      Chart view, parent runs expanded: `xi_mean/<condition>` is one chart with a bar per
                     model run, the values the REST API returns
-  chart-compare     the parent run's `compare/xi_mean/<condition>/<model>` keys: one chart per model,
-                    side by side in the section `compare/xi_mean/<condition>`
+  chart-compare     the parent run's `compare/xi_mean/<condition>/<model>` keys: one chart per ranked
+                    model, side by side in the section `compare/xi_mean/<condition>`, and none for the
+                    reference model (graded on its own pseudo-labels, it is not ranked)
   colours           each model run is drawn in its figure colour (tag mlflow.runColor), distinct per model
   sweep-search      a search by the sweep's tag finds every run of the sweep (jobs and their model runs),
                     and the chart of those runs compares the sweep's models
@@ -21,10 +22,11 @@ downloaded and the page reaches nothing but 127.0.0.1):
                     (its metrics table, below the long parameters table, is not looked for)
 
 Prints PASS/FAIL per check (INFO for what was observed), saves screenshots to
-experiments/figures/mlflow_*.png (1400x900), stops the server and exits 1 on any failure. Not part of
-the test suite; needs `pip install playwright` and Chromium (Debian: `apt-get install chromium`).
+experiments/figures/mlflow_*.png (1400x900), stops the server and exits 1 on any failure (or a check
+that did not run). Not part of the test suite: `.ci/run` runs it after the tests, where Chromium and
+Playwright install; by hand it needs `pip install playwright` and Chromium (Debian: `apt-get install chromium`).
 
-    python experiments/check_mlflow_ui.py            # ~3-4 min on 2 busy cores
+    python experiments/check_mlflow_ui.py            # ~2.5 min on 2 busy cores
     python experiments/check_mlflow_ui.py --workdir /tmp/ui --keep   # reuse/keep the runs and store
 """
 from __future__ import annotations
@@ -54,6 +56,8 @@ VIEWPORT = {"width": 1400, "height": 900}
 UI_WAIT_MS = 90_000  # the UI on a busy 2-core machine takes tens of seconds for its first page
 
 results: list[tuple[str, bool]] = []
+CHECKS = ("store", "opens-on-runs", "switch-remembered", "chart-compare", "chart-models", "colours", "sweep-search",
+          "group-by-model", "compare-page", "direct-link")  # a check that never reported fails too
 
 
 def report(name: str, ok: bool, detail: str) -> None:
@@ -132,6 +136,7 @@ class Server:
         for r in out:
             r["tags"] = {t["key"]: t["value"] for t in r["data"].get("tags", [])}
             r["metrics"] = {m["key"]: m["value"] for m in r["data"].get("metrics", [])}
+            r["params"] = {p["key"]: p["value"] for p in r["data"].get("params", [])}
         return out
 
     def stop(self) -> None:
@@ -283,13 +288,22 @@ def check(server: Server, exp: dict, work: Path, out: Path, chromium: str) -> No
     main = single[0]
     main_models = {r["tags"]["model"]: r for r in model_runs if r["tags"]["mlflow.parentRunId"] == main["info"]["run_id"]}
     key = f"xi_mean/{CONDITION}"
-    want = {m: main_models[m]["metrics"][key] for m in MODELS}
-    compare_keys = {m: f"compare/xi_mean/{CONDITION}/{m}" for m in MODELS}
-    ok = set(main_models) == set(MODELS) and all(k in main["metrics"] for k in compare_keys.values())
-    report("store", ok, f"parent run '{main['info']['run_name']}' has {', '.join(compare_keys.values())}; "
+    want = {m: main_models[m]["metrics"].get(key, float("nan")) for m in MODELS}
+    # the reference model is graded on its own pseudo-labels: not ranked, so the parent carries no
+    # compare/xi_mean key of it (pairedgta/figures/comparison.py); its model run keeps its xi_mean
+    reference = main["params"].get("reference_model")
+    ranked = [m for m in MODELS if m != reference]
+    compare_keys = {m: f"compare/xi_mean/{CONDITION}/{m}" for m in ranked}
+    unranked_key = f"compare/xi_mean/{CONDITION}/{reference}"
+    ok = (set(main_models) == set(MODELS) and reference in MODELS and bool(ranked)
+          and all(k in main["metrics"] for k in compare_keys.values()) and unranked_key not in main["metrics"]
+          and all(key in main_models[m]["metrics"] for m in MODELS))
+    report("store", ok, f"parent run '{main['info']['run_name']}' has {', '.join(compare_keys.values())} and, "
+           f"the reference {reference} unranked, {'not ' if unranked_key not in main['metrics'] else ''}{unranked_key}; "
            f"its model runs have {key} = " + ", ".join(f"{m} {v:.3f}" for m, v in want.items()))
 
-    with sync_playwright() as pw, tempfile.TemporaryDirectory(dir=work) as profiles:
+    # the browsers close (playwright's exit) before their profiles go, also when stopped part-way
+    with tempfile.TemporaryDirectory(dir=work, ignore_cleanup_errors=True) as profiles, sync_playwright() as pw:
         # 1. README: click the experiment (a fresh browser: nothing remembered), then Model training
         ctx, page = fresh_browser(pw, chromium, Path(profiles) / "a")
         page.goto(f"{server.base}/#/experiments")
@@ -327,15 +341,16 @@ def check(server: Server, exp: dict, work: Path, out: Path, chromium: str) -> No
         view_mode(page, "CHART")
         page.get_by_placeholder("Search metric charts").fill(key)
         settle(page)
-        # the parent's per-model keys first: one section, one chart per model
+        # the parent's per-model keys first: one section, one chart per ranked model, none for the reference
         show_section(page, f"compare/xi_mean/{CONDITION}")
         cards = {m: chart_card(page, k) for m, k in compare_keys.items()}
         found = {m: c.count() == 1 for m, c in cards.items()}
         texts = {m: c.first.inner_text() if found[m] else "" for m, c in cards.items()}
-        values_ok = all(f"{main['metrics'][compare_keys[m]]:.2f}" in texts[m] for m in MODELS)
-        report("chart-compare", all(found.values()) and values_ok,
-               f"section compare/xi_mean/{CONDITION}: one chart per model ({', '.join(m for m in MODELS if found[m])}), "
-               "each a bar per parent run, values as in REST")
+        values_ok = all(f"{main['metrics'][compare_keys[m]]:.2f}" in texts[m] for m in ranked)
+        unranked_charts = chart_card(page, unranked_key).count()
+        report("chart-compare", all(found.values()) and values_ok and unranked_charts == 0,
+               f"section compare/xi_mean/{CONDITION}: one chart per ranked model ({', '.join(m for m in ranked if found[m])}), "
+               f"each a bar per parent run, values as in REST; {unranked_charts} chart(s) of the reference {reference}")
         # collapse the other sections so the per-model-run chart is on screen with the parent's
         for header_text in (f"table/generated/xi_mean/{CONDITION}",):
             header = page.get_by_test_id("experiment-view-compare-runs-section-header").filter(has_text=header_text)
@@ -457,6 +472,8 @@ def main() -> None:
     ap.add_argument("--chromium", default="/usr/bin/chromium")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    # a CI's `timeout` (SIGTERM) unwinds: the browser closes and the server's process group is stopped
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(143))
     with tempfile.TemporaryDirectory(prefix="pgta-mlflow-ui-") as tmp:
         work = (args.workdir or Path(tmp)).resolve()
         work.mkdir(parents=True, exist_ok=True)
@@ -469,8 +486,9 @@ def main() -> None:
             check(server, exp, work, args.out, args.chromium)
         finally:
             server.stop()
-    failed = [name for name, ok in results if not ok]
-    print(f"{len(results) - len(failed)}/{len(results)} checks passed" + (f"; failed: {', '.join(failed)}" if failed else ""))
+    failed = [name for name, ok in results if not ok] + [f"{name} (not run)" for name in CHECKS
+                                                          if name not in {n for n, _ in results}]
+    print(f"{sum(ok for _, ok in results)}/{len(CHECKS)} checks passed" + (f"; failed: {', '.join(failed)}" if failed else ""))
     sys.exit(1 if failed else 0)
 
 

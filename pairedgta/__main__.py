@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from hydra.errors import CompactHydraException  # noqa: E402
 
-from pairedgta.errors import PairedGTAError, Terminated, disk_full  # noqa: E402
+from pairedgta.errors import PairedGTAError, Terminated, write_failed  # noqa: E402
 
 log = logging.getLogger("pairedgta")
 
@@ -76,8 +76,8 @@ def main(cfg: DictConfig) -> None:
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"error: interrupted ({str(exc) or 'Ctrl-C'}); finished work is kept, rerun to resume", file=sys.stderr)
         sys.exit(130 if isinstance(exc, KeyboardInterrupt) else 143)
-    except OSError as exc:  # a full disk outside a cache entry's build (which says so itself)
-        full = disk_full(exc, os.path.dirname(str(exc.filename)) if exc.filename else cfg.get("cache_dir"))
+    except OSError as exc:  # a full disk (a failed write) outside a cache entry's build (which says so itself)
+        full = write_failed(exc, os.path.dirname(str(exc.filename)) if exc.filename else cfg.get("cache_dir"))
         if full is None:
             raise
         _close_progress_bars()
@@ -100,10 +100,11 @@ def main(cfg: DictConfig) -> None:
     lines = [f"results: {where}"] + [f"  evaluate [{name}]: {path}" for name, path in summary.get("evaluate", {}).items()]
     if summary.get("mlflow"):
         lines.append(f"  mlflow: {summary['mlflow']}")
-    from pairedgta.report import xi_lines
+    from pairedgta.report import unpredictable_lines, xi_lines
 
     lines += [f"  {line}" for line in xi_lines(summary.get("evaluate", {}),
                                                OmegaConf.select(cfg, "conditions.reference", default=None))]
+    lines += [f"  {line}" for line in unpredictable_lines(summary.get("evaluate", {}))]
     print("\n".join(lines))
     _to_log_files(lines)
 

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import IO, Any, Iterator
 
 from pairedgta import filehash
-from pairedgta.errors import ConfigError, disk_full
+from pairedgta.errors import ConfigError, write_failed
 from pairedgta.jsonio import dumps, write_json
 
 log = logging.getLogger(__name__)
@@ -216,7 +216,7 @@ class StageCache:
         place. An existing entry is replaced only now, never before: always when `replace` (force=),
         else only when it is damaged (a valid one was completed by a racing job: theirs is kept). On
         failure the temporary directory goes (a resumable `work_dir` keeps its finished parts), and a
-        full disk becomes a DiskFullError naming the entry."""
+        full disk becomes a DiskFullError naming the entry (another failed write a WriteError)."""
         final = self.path(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
         tmp = work_dir or final.with_name(f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
@@ -240,7 +240,7 @@ class StageCache:
         except BaseException as exc:
             if work_dir is None:
                 shutil.rmtree(tmp, ignore_errors=True)
-            full = disk_full(exc, final)  # a full disk is one line naming the entry, not a traceback
+            full = write_failed(exc, final)  # a full disk (a failed write) is one line naming the entry
             if full is not None:
                 raise full from exc
             raise

@@ -42,6 +42,25 @@ def disk_full(exc: BaseException, folder: str | os.PathLike) -> DiskFullError | 
                          "(finished scenes and stages are kept)")
 
 
+class WriteError(PairedGTAError):
+    """Another failed write: a read-only file system, a file too large for it, an input/output error."""
+
+
+WRITE_FAILED = (errno.EROFS, errno.EFBIG, errno.EIO)
+
+
+def write_failed(exc: BaseException, folder: str | os.PathLike) -> PairedGTAError | None:
+    """`disk_full(exc, folder)`, or for the other errors a write meets (`WRITE_FAILED`) the same one line with
+    its cause and the file; None for anything else (a traceback: not a fault of the disk)."""
+    full = disk_full(exc, folder)
+    if full is not None or not isinstance(exc, OSError) or exc.errno not in WRITE_FAILED:
+        return full
+    where = f" ({exc.filename})" if exc.filename else ""
+    return WriteError(f"{os.strerror(exc.errno).lower()}{where} while writing {folder}; nothing half-written was "
+                      "kept: check that disk or set cache_dir=/another/disk, then rerun (finished scenes and stages "
+                      "are kept)")
+
+
 # boilerplate lines libraries put around the actual cause (torch's weights-only refusal)
 _BOILERPLATE = (
     "Weights only load failed",

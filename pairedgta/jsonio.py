@@ -1,8 +1,10 @@
 """Strict JSON for everything the project writes: NaN and +-inf become null, numpy scalars and arrays
 become plain numbers and lists, and ``allow_nan=False`` proves no bare NaN reaches a file (strict
-parsers such as jq, JavaScript or ``json.load(parse_constant=...)`` reject it)."""
+parsers such as jq, JavaScript or ``json.load(parse_constant=...)`` reject it). Beside it the atomic writes of
+bytes and of numpy's ``.npz`` archives (`write_bytes`, `write_npz`), which every stage's ``.npz`` goes through."""
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -45,3 +47,31 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, **kwar
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> None:
+    """`data` under a temporary name beside `path`, renamed into place: never half-written, and the file is
+    closed and the temporary removed on any error (a full disk) before the error goes on."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_npz(path: str | os.PathLike, arrays: dict[str, Any], compress: bool = True) -> None:
+    """`np.savez_compressed(path, **arrays)` (or `np.savez`), the same bytes, written by `write_bytes`. The
+    archive is built in memory first: numpy 1.x's savez leaves its ZipFile open when a write fails, and the
+    garbage collector closing it later on the closed file printed ``Exception ignored in: ZipFile.__del__ ...
+    ValueError: seek of closed file`` after a full disk's one-line error. In memory no write can fail, and
+    the one write that can is a plain file's, closed by its `with`."""
+    import numpy as np
+
+    buf = io.BytesIO()
+    (np.savez_compressed if compress else np.savez)(buf, **arrays)
+    with buf.getbuffer() as view:
+        write_bytes(path, view)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pairedgta.jsonio import write_bytes, write_npz
 
 log = logging.getLogger("pairedgta.evaluate")
 
@@ -37,13 +38,8 @@ def write_part(parts: Path, shard: int, num: int, results: list[dict[str, Any]])
     path = parts / f"part-{shard:05d}-of-{num:05d}.json"
     maps = {f"{i}|{c}": m for i, r in enumerate(results) for c, m in (r.get("pred") or {}).items()}
     rows = [{**{k: v for k, v in r.items() if k != "pred"}, "pred_conditions": list(r.get("pred") or {})} for r in results]
-    tmp_maps = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    with open(tmp_maps, "wb") as f:
-        np.savez_compressed(f, **maps)
-    os.replace(tmp_maps, path.with_suffix(".npz"))
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(rows, default=_jsonable, allow_nan=False))
-    os.replace(tmp, path)
+    write_npz(path.with_suffix(".npz"), maps)  # atomic; a failed write leaves neither temporary nor open ZipFile
+    write_bytes(path, json.dumps(rows, default=_jsonable, allow_nan=False).encode())
     return path
 
 
