@@ -152,7 +152,7 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-OPEN_MAPPINGS = ("model_overrides.", "camera.overrides.")
+OPEN_MAPPINGS = ("model_overrides.", "camera.overrides.", "model.kwargs.")  # model.kwargs: a model=python factory's arguments
 
 
 def _open_mapping_overrides(argv: list[str]) -> list[str]:
