@@ -118,8 +118,7 @@ def main() -> None:
                       .get("renderer", {}).get("backend") == "blender")
     from PIL import Image
 
-    files = sorted(f for f in (images_dir / "scenes").glob("*/*.png")
-                   if "label" not in f.name and "transmittance" not in f.name)
+    files = sorted(f for f in (images_dir / "scenes").glob("*/*.png") if "_" not in f.stem)  # <condition>.png
     images = np.stack([np.asarray(Image.open(f).convert("RGB")) for f in files])
     rows, xi_rows = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -150,7 +149,7 @@ def main() -> None:
              f"`python experiments/check_formats.py` ({len(images)} images of the main job, 512x256; torch "
              f"{torch.__version__}).", "", "| model | format | label agreement with the zoo model | max abs probability "
              "difference |", "|---|---|---:|---:|"]
-    lines += [f"| {r['model']} | {r['format']} | {r['label agreement']:.5f} | {r['max |p - p_zoo|']:.1e} |" for r in rows]
+    lines += [f"| {r['model']} | {r['format']} | {r['label agreement']:.7f} | {r['max |p - p_zoo|']:.1e} |" for r in rows]
     lines += ["", "| model | xi rows (condition x class x reference) | max abs xi difference, ONNX vs the zoo model |",
               "|---|---:|---:|"]
     lines += [f"| {r['model']} | {r['rows']} | {r['max |xi_onnx - xi_zoo|']:.1e} |" for r in xi_rows]

@@ -35,7 +35,7 @@ CONTRACT_OPTIONS = ("mean", "std", "scale", "channels", "resize", "pad_multiple"
 DEFAULTS: dict[str, Any] = {"mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD), "scale": 1, "channels": "rgb",
                             "resize": None, "pad_multiple": 1, "inference": "whole", "crop": None, "stride": None,
                             "output": "logits", "labels": "cityscapes"}
-PROBE_SIZE = (64, 128)  # the probe forward's image (height, width): small, wide like the dataset's images
+PROBE_SIZE = (256, 512)  # the probe forward's image (height, width): the main job's (a program may guard smaller sizes)
 
 
 @dataclass

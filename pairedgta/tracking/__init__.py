@@ -4,7 +4,8 @@
 - mlflow_tracker.py: `Tracker`, the Recorder that logs to MLflow in this process, with retries;
 - background.py: `BackgroundTracker`, the Recorder the run holds by default, and child.py, the child
   process that replays its calls on a Tracker while the stages run (MLflow's imports off the run's path);
-- store.py: the store around MLflow (URI check, sqlite probe and lock, shortened waits, orphaned runs).
+- store.py: the store around MLflow (URI check, sqlite probe and lock, a sqlite schema built beside the store
+  and moved into place, a half-migrated store repaired, shortened waits, orphaned runs).
 
 The `tracking.*` keys are pairedgta/schema.py's TrackingConfig. Nothing here imports mlflow until a Tracker
 opens a store.

@@ -34,7 +34,8 @@ from pairedgta.tracking import journal as journals
 from pairedgta.tracking.naming import RUN_COLOR_TAG, TAG, clean_metric_name, flatten, model_run_color
 from pairedgta.tracking.recorder import hydra_record
 from pairedgta.tracking.store import (artifact_location, check_uri, end_orphans, ensure_experiment, owner_tags,
-                                      probe_server, probe_sqlite, shorten_sqlite_waits, store_lock)
+                                      prepare_sqlite, probe_server, probe_sqlite, shorten_sqlite_waits, sqlite_path,
+                                      store_lock)
 
 log = logging.getLogger("pairedgta.tracking")
 
@@ -65,7 +66,7 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
                     if self.journal is not None:  # the journal itself failed (a full disk): nothing to fall back on
                         self.give_up(what, exc)
                         return None
-                    delay = next(delays)
+                    delay = None if getattr(exc, "final", False) else next(delays)  # store.StoreBroken: no retry
                     if delay is None or time.monotonic() - start + delay > RETRY_BUDGET_S:
                         if not self.to_journal(what, exc):
                             self.give_up(what, exc)
@@ -78,7 +79,8 @@ def guarded(what: str) -> Callable[[Callable[..., T]], Callable[..., T | None]]:
 
 
 def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+    """The reason in a warning; whole where it is the line that says how to repair the store (StoreBroken)."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:1000 if getattr(exc, "final", False) else 200]
 
 
 class Tracker:
@@ -244,8 +246,13 @@ class Tracker:
         os.environ.setdefault("MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR", "1")
         shorten_sqlite_waits()
         probe_server(self.uri)
+        if sqlite_path(self.uri) is not None:  # its SQLAlchemy layer, imported before the lock is taken
+            import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
         with store_lock(self.uri):  # parallel jobs probe in turn, never each other's locks
             probe_sqlite(self.uri)
+            # a new store's schema is built beside it and moved into place, a half-migrated one repaired:
+            # MLflow never migrates the file itself, where a lock could stop it half-way
+            prepare_sqlite(self.uri)
         import mlflow
 
         mlflow.set_tracking_uri(self.uri)
