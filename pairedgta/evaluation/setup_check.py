@@ -15,13 +15,12 @@ alternatives when the configured mIoU is low, in `SETUP_CSV` and the summary key
 (`+experiment=model_check`) writes the whole table. Torch is imported only to run the model."""
 from __future__ import annotations
 
-import contextlib
 import copy
 import logging
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -29,7 +28,7 @@ from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.datasets import PairedDataset, load_image, load_label
 from pairedgta.errors import DataError, ModelError
 from pairedgta.jsonio import write_json
-from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD
+from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, torch_threads
 
 log = logging.getLogger("pairedgta.setup_check")
 
@@ -274,22 +273,6 @@ def read_table(path: Path) -> Any:
 
 
 # -- the evaluate entry -------------------------------------------------------------------------------------
-@contextlib.contextmanager
-def _threads(n: int | None) -> Iterator[None]:
-    """Torch's CPU threads for the check's forwards (the run's `threads`), put back afterwards."""
-    if n is None:
-        yield
-        return
-    import torch
-
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def store(out: Path, model: str, seg: Any, dataset: PairedDataset, where: str,
           summary: dict[str, Any] | None = None, threads: int | None = None) -> dict[str, Any]:
     """The check of an evaluate entry being built in `out`: SETUP_CSV and the SUMMARY_KEYS added to its summary.json
@@ -299,7 +282,7 @@ def store(out: Path, model: str, seg: Any, dataset: PairedDataset, where: str,
     samples = clean_samples(dataset)
     keys: dict[str, Any] = dict.fromkeys(SUMMARY_KEYS)
     if samples:
-        with _threads(threads):
+        with torch_threads(threads):
             rows = run_check(seg, samples)
         table(rows).to_csv(out / SETUP_CSV, index=False)
         keys = {"clean_miou_check": rows[0].miou, "setup_warning": diagnose(model, rows, where)}

@@ -15,7 +15,7 @@ from pairedgta.cityscapes import colorize
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
 from pairedgta.figures.model_report import CASE_COLUMNS, Report, pct_text, rank_text, row
-from pairedgta.figures.qualitative import disagreement_overlay, fit
+from pairedgta.figures.qualitative import disagreement_overlay, draw_strip, strip_geometry
 
 SUBJECT_COLOR, POPULATION_COLOR = "#d62728", "0.55"
 
@@ -113,9 +113,10 @@ def _rank_panel(ax: Any, r: Report) -> None:
         ax.scatter([gx], [xy], color=SUBJECT_COLOR, s=10 + 6 * len(conds), edgecolor="black", linewidth=0.3, zorder=3)
         text = condition_display(conds[0]) if len(conds) == 1 else f"{len(conds)} conditions"
         ax.annotate(text, (gx, xy), fontsize=4.5, xytext=(3, -6), textcoords="offset points")
-    ticks = sorted({1, n, *(v for k in at for v in k)})
-    ax.set_xticks(ticks)
-    ax.set_yticks(ticks)
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis):  # whole ranks, few enough not to overlap (the points carry their labels)
+        axis.set_major_locator(MaxNLocator(nbins=5, integer=True, min_n_ticks=2))
     ax.set_xlim(n + 0.5, 0.5)
     ax.set_ylim(n + 0.5, 0.5)
     ax.set_xlabel("its GT mIoU rank")
@@ -125,25 +126,12 @@ def _rank_panel(ax: Any, r: Report) -> None:
 
 def _case_panels(fig: Any, r: Report, dpi: int) -> None:
     axes = fig.subplots(len(r.cases), 1, squeeze=False)[:, 0]
-    h0, w0 = r.cases[0]["image"].shape[:2]
-    w = max(8, min(w0, int(TEXT_WIDTH * dpi / len(CASE_COLUMNS))))
-    h = max(4, round(h0 * w / w0))
-    gap = max(2, w // 64)
-    strip_w = len(CASE_COLUMNS) * w + (len(CASE_COLUMNS) - 1) * gap
+    geometry = strip_geometry(r.cases[0]["image"].shape[:2], len(CASE_COLUMNS), dpi)
     for i, (ax, c) in enumerate(zip(axes, r.cases)):
         shown = [c["image"], colorize(c["pseudo"]), colorize(c["prediction"]),
                  disagreement_overlay(c["image"], c["prediction"], c["pseudo"])]
-        strip = np.full((h, strip_w, 3), 255, dtype=np.uint8)
-        for j, im in enumerate(shown):
-            strip[:, j * (w + gap): j * (w + gap) + w] = fit(im, w, h, exact=j > 0)
-        ax.imshow(strip, interpolation="nearest")
-        ax.set_xticks([])
-        ax.set_yticks([])
-        for spine in ax.spines.values():
-            spine.set_visible(False)
-        if i == 0:
-            for j, name in enumerate(CASE_COLUMNS):
-                ax.text(j * (w + gap) + w / 2, -0.04 * h, name, ha="center", va="bottom", fontsize=5.5)
+        draw_strip(ax, shown, [j > 0 for j in range(len(shown))], geometry, CASE_COLUMNS if i == 0 else None,
+                   fontsize=5.5)
         ax.set_ylabel(f"{condition_display(c['condition'])}\n{c['pair_id']}\nagreement {c['agreement']:.2f}",
                       fontsize=5)
     fig.suptitle(f"(d) its {len(r.cases)} worst images (lowest pixel agreement with the pseudo-labels)", x=0.02,

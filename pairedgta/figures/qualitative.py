@@ -75,6 +75,33 @@ def disagreement_overlay(image: np.ndarray, pred: np.ndarray, pseudo: np.ndarray
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
+def strip_geometry(shape: tuple[int, int], columns: int, dpi: int) -> tuple[int, int, int, int]:
+    """(w, h, gap, strip width) of a row of `columns` images of `shape`, each at the pixel width it gets on the page
+    (at `dpi`): matplotlib would otherwise resample every full-size strip on every draw, most of a grid's time."""
+    h0, w0 = shape
+    w = max(8, min(w0, int(TEXT_WIDTH * dpi / columns)))
+    h = max(4, round(h0 * w / w0))
+    gap = max(2, w // 64)  # white between the columns, in pixels
+    return w, h, gap, columns * w + (columns - 1) * gap
+
+
+def draw_strip(ax: Any, shown: list[np.ndarray], exact: list[bool], geometry: tuple[int, int, int, int],
+               names: list[str] | tuple[str, ...] | None, fontsize: float) -> None:
+    """One row of images side by side in one axes (6x fewer axes to lay out than a grid of panels); label maps
+    (`exact`) resized by nearest neighbour so their colours stay exact; `names` above the columns."""
+    w, h, gap, strip_w = geometry
+    strip = np.full((h, strip_w, 3), 255, dtype=np.uint8)
+    for j, im in enumerate(shown):
+        strip[:, j * (w + gap): j * (w + gap) + w] = fit(im, w, h, exact=exact[j])
+    ax.imshow(strip, interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    for j, name in enumerate(names or ()):
+        ax.text(j * (w + gap) + w / 2, -0.04 * h, name, ha="center", va="bottom", fontsize=fontsize)
+
+
 def fit(image: np.ndarray, w: int, h: int, exact: bool) -> np.ndarray:
     """`image` at w x h: area-averaged for photographs, nearest for colour-coded maps."""
     if image.shape[:2] == (h, w):
@@ -118,13 +145,8 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
         panels.append((p, images[clean], clean_pred, images[p["condition"]], adv_pred, adv_conf, pseudo))
     if not panels:
         return [], pd.DataFrame(rows)
-    h0, w0 = panels[0][1].shape[:2]
-    # each column at the pixel width it gets on the page (at `dpi`): matplotlib would otherwise resample
-    # every full-size strip on every draw, most of this figure's time; label colours stay exact (nearest)
-    w = max(8, min(w0, int(TEXT_WIDTH * dpi / len(COLUMNS))))
-    h = max(4, round(h0 * w / w0))
-    gap = max(2, w // 64)  # white between the columns, in pixels
-    strip_w = len(COLUMNS) * w + (len(COLUMNS) - 1) * gap
+    geometry = strip_geometry(panels[0][1].shape[:2], len(COLUMNS), dpi)
+    w, h, gap, strip_w = geometry
     viridis = plt.get_cmap("viridis")
     with paper_style():
         # one image per row, its columns side by side: 6x fewer axes to lay out and draw than a grid of
@@ -135,18 +157,9 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
             shown = [clean_img, colorize(clean_pred), adv_img, colorize(adv_pred),
                      (viridis(np.clip(adv_conf, 0, 1))[..., :3] * 255).astype(np.uint8),
                      disagreement_overlay(adv_img, adv_pred, pseudo)]
-            strip = np.full((h, strip_w, 3), 255, dtype=np.uint8)
-            for j, im in enumerate(shown):
-                strip[:, j * (w + gap): j * (w + gap) + w] = fit(im, w, h, exact=j in (1, 3, 5))
             ax = axes[i, 0]
-            ax.imshow(strip, interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            for spine in ax.spines.values():
-                spine.set_visible(False)
-            if i == 0:
-                for j, name in enumerate(COLUMNS):
-                    ax.text(j * (w + gap) + w / 2, -0.04 * h, name, ha="center", va="bottom", fontsize=6)
+            draw_strip(ax, shown, [j in (1, 3, 5) for j in range(len(shown))], geometry,
+                       COLUMNS if i == 0 else None, fontsize=6)
             ax.set_ylabel(f"{p['kind']}: {condition_display(p['condition'])}\n{p['pair_id']}\n"
                           f"agreement {p['agreement']:.2f}", fontsize=5)
         # the confidence column's scale, and what each colour of the disagreement column means

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module

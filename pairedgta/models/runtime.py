@@ -6,8 +6,9 @@ family, which passes it to `Segmenter`. Torch-free, so a cached run can check an
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 from pairedgta.errors import ConfigError
 
@@ -67,4 +68,21 @@ def runtime_defaults() -> dict[str, Any]:
     return {k: v for k, v in asdict(RuntimeOptions()).items() if k in MODEL_KEYS}
 
 
-__all__ = ["RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Torch's CPU threads for a block of forwards (the run's `threads`: results depend on it), put back afterwards;
+    None leaves them as they are."""
+    if n is None:
+        yield
+        return
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+__all__ = ["torch_threads", "RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]

@@ -1,31 +1,18 @@
 """What every stage shares: the run context, stage results and cache lookups."""
 from __future__ import annotations
 
-import contextlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Protocol
 
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
-from pairedgta.models.runtime import SPEED_ONLY_KEYS
+from pairedgta.models.runtime import SPEED_ONLY_KEYS, torch_threads  # noqa: F401  (the stages' import)
 from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    import torch
-
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 @dataclass

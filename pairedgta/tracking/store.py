@@ -10,6 +10,7 @@ import logging
 import os
 import re
 import socket
+import sqlite3
 import time
 import uuid
 from pathlib import Path
@@ -71,7 +72,6 @@ def store_lock(uri: str) -> Iterator[None]:
 def probe_sqlite(uri: str) -> None:
     """Raise what MLflow's first write to a sqlite store would (locked, read-only, a folder that cannot be
     made, not a database) within SQLITE_WAIT_S: a write in a transaction that is rolled back."""
-    import sqlite3
 
     db = sqlite_path(uri)
     if db is None:
@@ -197,7 +197,6 @@ def _build_schema(target: Path) -> None:
 def _migrate_copy(db: Path, tables: list[str], target: Path) -> None:
     """A copy of the store `db` in `target`, the leftovers of an interrupted batch migration dropped and the
     migrations run again from the revision it records (the caller holds `db`'s write lock)."""
-    import sqlite3
 
     from mlflow.store.db import utils
 
@@ -260,7 +259,6 @@ def prepare_sqlite(uri: str) -> str | None:
     nothing, the common case, one read of its table list). Raises sqlite3.OperationalError while another
     program holds its lock (SQLITE_WAIT_S), StoreBroken with the one line that says how to repair it where
     it cannot be. Callers hold `store_lock(uri)`, and have probed the store (`probe_sqlite`: writable)."""
-    import sqlite3
 
     db = sqlite_path(uri)
     if db is None:
