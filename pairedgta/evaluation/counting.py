@@ -18,13 +18,14 @@ from tqdm import tqdm
 
 from pairedgta.datasets import LabelMaps, PairedDataset
 from pairedgta.errors import DataError
-from pairedgta.evaluation import reductions, registry
+from pairedgta.evaluation import entry, reductions, registry
 from pairedgta.evaluation.inputs import GroupInputs, load_groups, pack_group
 from pairedgta.evaluation.metric import GT, PSEUDO_LABEL, Group, GroupContext
 from pairedgta.evaluation.reductions import CONF_BINS
 from pairedgta.lazy import lazy_module
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
+F = lazy_module("torch.nn.functional")
 
 
 def _device(segmenter: Any) -> Any:
@@ -103,12 +104,13 @@ class GroupJob:
                                energy=maps["energy"], gram=maps["gram"])
             out = {f"{n}/{k}": v for n, m in enumerate(self.metrics) for k, v in m.update(ctx).items()}
             out["pred"] = labels
+            out["conf"] = confidence_thumbnail(maps["confidence"])
             self.copy = reductions.HostCopy(out)
 
     def result(self) -> dict[str, Any]:
         r = self.copy.get()
         present = self.item["present"]
-        pred = r.pop("pred")
+        pred, conf = r.pop("pred"), r.pop("conf")
         group = Group(self.item["group_id"], list(present), self.clean, [bool(t) for t in self.has_target],
                       self.has_gt, self.use_pl, tuple(pred.shape[1:]), self.model, self.dataset_name, self.s)
         own: list[dict[str, np.ndarray]] = [{} for _ in self.metrics]
@@ -120,7 +122,17 @@ class GroupJob:
             out[m.key] = m.record(host, group)
         # own memory: the pinned buffer goes back
         out["pred"] = {c: np.array(pred[i], dtype=np.uint8) for i, c in enumerate(present)}
+        out["conf"] = {c: np.array(conf[i], dtype=np.uint8) for i, c in enumerate(present)}
         return out
+
+
+def confidence_thumbnail(confidence: Any) -> Any:
+    """N x H x W max probabilities -> N x ceil(H/s) x ceil(W/s) uint8 (0-255 for 0-1), s = entry.CONFIDENCE_STEP: what
+    the qualitative figure shows (at a sixth of the page's width), stored so that no figure predicts again."""
+    step = entry.CONFIDENCE_STEP
+    c = torch.nan_to_num(confidence.float(), nan=0.0)[:, None]
+    pooled = F.avg_pool2d(c, step, ceil_mode=True, count_include_pad=False)[:, 0] if step > 1 else c[:, 0]
+    return pooled.clamp(0, 1).mul(255).round().to(torch.uint8)
 
 
 def launch_group(item: dict[str, Any], segmenter: Any, s: dict[str, Any], reference: str, use_pl: bool, batch: int,

@@ -27,6 +27,7 @@ log = logging.getLogger("pairedgta.evaluate")
 
 SUMMARY, GROUP_COUNTS, PREDICTIONS = "summary.json", "group_counts.npz", "predictions.npz"
 OWN_FILES = (SUMMARY, GROUP_COUNTS)  # the entry's tables besides the metrics' (predictions.npz: label maps)
+CONFIDENCE_STEP = 2  # predictions.npz keeps the max probability at 1/2 resolution, uint8 (counting.confidence_thumbnail)
 # The layout summary.json and group_counts.npz have had since evaluate VERSION 8, which these files keep byte for
 # byte; what a metric registered since adds follows, in registry order.
 SUMMARY_ORDER = ("model", "reference_model", "dataset", "convention", "sampling", "min_transmittance", "xi_mean",
@@ -110,20 +111,45 @@ def read_group_counts(path: Path) -> dict[str, np.ndarray]:
 def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
     """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
     absent), so that estimators comparing models pixel by pixel (agreement between models, ALine) need no
-    second inference pass. Label maps compress well: a few kB per image."""
+    second inference pass. Label maps compress well: a few kB per image. Beside them (`c<index>`, C x H/2 x W/2
+    uint8, 0 where absent) the max probability at CONFIDENCE_STEP, what the figures show of it, so that no figure
+    predicts again (an entry from before has none: the figures then do)."""
     arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
                                      "conditions": np.array(conditions, dtype=str)}
     for g, r in enumerate(results):
-        maps = r.get("pred") or {}
-        if not maps:
-            continue
-        shape = next(iter(maps.values())).shape
-        stack = np.full((len(conditions), *shape), IGNORE_INDEX, dtype=np.uint8)
-        for i, cond in enumerate(conditions):
-            if cond in maps:
-                stack[i] = maps[cond]
-        arrays[f"g{g:05d}"] = stack
+        for key, maps, fill in (("g", r.get("pred") or {}, IGNORE_INDEX), ("c", r.get("conf") or {}, 0)):
+            if not maps:
+                continue
+            shape = next(iter(maps.values())).shape
+            stack = np.full((len(conditions), *shape), fill, dtype=np.uint8)
+            for i, cond in enumerate(conditions):
+                if cond in maps:
+                    stack[i] = maps[cond]
+            arrays[f"{key}{g:05d}"] = stack
     write_npz(path, arrays)
+
+
+def read_prediction(path: Path, group_id: str, condition: str) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(labels H x W uint8, max probability H/2 x W/2 float in [0, 1] or None) of one image from an entry's
+    predictions.npz; None where the file, the group or the image is not there."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            ids, conds = [str(g) for g in z["group_id"]], [str(c) for c in z["conditions"]]
+            if group_id not in ids or condition not in conds:
+                return None
+            g, i = ids.index(group_id), conds.index(condition)
+            if f"g{g:05d}" not in z.files:
+                return None
+            labels = z[f"g{g:05d}"][i]
+            if (labels == IGNORE_INDEX).all():
+                return None
+            conf = z[f"c{g:05d}"][i].astype(np.float32) / 255.0 if f"c{g:05d}" in z.files else None
+            return labels, conf
+    except (OSError, ValueError, KeyError, EOFError):  # a damaged file: the figure predicts the image again
+        log.warning("evaluate entry %s: cannot read its predictions; the figures predict them again", path.parent)
+        return None
 
 
 def coverage(dataset: PairedDataset, conditions: list[str], clean: str, model: str, sampling: str = "all",

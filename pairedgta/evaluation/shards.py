@@ -23,7 +23,9 @@ def read_parts(parts: Path) -> dict[str, dict[str, Any]]:
             rows = json.loads(path.read_text())
             with np.load(path.with_suffix(".npz"), allow_pickle=False) as maps:
                 for i, r in enumerate(rows):
-                    r["pred"] = {c: maps[f"{i}|{c}"] for c in r.pop("pred_conditions")}
+                    present = r.pop("pred_conditions")
+                    r["pred"] = {c: maps[f"{i}|{c}"] for c in present}
+                    r["conf"] = {c: maps[f"c{i}|{c}"] for c in present if f"c{i}|{c}" in maps.files}
             for r in rows:
                 found[r["group_id"]] = r
         except (OSError, ValueError, json.JSONDecodeError, KeyError, TypeError):
@@ -37,7 +39,9 @@ def write_part(parts: Path, shard: int, num: int, results: list[dict[str, Any]])
     parts.mkdir(parents=True, exist_ok=True)
     path = parts / f"part-{shard:05d}-of-{num:05d}.json"
     maps = {f"{i}|{c}": m for i, r in enumerate(results) for c, m in (r.get("pred") or {}).items()}
-    rows = [{**{k: v for k, v in r.items() if k != "pred"}, "pred_conditions": list(r.get("pred") or {})} for r in results]
+    maps.update({f"c{i}|{c}": m for i, r in enumerate(results) for c, m in (r.get("conf") or {}).items()})
+    rows = [{**{k: v for k, v in r.items() if k not in ("pred", "conf")}, "pred_conditions": list(r.get("pred") or {})}
+            for r in results]
     write_npz(path.with_suffix(".npz"), maps)  # atomic; a failed write leaves neither temporary nor open ZipFile
     write_bytes(path, json.dumps(rows, default=_jsonable, allow_nan=False).encode())
     return path

@@ -12,7 +12,7 @@ panels:
   (c) where it loses most: the subject's GT mIoU lost from the clean image per condition beside the population's
       losses, the `report.worst_conditions` largest marked, with the share of the population that loses more;
   (d) its worst images: the `report.worst_cases` (group, condition) pairs with the lowest pixel agreement with the
-      pseudo-labels, predicted again (as the qualitative figure does): image | pseudo-label | prediction | disagreement;
+      pseudo-labels, as evaluate predicted them (its predictions.npz): image | pseudo-label | prediction | disagreement;
   (e) how well xi tracks ground truth on these scenes: Spearman of mean xi against GT mIoU across the population and
       the subject within each condition, with intervals over scenes and over models, and the subject's xi rank
       against its GT rank.
@@ -198,15 +198,16 @@ def _worst(r: Report, k: int) -> None:
 
 
 def _cases(r: Report, p: FigurePass, subject: Evaluation, k: int, device: str) -> list[dict]:
-    """The subject's k (group, condition) images with the lowest pixel agreement, predicted again."""
-    from pairedgta.models import shared_segmenter
+    """The subject's k (group, condition) images with the lowest pixel agreement, as evaluate predicted them."""
+    from pairedgta.evaluation.entry import PREDICTIONS
+    from pairedgta.figures.qualitative import Predictions
 
     a = subject.agreement()
     a = a[(a["pair_id"] != "ALL") & a["condition"].isin(r.conditions) & a["agreement_reference"].notna()]
     a = a.sort_values(["agreement_reference", "condition", "pair_id"], kind="stable").head(k)
     if a.empty or p.dataset is None or p.pseudo is None:
         return []
-    segmenter = shared_segmenter(subject.model_config(), device=device)  # the one evaluate loaded, within a run
+    predictions = Predictions(subject.path / PREDICTIONS, subject.model_config(), device, confidence=False)
     groups = {g.group_id: g for g in p.dataset.groups}
     cases = []
     for row_ in a.itertuples():
@@ -215,8 +216,7 @@ def _cases(r: Report, p: FigurePass, subject: Evaluation, k: int, device: str) -
             continue
         image = load_group_images(group, [row_.condition])[row_.condition]
         pseudo = p.pseudo.labels.load(group.group_id).astype(np.int64)
-        labels, _ = segmenter.predict(image[None])
-        pred = labels.numpy()[0]
+        pred = predictions(group, row_.condition, image)[0]
         valid = pseudo != IGNORE_INDEX
         again = float(((pred == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
         if not math.isclose(again, float(row_.agreement_reference), abs_tol=AGREEMENT_TOL):

@@ -2,10 +2,11 @@
 the pseudo-label (pixel_agreement.csv), as clean image | clean prediction | adverse image | adverse
 prediction | adverse confidence | disagreement overlay, in the Cityscapes palette.
 
-Evaluate stores no predictions (it streams), so the few shown groups are predicted again here; the
-recomputed agreement is written next to the cached one, which also checks that they match: to within
-AGREEMENT_TOL, as a batch of another size (evaluate predicts evaluate.batch_size conditions at once, this
-the adverse image alone) may flip a few boundary pixels; a wrong model or group differs by far more."""
+The label maps and the max probability are evaluate's own (its entry's predictions.npz, the confidence at half
+resolution, what a sixth of the page shows); an entry written before it kept the confidence has the shown images
+predicted again. The agreement recomputed from the shown maps is written next to evaluate's, which checks that
+the figure shows the images evaluate scored: to within AGREEMENT_TOL, as a batch of another size (evaluate predicts
+evaluate.batch_size conditions at once, a re-prediction the image alone) may flip a few boundary pixels."""
 from __future__ import annotations
 
 import logging
@@ -21,6 +22,7 @@ from PIL import Image
 
 from pairedgta.cityscapes import IGNORE_INDEX, colorize
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images
+from pairedgta.evaluation.entry import PREDICTIONS, read_prediction
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import (
     TEXT_WIDTH,
@@ -110,15 +112,35 @@ def fit(image: np.ndarray, w: int, h: int, exact: bool) -> np.ndarray:
     return np.asarray(Image.fromarray(np.ascontiguousarray(image)).resize((w, h), resample))
 
 
+class Predictions:
+    """The label maps (and max probability) of the shown images: evaluate's, stored in its entry's predictions.npz;
+    predicted again only where the entry has none (one written before it kept the confidence)."""
+
+    def __init__(self, stored: Path | None, model_cfg: dict[str, Any], device: str, confidence: bool = True) -> None:
+        self.stored, self.model_cfg, self.device, self.confidence = stored, model_cfg, device, confidence
+        self.predicted = 0  # images predicted again (none for an entry of this release)
+
+    def __call__(self, group: Any, condition: str, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        found = read_prediction(self.stored, group.group_id, condition) if self.stored is not None else None
+        if found is not None and (found[1] is not None or not self.confidence):
+            return found
+        from pairedgta.models import shared_segmenter
+
+        segmenter = shared_segmenter(self.model_cfg, device=self.device)  # the one evaluate loaded, within a run
+        labels, conf = segmenter.predict(image[None])
+        self.predicted += 1
+        return labels.numpy()[0], conf.numpy()[0]
+
+
 def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement: pd.DataFrame,
                      model_cfg: dict[str, Any], conditions: list[str], n: int, clean: str, out: Path, stem: str,
-                     formats: list[str], dpi: int, title: str = "", device: str = "cpu") -> tuple[list[Path], pd.DataFrame]:
-    from pairedgta.models import shared_segmenter
-
+                     formats: list[str], dpi: int, title: str = "", device: str = "cpu",
+                     stored: Path | None = None) -> tuple[list[Path], pd.DataFrame]:
+    """`stored`: the evaluate entry's predictions.npz, whose maps the figure shows (else it predicts them again)."""
     picks = select_groups(agreement, conditions, n)
     if not picks:
         return [], pd.DataFrame()
-    segmenter = shared_segmenter(model_cfg, device=device)  # the one evaluate loaded, within a run
+    predictions = Predictions(stored, model_cfg, device)
     groups = {g.group_id: g for g in dataset.groups}
     rows = []
     panels = []
@@ -129,19 +151,16 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
             continue
         images = load_group_images(group, [clean, p["condition"]])
         pseudo = pseudo_labels.load(group.group_id).astype(np.int64)
-        batch = [images[p["condition"]]] + ([] if group.group_id in clean_preds else [images[clean]])
-        labels, conf = segmenter.predict(np.stack(batch))
-        labels, conf = labels.numpy(), conf.numpy()
-        adv_pred, adv_conf = labels[0], conf[0]
-        if len(batch) == 2:
-            clean_preds[group.group_id] = labels[1]
+        adv_pred, adv_conf = predictions(group, p["condition"], images[p["condition"]])
+        if group.group_id not in clean_preds:
+            clean_preds[group.group_id] = predictions(group, clean, images[clean])[0]
         clean_pred = clean_preds[group.group_id]
         valid = pseudo != IGNORE_INDEX
         recomputed = float(((adv_pred == pseudo) & valid).sum() / valid.sum()) if valid.any() else math.nan
         if not math.isclose(recomputed, p["agreement"], abs_tol=AGREEMENT_TOL):
             log.warning("qualitative %s/%s: recomputed agreement %.4f differs from evaluate's %.4f",
                         p["condition"], group.group_id, recomputed, p["agreement"])
-        rows.append({**p, "model": segmenter.name, "agreement_recomputed": recomputed})
+        rows.append({**p, "model": model_cfg["name"], "agreement_recomputed": recomputed})
         panels.append((p, images[clean], clean_pred, images[p["condition"]], adv_pred, adv_conf, pseudo))
     if not panels:
         return [], pd.DataFrame(rows)
@@ -174,7 +193,7 @@ def qualitative_grid(dataset: PairedDataset, pseudo_labels: LabelMaps, agreement
         if classes:
             fig.legend(handles=classes, loc="outside lower left", fontsize=5, frameon=False,
                        ncols=min(len(classes), 5), title="predicted classes", title_fontsize=5)
-        fig.suptitle(title or model_display(segmenter.name), fontsize=7)
+        fig.suptitle(title or model_display(model_cfg["name"]), fontsize=7)
         return save(fig, out, stem, formats, dpi), pd.DataFrame(rows)
 
 
@@ -200,6 +219,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
                 p.dataset, p.pseudo.labels, e.agreement(), model_cfg, conditions, n, clean, out,
                 opts.stem("qualitative", p.label) + f"_{slug(model_cfg['name'])}", opts.formats, opts.dpi,
                 title=f"{p.label} \u00b7 {model_cfg['name']}" if opts.multi else "", device=opts.run.device,
+                stored=e.path / PREDICTIONS,
             )
             files += opts.own(paths, model_cfg["name"], p.label)
             if not table.empty:
