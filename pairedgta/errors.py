@@ -75,6 +75,8 @@ def reason(exc: BaseException) -> str:
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
     kept = [ln for ln in lines if not ln.startswith(_BOILERPLATE)] or lines
     text = " ".join(kept)
+    if "WeightsUnpickler error:" in text:  # torch's refusal: the global it refused, not its advice to load anyway
+        text = text.split("WeightsUnpickler error:", 1)[1].split(" Please use ", 1)[0].strip()
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 

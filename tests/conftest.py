@@ -69,8 +69,10 @@ def tmp(tmp_path: Path) -> Path:
 # first, one on each worker: they mostly wait on their jobs and servers, whose CPU time the other
 # modules would otherwise compete with at the end.
 SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_documented_commands.py",
-              "test_journal.py", "test_cli.py", "test_demo_model.py", "test_night_light.py", "test_tracking.py",
+              "test_journal.py", "test_write_faults.py", "test_store_lock.py", "test_cli.py", "test_demo_model.py", "test_night_light.py", "test_tracking.py",
               "test_python_versions.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
+              "test_same_numbers_across_formats.py", "test_source_onnx.py", "test_source_export.py", "test_model_report.py",
+              "test_source_python_torchvision.py",
               "test_experiments.py", "test_pipeline.py", "test_cityscapes_val.py", "test_ladders.py",
               "test_paper_table.py", "test_render_blender.py")
 

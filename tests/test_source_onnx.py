@@ -242,12 +242,12 @@ def cli_args(tmp_path: Path, path: Path) -> list[str]:
 
 @pytest.mark.slow
 def test_model_onnx_from_the_cli(net, tmp_path):
-    from pairedgta.testing.cli import run_cli
+    from pairedgta.testing.cli import report_overrides, report_page, run_cli
 
     _, _, path = net
-    r = run_cli(cli_args(tmp_path, path), tmp_path)
+    r = run_cli(report_overrides(tmp_path) + ["model=onnx", f"model.path={path}"], tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert list((tmp_path / "cache" / "evaluate").glob("[!.]*"))
+    report_page(r, path.stem)
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from safetensors.torch import save_file
 from pairedgta.errors import ConfigError, ModelError
 from pairedgta.models import build_segmenter, with_defaults
 from pairedgta.stages.common import model_hash_config
-from source_nets import dict_net, tiny_net
+from source_nets import tiny_net
 
 
 def save(module, path):
@@ -132,17 +132,18 @@ def test_model_files_are_in_the_stage_keys(tmp_path):
 
 @pytest.mark.slow
 def test_python_and_torchvision_through_the_cli(tmp_path, lraspp):
-    from pairedgta.testing.cli import fast_overrides, run_cli
+    from pairedgta.testing.cli import fast_overrides, report_overrides, report_page, run_cli
 
     ckpt = save(tiny_net(seed=5), tmp_path / "mine.safetensors")
-    r = run_cli(fast_overrides(tmp_path) + ["model=python", "model.target=source_nets:tiny_net",
-                                            f"model.checkpoint_path={ckpt}"], tmp_path)
+    r = run_cli(report_overrides(tmp_path) + ["model=python", "model.target=source_nets:tiny_net",
+                                              f"model.checkpoint_path={ckpt}"], tmp_path)
     assert r.returncode == 0, r.stderr
-    assert "evaluate [mine]" in r.stdout + r.stderr
-    r = run_cli(fast_overrides(tmp_path) + ["model=torchvision", "model.arch=lraspp_mobilenet_v3_large",
-                                            f"model.checkpoint_path={lraspp[1]}"], tmp_path)
+    report_page(r, "mine")
+    r = run_cli(report_overrides(tmp_path) + ["model=torchvision", "model.arch=lraspp_mobilenet_v3_large",
+                                              f"model.checkpoint_path={lraspp[1]}"], tmp_path)
     assert r.returncode == 0, r.stderr
-    assert "evaluate [lraspp]" in r.stdout + r.stderr
+    report_page(r, "lraspp")
+    assert "evaluate [tiny_ddrnet]: cache hit" in r.stdout + r.stderr  # the population's, from the first run
     # a bad file: one line, exit 2, nothing of the run's stages written
     bad = tmp_path / "bad.safetensors"
     bad.write_bytes(b"not safetensors at all")

@@ -140,12 +140,13 @@ def test_a_pickle_weights_file_executes_nothing(unet_dir, tmp_path):
 
 @pytest.mark.slow
 def test_smp_folder_through_the_cli(unet_dir, tmp_path):
-    from pairedgta.testing.cli import fast_overrides, run_cli
+    from pairedgta.testing.cli import report_overrides, report_page, run_cli
 
     folder = tmp_path / "my_unet"
     shutil.copytree(unet_dir[0], folder)
-    r = run_cli(fast_overrides(tmp_path) + ["model=smp", f"model.path={folder}"], tmp_path)
+    r = run_cli(report_overrides(tmp_path) + ["model=smp", f"model.path={folder}"], tmp_path)
     assert r.returncode == 0, r.stderr
+    report_page(r, "my_unet")
     evals = {json.loads((p / "manifest.json").read_text())["config"]["model"]["name"]: p
              for p in (tmp_path / "cache" / "evaluate").iterdir() if not p.name.startswith(".")}
     assert "my_unet" in evals and (evals["my_unet"] / "xi.csv").is_file()

@@ -72,6 +72,27 @@ def fast_overrides(tmp: Path) -> list[str]:
     ]
 
 
+REPORT_POPULATION = ("tiny_ddrnet", "tiny_pidnet")
+
+
+def report_overrides(tmp: Path) -> list[str]:
+    """`fast_overrides` as `+experiment=model_report` of the model chosen after them, placed against two tiny zoo
+    graphs: a source's test runs it through the CLI to its report page."""
+    return [o for o in fast_overrides(tmp) if not o.startswith("model=")] + [
+        "+experiment=model_report", f"report.population=[{','.join(REPORT_POPULATION)}]", "report.worst_cases=1"]
+
+
+def report_page(proc: subprocess.CompletedProcess, model: str) -> Path:
+    """The model report's markdown a run wrote for `model`, from the line the run prints (the page beside it)."""
+    import re
+
+    found = re.search(rf"model report of {re.escape(model)} \(model_report.md beside it\): (\S+)", proc.stdout + proc.stderr)
+    assert found, (proc.stdout + proc.stderr)[-3000:]
+    md = Path(found.group(1)).with_suffix(".md")
+    assert md.is_file() and md.read_text().startswith(f"# Model report: {model}"), md
+    return md
+
+
 def run_cli(args: list[str], cwd: Path, env_extra: dict | None = None, timeout: int = 600,
             multirun: bool = False, subprocess_: bool | None = None) -> subprocess.CompletedProcess:
     """`python -m pairedgta ARGS` run from `cwd`, as a CompletedProcess (returncode, stdout, stderr).
