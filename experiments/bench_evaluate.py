@@ -205,8 +205,9 @@ def columns(t: dict[str, Any]) -> dict[str, float]:
 
 def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int, arch: str, device: str = "cpu",
             amp: str | None = None, model_batch: int | None = None, full: bool = False, conditions: int = 3,
-            extra: list[str] | None = None) -> dict[str, Any]:
-    """One measurement in this process: the bare forward (and its warm-up) first, then the stages."""
+            extra: list[str] | None = None, repeats: int = 1) -> dict[str, Any]:
+    """One measurement in this process: the bare forward (and its warm-up) first, then the stages and a bare forward
+    after each, `repeats` times (the median run's columns; `ratios`, `ratio_spread`: every run's)."""
     import resource
 
     import numpy as np
@@ -244,22 +245,36 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     build = models.build_segmenter  # the stages get the model just timed (built once: the paper's take seconds)
     built = {c["model"]["name"]: seg}
     models.build_segmenter = lambda cfg, device=None, **kw: built.get(cfg.get("name")) or build(cfg, device=device, **kw)
-    start = time.perf_counter()
+    # the stage `repeats` times (evaluate forced after the first), a bare forward after each: every stage run is
+    # compared with the bare forwards just before and after it, so a machine that speeds up or slows down within
+    # the run moves both sides of that ratio together; the median run is reported, with the spread of the ratios
+    bare, runs = [out["bare"]], []
     try:
-        with _timers("cuda" if cuda else "cpu") as t:
-            run(cfg)
+        for i in range(repeats):
+            if i:
+                with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+                    cfg = compose("config", overrides=args + ["force=[evaluate]"])
+            torch.set_num_threads(threads)
+            start = time.perf_counter()
+            with _timers("cuda" if cuda else "cpu") as t:
+                run(cfg)
+            t["stages"] = time.perf_counter() - start
+            torch.set_num_threads(int(c["threads"]))
+            bare.append(bare_forward(seg, images, batch))
+            t["bare_before"], t["bare_after"] = bare[-2], bare[-1]
+            t["bare"] = (bare[-2] + bare[-1]) / 2
+            t["ratio"] = columns({**t, "images": out["images"]})["ratio"]
+            runs.append(t)
     finally:
         models.build_segmenter = build
-    out["stages"] = time.perf_counter() - start
     built.clear()
-    torch.set_num_threads(int(c["threads"]))
-    # the bare forward again, after the stage: the mean of the two is less at the mercy of the machine's load
-    out["bare_before"], out["bare_after"] = out["bare"], bare_forward(seg, images, batch)
-    out["bare"] = (out["bare_before"] + out["bare_after"]) / 2
     torch.set_num_threads(threads)
+    ratios = [t["ratio"] for t in runs]
+    median = sorted(runs, key=lambda t: t["ratio"])[len(runs) // 2]
+    out.update({k: v for k, v in median.items() if k != "ratio"})
+    out["ratios"], out["ratio_spread"] = ratios, max(ratios) - min(ratios)
     out["load"] = [round(x, 2) for x in os.getloadavg()]
     del seg
-    out.update(t)
     if cuda:
         out["stage_peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -310,6 +325,7 @@ def main() -> None:
     ap.add_argument("--memory", type=int, nargs="*", default=[], help="also peak RSS at these dataset sizes")
     ap.add_argument("--jobs", type=int, default=1, help="processes rendering the dataset")
     ap.add_argument("--json", default=None, help="append each measurement as a JSON line to this file")
+    ap.add_argument("--repeats", type=int, default=3, help="stage runs per measurement, each between two bare forwards")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -324,13 +340,14 @@ def main() -> None:
               f"conditions, batch {args.batch}, {args.device} {args.amp or 'fp32'}")
         print(HEADER)
         kw = dict(device=args.device, amp=args.amp, model_batch=args.model_batch, full=args.full,
-                  conditions=args.conditions, extra=args.set)
+                  conditions=args.conditions, extra=args.set, repeats=args.repeats)
         cuda = args.device.startswith("cuda")
         for workers in ([args.workers] if cuda else sorted({0, int(args.workers)})):
             r = measure_child(root, Path(tmp) / f"cache{workers}", args.model, workers, args.batch, args.arch, **kw)
             print(row(workers, r) + (f"  peak GPU {r['stage_peak_gpu_mb']:.0f} MB" if cuda else "")
                   + f"  (bare {r['images'] / r['bare_before']:.2f} before, {r['images'] / r['bare_after']:.2f} after; "
-                  f"load {r['load'][0]})", flush=True)
+                  f"ratio of each of {len(r['ratios'])} runs {', '.join(f'{x:.2f}' for x in r['ratios'])}, spread "
+                  f"{r['ratio_spread']:.2f}; load {r['load'][0]})", flush=True)
             if args.json:
                 with open(args.json, "a") as f:
                     f.write(json.dumps(r, default=float) + "\n")
@@ -339,7 +356,7 @@ def main() -> None:
             r = Path(tmp) / f"mem{n}"
             make_release_dataset(r, n, args.width, args.height, args.conditions, args.jobs)
             rss.append((n, measure_child(r, Path(tmp) / f"cmem{n}", args.model, 0, args.batch, args.arch,
-                                         **kw)["peak_rss_mb"]))
+                                         **{**kw, "repeats": 1})["peak_rss_mb"]))
         for n, mb in rss:
             print(f"peak RSS with {n} groups: {mb:.0f} MB")
         if len(rss) >= 2:

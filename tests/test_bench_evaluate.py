@@ -64,8 +64,11 @@ def test_a_measurement_on_a_fake_segmenter_adds_up(tmp_path, monkeypatch):
     for module, name in ((models, "build_segmenter"), (ev, "shared_segmenter"), (pl, "shared_segmenter")):
         monkeypatch.setattr(module, name, _Fake.build)  # the bare forward's model, and the stages'
     b.make_release_dataset(tmp_path / "ds", 3, 64, 32)
-    r = b.measure(tmp_path / "ds", tmp_path / "cache", "tiny_ddrnet", 0, 2, "-")
+    r = b.measure(tmp_path / "ds", tmp_path / "cache", "tiny_ddrnet", 0, 2, "-", repeats=3)
     assert r["images"] == 9 and r["groups"] == 3 and (r["width"], r["height"]) == (64, 32)
+    # three stage runs, each between two bare forwards: the reported columns are the median run's
+    assert len(r["ratios"]) == 3 and r["ratio"] == pytest.approx(sorted(r["ratios"])[1])
+    assert r["ratio_spread"] == pytest.approx(max(r["ratios"]) - min(r["ratios"]))
     assert 0 < r["forward"] <= r["count"] and r["write"] > 0 and r["bare"] > 0
     assert r["forward_share"] + r["other_share"] + r["write_share"] == pytest.approx(1.0, abs=1e-12)
     assert r["eval_ips"] == pytest.approx(9 / r["count"]) and r["ratio"] == pytest.approx(r["eval_ips"] / r["bare_ips"])
