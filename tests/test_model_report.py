@@ -246,14 +246,15 @@ def test_a_model_placed_against_a_population_through_the_cli(tmp_path, monkeypat
     assert tracked["n models"].tolist()[:2] == ["4", "4"] and tracked["condition"].iloc[-1].startswith("mean over")
     assert len(_table(md, "Where it loses most")) == 2 and len(_table(md, "Worst images")) == 2
 
-    # another model: the population's evaluations are the cache's, the report its own
-    again = run_cli([*base, f"model.target={module}:mine_b"], tmp_path)
+    # a sweep over the researcher's models (-m): one report per job, the population's evaluations the cache's
+    again = run_cli([*base, f"model.target={module}:mine_a,{module}:mine_b"], tmp_path, multirun=True)
     out2 = again.stdout + again.stderr
     assert again.returncode == 0, out2[-3000:]
     for name in POPULATION:
-        assert f"evaluate [{name}]: cache hit" in out2, name
+        assert out2.count(f"evaluate [{name}]: cache hit") == 2, name  # in each job
         assert _evaluations(again.stdout)[name] == evaluated[name]
-    assert "evaluate [mine_b]: computing" in out2
+    assert "evaluate [mine_a]: cache hit" in out2 and "evaluate [mine_b]: computing" in out2
+    assert "model report of mine_a" in out2
     page2 = Path(re.search(r"model report of mine_b \(model_report.md beside it\): (\S+)", out2).group(1))
     assert page2.parent != page.parent and page2.with_suffix(".md").read_text().startswith("# Model report: mine_b")
     sys.modules.pop(module, None)
