@@ -34,7 +34,7 @@ def _hub_answers(hub_id: str, timeout: float) -> str | None:
 
 def check_available(models: Iterable[dict[str, Any]], timeout: float = 10.0) -> None:
     """Raise one ModelError for the first model whose weights cannot be had here."""
-    from pairedgta.models.checkpoint import resolve_checkpoint_path
+    from pairedgta.models.hf_common import resolve_checkpoint_path
     from pairedgta.models.hf_common import pretrained_source
 
     from pairedgta.models import is_source

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from pairedgta.errors import ModelError, reason
 from pairedgta.models.base import Segmenter
+from pairedgta.models.hf_common import resolve_checkpoint_path
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
 log = logging.getLogger(__name__)
@@ -52,16 +53,6 @@ def _first_line(exc: BaseException) -> str:
 
 def _is_state_dict(obj: Any) -> bool:
     return isinstance(obj, Mapping) and len(obj) > 0 and all(isinstance(v, torch.Tensor) for v in obj.values())
-
-
-def resolve_checkpoint_path(path: str | Path) -> Path:
-    """`pkg://models/weights/<name>/model.safetensors` is a file shipped inside the package (the zoo)."""
-    from pairedgta.models.hf_common import PACKAGE_DIR
-
-    text = str(path)
-    if text.startswith("pkg://"):
-        return PACKAGE_DIR / text[len("pkg://"):]
-    return Path(text).expanduser()
 
 
 def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str, torch.Tensor]:

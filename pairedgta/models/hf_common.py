@@ -37,6 +37,15 @@ def _load_error_types() -> tuple[type[BaseException], ...]:
 _LOAD_ERRORS = _load_error_types()
 
 
+def resolve_checkpoint_path(path: str | Path) -> Path:
+    """`pkg://models/weights/<name>/model.safetensors` is a file shipped inside the package (the zoo). Torch-free:
+    the stage keys fingerprint such files on every run, a cached one included."""
+    text = str(path)
+    if text.startswith("pkg://"):
+        return PACKAGE_DIR / text[len("pkg://"):]
+    return Path(text).expanduser()
+
+
 def pretrained_source(cfg: dict[str, Any]) -> str:
     path = cfg.get("path")
     if path and str(path).startswith("pkg://"):

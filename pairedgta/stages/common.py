@@ -74,7 +74,7 @@ def model_files(model_cfg: dict[str, Any]) -> list[Path]:
                                 and p.name.startswith(root.stem) and p.suffix in (".data", ".bin", ".weight"))
     ckpt = model_cfg.get("checkpoint_path")
     if ckpt:  # a pkg:// file is the zoo's, inside the package: retrained weights must not be a cache hit either
-        from pairedgta.models.checkpoint import resolve_checkpoint_path
+        from pairedgta.models.hf_common import resolve_checkpoint_path
 
         if (ckpt := resolve_checkpoint_path(ckpt)).is_file():
             files.append(ckpt)
