@@ -21,7 +21,7 @@ import torch
 
 from pairedgta.errors import ModelError, reason
 from pairedgta.models.contract import Network
-from pairedgta.models.sources.export import identify, in_batches, model_file, wrong_format
+from pairedgta.models.sources.files import identify, in_batches, model_file, wrong_format
 
 log = logging.getLogger("pairedgta.models")
 DTYPES = {"tensor(float)": (np.float32, torch.float32), "tensor(float16)": (np.float16, torch.float16)}
