@@ -9,7 +9,7 @@ from typing import Any, Protocol
 from pairedgta.cache import StageCache, stage_hash
 from pairedgta.conditions import ConditionGrid
 from pairedgta.errors import ConfigError, PairedGTAError
-from pairedgta.models.runtime import SPEED_ONLY_KEYS, torch_threads  # noqa: F401  (the stages' import)
+from pairedgta.models.runtime import SPEED_ONLY_KEYS
 from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")

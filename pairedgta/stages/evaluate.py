@@ -30,6 +30,7 @@ from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.settings import conditions_for, metric_settings
 from pairedgta.schema import as_dict
 from pairedgta.models import is_source, shared_segmenter
+from pairedgta.models.runtime import torch_threads
 from pairedgta.conditions import headline_condition
 from pairedgta.stages.common import (
     Context,
@@ -37,7 +38,6 @@ from pairedgta.stages.common import (
     model_config_from_hash,
     model_hash_config,
     run_cached,
-    torch_threads,
 )
 from pairedgta.stages.pseudolabel import PseudoLabels
 

@@ -22,8 +22,9 @@ from pairedgta.errors import ConfigError, DataError
 from pairedgta.evaluation import setup_check
 from pairedgta.jsonio import write_json
 from pairedgta.models import is_source, shared_segmenter
+from pairedgta.models.runtime import torch_threads
 from pairedgta.stages import generate
-from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached, torch_threads
+from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
 from pairedgta.tracking import bundle, dataset_label, run_name
 
 if TYPE_CHECKING:  # planning reads this module's spec, not the module

@@ -17,7 +17,8 @@ import pandas as pd
 from pairedgta.datasets import LabelMaps, PairedDataset, load_image, load_label
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached, torch_threads
+from pairedgta.models.runtime import torch_threads
+from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
 
 from pairedgta.lazy import lazy_module
 
