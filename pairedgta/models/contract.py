@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from pairedgta.errors import ConfigError, ModelError, reason
@@ -293,8 +293,6 @@ def build_source(loader, /, *, name: str | None = None, family: str, mean: list 
     where = f"model ({name})"
     try:
         network = loader(name, str(runtime.device), **own)
-    except (ModelError, ConfigError):
-        raise
     except ImportError as exc:
         raise ConfigError(f"model={family} needs the Python package '{exc.name}', which is not installed; "
                           f"pip install -e \".[{family}]\"") from None
@@ -316,13 +314,5 @@ def build_source(loader, /, *, name: str | None = None, family: str, mean: list 
     return seg
 
 
-def contract_record(seg: Segmenter) -> dict[str, Any]:
-    """What summary.json and MLflow record of a source model: its effective contract and label space."""
-    if not isinstance(seg, ContractSegmenter):
-        return {}
-    return {"source": seg.source, "contract": asdict(seg.contract), "label_space": seg.labels.space,
-            "unpredictable_classes": list(seg.labels.unpredictable)}
-
-
 __all__ = ["Network", "Contract", "ContractSegmenter", "build_source", "make_contract", "check_contract",
-           "CONTRACT_OPTIONS", "DEFAULTS", "contract_record"]
+           "CONTRACT_OPTIONS", "DEFAULTS"]

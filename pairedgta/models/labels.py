@@ -13,7 +13,7 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
 from pairedgta.errors import ConfigError, ModelError
@@ -133,7 +133,7 @@ def read_table(path: Path, space: str | None = None) -> LabelMap:
     return LabelMap(space, tuple(names), tuple(target))
 
 
-def _cityscapes(num_outputs: int | None, id2label: Mapping[int, str] | None, where: str) -> LabelMap:
+def _cityscapes(id2label: Mapping[int, str] | None, where: str) -> LabelMap:
     names = [id2label[i] for i in sorted(id2label)] if id2label else None
     if names and not all(_GENERIC.match(normalise_name(n)) for n in names):
         known = [_CITYSCAPES.get(normalise_name(n)) for n in names]
@@ -153,7 +153,7 @@ def resolve_labels(spec: Any, *, id2label: Mapping[int, str] | None = None, wher
     ones, matched by name; a shipped space or a TSV gives its rows in channel order."""
     spec = "cityscapes" if spec is None else str(spec)
     if spec == "cityscapes":
-        return _cityscapes(None, id2label, where)
+        return _cityscapes(id2label, where)
     if spec in SHIPPED:
         return against_checkpoint(read_table(TABLES / f"{spec}.tsv", spec), id2label, where)
     if "/" in spec or spec.endswith((".tsv", ".txt")):
@@ -182,11 +182,6 @@ def against_checkpoint(table: LabelMap, id2label: Mapping[int, str] | None, wher
     return table
 
 
-def check_labels(spec: Any) -> None:
-    """The config-time check (before any stage): a shipped name, or a readable TSV with known class names."""
-    resolve_labels(spec)
-
-
 def fit_outputs(labels: LabelMap, channels: int, where: str) -> LabelMap:
     """The map for a model with `channels` outputs: equal to the table, or Vistas' 65-class head (no Unlabeled)."""
     if channels == labels.num_outputs:
@@ -206,12 +201,4 @@ def _guess(channels: int) -> str:
     return "; set model.labels= to its label space or to a TSV with one row per output channel"
 
 
-def tag(labels: LabelMap | None) -> dict[str, Any]:
-    """What a run records of a model's label space (summary.json, the MLflow tags)."""
-    if labels is None:
-        return {}
-    return {"label_space": labels.space, "unpredictable_classes": list(labels.unpredictable)}
-
-
-__all__ = ["LabelMap", "resolve_labels", "read_table", "fit_outputs", "check_labels", "normalise_name", "SHIPPED",
-           "Sequence"]
+__all__ = ["LabelMap", "resolve_labels", "read_table", "fit_outputs", "normalise_name", "SHIPPED"]
