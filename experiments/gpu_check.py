@@ -15,6 +15,10 @@
   4. forward   the bare forward of the paper's eight graphs in fp32 and bf16 at --size, batch 8, and peak GPU memory;
   5. eta       the stage (bf16) of the eight at --eta-size (1920x1080): images/s, and the time for 1,000 groups x 9
                conditions with all eight on this card (plus pseudo-labelling with SegFormer-B5).
+  6. sources   the model sources of issue 56 on the device: Mask2Former-Swin-S saved as a user's save_pretrained
+               folder through `model=hf` (the universal auto class, bf16), and demo_ddrnet exported to ONNX here
+               (gpu_bundle/demo_ddrnet.onnx) through `model=onnx` with the CUDA provider, where the machine's
+               onnxruntime has one (a row says which providers it has).
 Rows go to <out>/gpu_<date>_<card>.csv as they are measured and a summary to <out>/gpu_<date>_<card>.md after each
 step; <out> is $OUT when set (the lent machine sends back what is written there), else experiments/results.
 """
@@ -75,8 +79,9 @@ def run_main_job(cache: Path, dataset_root: Path | None, device: str, stages: st
 
 
 def prepare(bundle: Path, cache: Path | None) -> None:
-    """gpu_bundle/: the wheels the lent machine lacks (hydra-core, omegaconf, antlr4 runtime, scipy for cp312), the
-    main job's generated dataset and this machine's CPU outputs of it (pseudolabel + evaluate of the four models)."""
+    """gpu_bundle/: the wheels the lent machine lacks (hydra-core, omegaconf, antlr4 runtime; it has scipy, whose
+    wheel would not fit beside the rest in one call's 64 MiB), the main job's generated dataset, this machine's CPU
+    outputs of it (pseudolabel + evaluate of the four models) and demo_ddrnet as ONNX."""
     import hydra
     import omegaconf
 
@@ -87,9 +92,6 @@ def prepare(bundle: Path, cache: Path | None) -> None:
     subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels), f"hydra-core=={hydra.__version__}",
                           f"omegaconf=={omegaconf.__version__}"], check=True)
     subprocess.run(pip + ["wheel", "--no-deps", "-w", str(wheels), "antlr4-python3-runtime==4.9.3"], check=True)
-    subprocess.run(pip + ["download", "--no-deps", "--only-binary=:all:", "--python-version", "3.12", "--implementation",
-                          "cp", "--abi", "cp312", "--platform", "manylinux2014_x86_64", "-d", str(wheels),
-                          "scipy>=1.13,<1.17"], check=True)
     cache = cache or Path(tempfile.mkdtemp(prefix="gpu-prepare-"))
     summary = run_main_job(cache, None, "cpu", "generate")
     entry = Path(summary.get("generate") or next((cache / "generate").iterdir()))
@@ -101,6 +103,7 @@ def prepare(bundle: Path, cache: Path | None) -> None:
         for f in MAIN_FILES:
             shutil.copy2(Path(path) / f, main / "cpu" / name / f)
     shutil.copytree(Path(summary["pseudolabel"]) / "labels", main / "cpu" / "pseudolabel")
+    export_onnx(bundle / "demo_ddrnet.onnx")
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
                            text=True).stdout.strip()
@@ -110,6 +113,21 @@ def prepare(bundle: Path, cache: Path | None) -> None:
                                                 "models": sorted(summary["evaluate"])}, indent=1))
     size = sum(p.stat().st_size for p in bundle.rglob("*") if p.is_file()) / 2**20
     print(f"{bundle}: {size:.1f} MiB (carry it: run(carry=['{bundle.relative_to(ROOT)}']))")
+
+
+def export_onnx(path: Path) -> None:
+    """demo_ddrnet as a user would hand it over: an ONNX graph with dynamic batch and size (multiples of 32)."""
+    import warnings
+
+    import torch
+
+    from pairedgta.models import build_segmenter
+
+    module = build_segmenter("demo_ddrnet").module.eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, (torch.rand(2, 3, 256, 512),), str(path), dynamo=False, input_names=["image"],
+                          output_names=["scores"], dynamic_axes={"image": {0: "b", 2: "h", 3: "w"}})
 
 
 # -- run (on the lent machine) --------------------------------------------------------------------------------------
@@ -265,12 +283,13 @@ def step_mainjob(rep: Report, bundle: Path, device: str, tmp: Path) -> None:
 
 
 def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dtype: str, device: str,
-          batch: int, tmp: Path, options: dict[str, Any], workers: str) -> dict[str, Any] | None:
+          batch: int, tmp: Path, options: dict[str, Any], workers: str, extra: tuple[str, ...] = ()
+          ) -> dict[str, Any] | None:
     from bench_models import model_overrides
 
     try:
         r = be.measure(root, tmp / f"cache-{step}-{name}-{dtype}", model, workers, batch, "-", device,
-                       None if dtype == "fp32" else dtype, full=False, conditions=9, extra=model_overrides(options))
+                       None if dtype == "fp32" else dtype, full=False, conditions=9, extra=model_overrides(options) + list(extra))
     except Exception as exc:  # noqa: BLE001 - a row that says so, the next measurement goes on
         rep.add(step, model=name, dtype=dtype, batch=batch, note=failed(exc))
         free()
@@ -281,6 +300,47 @@ def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dt
             other_share=r["other_share"], write_share=r["write_share"], stage_peak_gpu_mb=r.get("stage_peak_gpu_mb"),
             peak_gpu_mb=r.get("bare_peak_gpu_mb"), workers=workers, note=None if model == name else f"as {model}")
     return r
+
+
+def step_sources(rep: Report, be: Any, bundle: Path, root: Path, device: str, tmp: Path, workers: str,
+                 tiny: bool) -> None:
+    """Issue 57 item 5: a universal HF model through `model=hf` and an ONNX graph through `model=onnx`, each the
+    stage against its own bare forward on the same images."""
+    from transformers import Mask2FormerImageProcessor
+
+    from bench_models import PAPER
+    from pairedgta.models import build_segmenter
+
+    name = "tiny_mask2former" if tiny else "mask2former_swin_s"
+    zoo = build_segmenter(name, device="cpu", **({} if tiny else dict(PAPER[name])))
+    folder = tmp / "hf-mask2former"
+    zoo.module.save_pretrained(folder)  # the random-init graph with Cityscapes' id2label, as save_pretrained writes it
+    Mask2FormerImageProcessor(do_resize=False, size_divisor=32, ignore_index=255).save_pretrained(folder)
+    del zoo
+    free()
+    # the pseudo-labels come from a zoo model (a source's model.path does not reach reference_model=hf)
+    reference = ("reference_model=demo_ddrnet",)
+    stage(rep, "sources", be, root, f"hf:{name}", "hf", "bf16", device, 9, tmp, {"path": str(folder)}, workers,
+          reference)
+    rep.write_md()
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:
+        rep.add("sources", model="onnx:demo_ddrnet", note=failed(exc))
+        return
+    have = ort.get_available_providers()
+    rep.add("sources", model="onnx:demo_ddrnet", value=f"onnxruntime {ort.__version__}",
+            note=f"providers: {', '.join(have)}")
+    graph = bundle / "demo_ddrnet.onnx"
+    if not graph.is_file():
+        rep.add("sources", model="onnx:demo_ddrnet", note=f"skipped: no {graph} (run `gpu_check.py prepare`)")
+    elif device.startswith("cuda") and "CUDAExecutionProvider" not in have:
+        rep.add("sources", model="onnx:demo_ddrnet", note="skipped: this onnxruntime has no CUDA provider "
+                "(onnxruntime-gpu is not on the machine, and its wheel is larger than what a call may carry)")
+    else:
+        stage(rep, "sources", be, root, "onnx:demo_ddrnet", "onnx", "fp32", device, 9, tmp,
+              {"path": str(graph), "pad_multiple": 32}, workers, reference)
+    rep.write_md()
 
 
 def failed(exc: BaseException) -> str:
@@ -337,7 +397,7 @@ def main() -> None:
     ap.add_argument("--size", default="2048x1024")
     ap.add_argument("--eta-size", default="1920x1080")
     ap.add_argument("--workers", default="auto")
-    ap.add_argument("--steps", nargs="+", default=["check", "mainjob", "ratio", "forward", "eta"])
+    ap.add_argument("--steps", nargs="+", default=["check", "mainjob", "ratio", "sources", "forward", "eta"])
     ap.add_argument("--tiny", action="store_true", help="tiny models and groups (a CPU rehearsal of the whole run)")
     args = ap.parse_args()
     if args.what == "prepare":
@@ -355,7 +415,7 @@ def main() -> None:
     groups = (lambda name: 2) if args.tiny else GROUPS.get
     model = (lambda name: TINY[name]) if args.tiny else (lambda name: name)
     options = (lambda name: {}) if args.tiny else (lambda name: dict(PAPER[name]))
-    cost = {"check": 5, "mainjob": 40, "ratio": 25, "forward": 12, "eta": 25}  # seconds a unit of each step may take
+    cost = {"check": 5, "mainjob": 40, "ratio": 25, "sources": 40, "forward": 12, "eta": 25}  # seconds a unit of each step may take
 
     def skip(step: str, what: str) -> bool:
         if left() < cost[step]:
@@ -383,6 +443,12 @@ def main() -> None:
             root = dataset(tmp / f"ds-{width}x{height}-{groups(name)}", groups(name), unique[(width, height)])
             stage(rep, "ratio", be, root, name, model(name), dtype, args.device, 9, tmp, options(name), args.workers)
             rep.write_md()
+    if "sources" in args.steps and not skip("sources", "all"):
+        root = dataset(tmp / f"ds-{width}x{height}-{groups('mask2former_swin_s')}", groups("mask2former_swin_s"),
+                       unique[(width, height)])
+        guarded(rep, "sources", step_sources, rep, be, Path(args.bundle), root, args.device, tmp, args.workers,
+                args.tiny)
+        rep.write_md()
     if "forward" in args.steps:
         from pairedgta.models import build_segmenter
 
