@@ -110,18 +110,39 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
     from pairedgta.evaluation import counting, entry
     from pairedgta.models.base import Segmenter
 
-    t: dict[str, Any] = {"forward": 0.0, "count": 0.0, "write": 0.0, "events": [], "steady": 0.0}
+    t: dict[str, Any] = {"forward": 0.0, "count": 0.0, "write": 0.0, "events": [], "steady": 0.0, "wait": 0.0,
+                         "result": 0.0, "staging": 0.0, "launch": 0.0}
     inside = [False]
     forward, count_groups, write_outputs = Segmenter._forward, ev.count_groups, entry.write_outputs
     load_groups = counting.load_groups
     first: list[float] = []
 
     def timed_load(*a: Any, **k: Any) -> Iterator[Any]:
-        """Notes when the first group is decoded (the workers started): the steady state runs from there."""
-        for item in load_groups(*a, **k):
-            if not first:
+        """Notes when the first group is decoded (the workers started): the steady state runs from there; and
+        the time the stage waits for decoded groups (`wait`: after the first)."""
+        items = iter(load_groups(*a, **k))
+        while True:
+            s = time.perf_counter()
+            try:
+                item = next(items)
+            except StopIteration:
+                return
+            if first:
+                t["wait"] += time.perf_counter() - s
+            else:
                 first.append(time.perf_counter())
             yield item
+
+    def timed(key: str, fn: Any) -> Any:
+        def run(*a: Any, **k: Any) -> Any:
+            if not inside[0]:
+                return fn(*a, **k)
+            s = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                t[key] += time.perf_counter() - s
+        return run
 
     def timed_forward(self: Any, chunk: Any, *a: Any, **k: Any) -> Any:
         if not inside[0]:
@@ -159,13 +180,17 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
         finally:
             t["write"] += time.perf_counter() - s
 
+    result, stage_inputs, launch = counting.GroupJob.result, counting.stage_inputs, counting.GroupJob.__init__
     Segmenter._forward, ev.count_groups, entry.write_outputs = timed_forward, timed_count, timed_write
     counting.load_groups = timed_load
+    counting.GroupJob.result, counting.stage_inputs = timed("result", result), timed("staging", stage_inputs)
+    counting.GroupJob.__init__ = timed("launch", launch)
     try:
         yield t
     finally:
         Segmenter._forward, ev.count_groups, entry.write_outputs = forward, count_groups, write_outputs
         counting.load_groups = load_groups
+        counting.GroupJob.result, counting.stage_inputs, counting.GroupJob.__init__ = result, stage_inputs, launch
         t["forward"] += sum(a.elapsed_time(b) for a, b in t.pop("events")) / 1000.0
 
 
@@ -200,6 +225,10 @@ def columns(t: dict[str, Any]) -> dict[str, float]:
     steady_ips = n / t.get("steady", count) if t.get("steady", count) > 0 else eval_ips
     return {"eval_ips": eval_ips, "bare_ips": bare_ips, "ratio": eval_ips / bare_ips, "forward_share": forward / total,
             "other_share": (count - forward) / total, "write_share": write / total,
+            # parts of the host's time in the counting (the forward runs beside them on a GPU): waiting for decoded
+            # groups, putting a group's inputs on the device, starting its forward and reductions (GroupJob(); on
+            # the CPU the forward itself), reading its results back (GroupJob.result)
+            **{f"{k}_share": t.get(k, 0.0) / total for k in ("wait", "staging", "launch", "result")},
             "stage_steady_ips": steady_ips, "steady_ratio": steady_ips / bare_ips}
 
 

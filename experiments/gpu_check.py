@@ -55,7 +55,7 @@ TINY = {"ddrnet_23": "tiny_ddrnet", "pidnet_m": "tiny_pidnet", "deeplabv3plus_r1
 FIELDS = ["step", "model", "dtype", "batch", "width", "height", "groups", "images", "forward_ips", "stage_ips",
           "stage_steady_ips", "bare_ips", "ratio", "steady_ratio", "forward_share", "other_share", "write_share",
           "peak_gpu_mb", "stage_peak_gpu_mb", "workers", "file", "column", "max_abs_diff", "differing", "value",
-          "note"]
+          "note", "wait_share", "staging_share", "launch_share", "result_share"]
 
 
 # -- prepare (on the development machine) ---------------------------------------------------------------------------
@@ -134,12 +134,12 @@ def export_onnx(path: Path) -> None:
 class Report:
     """Rows in a CSV as they come, a markdown summary rewritten after each step."""
 
-    def __init__(self, out: Path, device: str) -> None:
+    def __init__(self, out: Path, device: str, tag: str = "") -> None:
         import torch
 
         self.card = torch.cuda.get_device_name() if device.startswith("cuda") else (platform.processor() or "cpu")
         stamp = datetime.date.today().isoformat()
-        slug = "".join(ch if ch.isalnum() else "-" for ch in self.card).strip("-").lower()[:40]
+        slug = "".join(ch if ch.isalnum() else "-" for ch in self.card).strip("-").lower()[:40] + tag
         out.mkdir(parents=True, exist_ok=True)
         self.csv, self.md = out / f"gpu_{stamp}_{slug}.csv", out / f"gpu_{stamp}_{slug}.md"
         self.rows: list[dict[str, Any]] = []
@@ -173,10 +173,14 @@ class Report:
 SECTIONS = [
     ("check", "Device reductions: numpy's order and CPU equality", ["model", "file", "value", "note"]),
     ("mainjob", "Main job: device against CPU (same commit)", ["model", "file", "column", "max_abs_diff", "differing",
-                                                               "note"]),
+                                                               "value", "note"]),
     ("ratio", "Evaluate stage (PNGs from disk) / bare forward on the device", [
         "model", "dtype", "batch", "width", "height", "images", "stage_ips", "stage_steady_ips", "bare_ips", "ratio",
-        "steady_ratio", "forward_share", "other_share", "write_share", "stage_peak_gpu_mb", "workers", "note"]),
+        "steady_ratio", "forward_share", "other_share", "write_share", "wait_share", "staging_share", "launch_share",
+        "result_share", "stage_peak_gpu_mb", "workers", "note"]),
+    ("sources", "Model sources on the device (model=hf, model=onnx)", [
+        "model", "dtype", "batch", "width", "height", "images", "stage_ips", "stage_steady_ips", "bare_ips", "ratio",
+        "steady_ratio", "forward_share", "other_share", "write_share", "stage_peak_gpu_mb", "value", "note"]),
     ("forward", "Bare forward of the paper's graphs", ["model", "dtype", "batch", "width", "height", "forward_ips",
                                                        "peak_gpu_mb", "note"]),
     ("eta", "Evaluate stage of the paper's graphs, and 1,000 groups x 9 conditions", [
@@ -298,7 +302,8 @@ def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dt
             images=r["images"], stage_ips=r["eval_ips"], stage_steady_ips=r["stage_steady_ips"], bare_ips=r["bare_ips"],
             ratio=r["ratio"], steady_ratio=r["steady_ratio"], forward_share=r["forward_share"],
             other_share=r["other_share"], write_share=r["write_share"], stage_peak_gpu_mb=r.get("stage_peak_gpu_mb"),
-            peak_gpu_mb=r.get("bare_peak_gpu_mb"), workers=workers, note=None if model == name else f"as {model}")
+            peak_gpu_mb=r.get("bare_peak_gpu_mb"), workers=workers, note=None if model == name else f"as {model}",
+            **{f"{k}_share": r.get(f"{k}_share") for k in ("wait", "staging", "launch", "result")})
     return r
 
 
@@ -399,6 +404,8 @@ def main() -> None:
     ap.add_argument("--workers", default="auto")
     ap.add_argument("--steps", nargs="+", default=["check", "mainjob", "ratio", "sources", "forward", "eta"])
     ap.add_argument("--tiny", action="store_true", help="tiny models and groups (a CPU rehearsal of the whole run)")
+    ap.add_argument("--only", nargs="+", default=None, help="ratio/forward/eta: only these graphs (e.g. ddrnet_23)")
+    ap.add_argument("--tag", default="", help="appended to the result files' names (a second run the same day)")
     args = ap.parse_args()
     if args.what == "prepare":
         prepare(Path(args.bundle), Path(args.cache) if args.cache else None)
@@ -407,7 +414,8 @@ def main() -> None:
     import bench_evaluate as be
     from bench_models import PAPER, time_forward
 
-    rep = Report(Path(args.out), args.device)
+    rep = Report(Path(args.out), args.device, args.tag)
+    wanted = lambda name: args.only is None or name in args.only  # noqa: E731
     tmp = Path(tempfile.mkdtemp(prefix="gpu-check-"))
     left = lambda: args.budget - (time.perf_counter() - t0)  # noqa: E731
     width, height = (int(v) for v in args.size.split("x"))
@@ -438,7 +446,7 @@ def main() -> None:
         be.make_release_dataset(unique[size], 2, size[0], size[1], conditions=9, jobs=min(18, os.cpu_count() or 1))
     if "ratio" in args.steps:
         for name, dtype in RATIO:
-            if skip("ratio", name):
+            if not wanted(name) or skip("ratio", name):
                 continue
             root = dataset(tmp / f"ds-{width}x{height}-{groups(name)}", groups(name), unique[(width, height)])
             stage(rep, "ratio", be, root, name, model(name), dtype, args.device, 9, tmp, options(name), args.workers)
@@ -453,7 +461,7 @@ def main() -> None:
         from pairedgta.models import build_segmenter
 
         for name in PAPER:
-            if skip("forward", name):
+            if not wanted(name) or skip("forward", name):
                 continue
             try:
                 seg = build_segmenter(model(name), device=args.device, **options(name))
@@ -470,7 +478,7 @@ def main() -> None:
     if "eta" in args.steps:
         seconds: dict[str, float] = {}
         for name in PAPER:
-            if skip("eta", name):
+            if not wanted(name) or skip("eta", name):
                 continue
             root = dataset(tmp / f"ds-{eta_w}x{eta_h}-{groups(name)}", groups(name), unique[(eta_w, eta_h)])
             r = stage(rep, "eta", be, root, name, model(name), "bf16", args.device, 9, tmp, options(name), args.workers)

@@ -167,10 +167,12 @@ def estimator_sums(pred: Any, conf: Any, entropy: Any, clean_pred: Any) -> dict[
 
 
 def count_groups(dataset: PairedDataset, labels: LabelMaps, segmenter: Any, s: dict[str, Any], conditions: list[str],
-                 groups: list[Any], batch: int, workers: int) -> list[dict[str, Any]]:
+                 groups: list[Any], batch: int, workers: int, maps: Any = None) -> list[dict[str, Any]]:
     """`group_counts` of `groups` (those with the clean image), under the metric settings `s`, images
     decoded by `workers` DataLoader workers. Launches group g before reading group g-1's results, so a GPU
-    always has a group queued; the finite-output check is read once, at the end."""
+    always has a group queued; the finite-output check is read once, at the end. `maps`: called with each
+    group's id, label maps and max probabilities as they come (entry.PredictionWriter.add), which then leave
+    the results (else they stay in them)."""
     clean = s["clean"]
     order = [clean] + [c for c in conditions if c != clean]
     use_pl = s["reference_mode"] in ("pseudo_label", "both")
@@ -192,16 +194,22 @@ def count_groups(dataset: PairedDataset, labels: LabelMaps, segmenter: Any, s: d
                 return item, stage_inputs(item["packed"], device)
         return None
 
+    def finish(job: GroupJob) -> dict[str, Any]:
+        r = job.result()
+        if maps is not None:
+            maps(r["group_id"], r.pop("pred"), r.pop("conf"))
+        return r
+
     staged = next_staged()
     while staged is not None:
         item, on_device = staged
         job = GroupJob(item, on_device, segmenter, s, use_pl, batch, segmenter.name, dataset.name)
         if waiting is not None:
-            results.append(waiting.result())
+            results.append(finish(waiting))
         waiting = job
         staged = next_staged()  # decoded while the device computes; copied on the side stream
     if waiting is not None:
-        results.append(waiting.result())
+        results.append(finish(waiting))
     check = getattr(segmenter, "check_finite", None)
     if check is not None:
         check()

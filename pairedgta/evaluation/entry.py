@@ -55,14 +55,19 @@ def label_space(model_cfg: dict[str, Any]) -> tuple[str, tuple[str, ...]]:
     return labels.space, labels.unpredictable
 
 
-def write_outputs(out: Path, e: ModelEvaluation, ms: list[Metric] | None = None) -> dict[str, Any]:
-    """Every file of the entry into `out`, each registered metric's through its `write`; returns the summary."""
+def write_outputs(out: Path, e: ModelEvaluation, ms: list[Metric] | None = None,
+                  predictions: PredictionWriter | None = None) -> dict[str, Any]:
+    """Every file of the entry into `out`, each registered metric's through its `write`; returns the summary.
+    `predictions`: the label maps' archive written while evaluate counted (else written here from `e.groups`)."""
     from pairedgta.evaluation import registry
 
     ms = registry.metrics() if ms is None else ms
     s = e.settings
     arrays = write_group_counts(out / GROUP_COUNTS, e.groups, e.conditions, ms)
-    write_predictions(out / PREDICTIONS, e.groups, e.conditions)
+    if predictions is not None:
+        predictions.close([r["group_id"] for r in e.groups])
+    else:
+        write_predictions(out / PREDICTIONS, e.groups, e.conditions)
     summary: dict[str, Any] = {"model": e.model, "reference_model": e.reference_model, "dataset": e.dataset,
                                "convention": s["convention"], "sampling": s["sampling"],
                                "min_transmittance": s["min_transmittance"],
@@ -108,25 +113,111 @@ def read_group_counts(path: Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def _map_stacks(g: int, r: dict[str, Any], conditions: list[str]) -> dict[str, np.ndarray]:
+    """Group g's members of predictions.npz: `g<g>` its label maps, `c<g>` its max probabilities (below)."""
+    arrays: dict[str, np.ndarray] = {}
+    for key, maps, fill in (("g", r.get("pred") or {}, IGNORE_INDEX), ("c", r.get("conf") or {}, 0)):
+        if not maps:
+            continue
+        shape = next(iter(maps.values())).shape
+        stack = np.full((len(conditions), *shape), fill, dtype=np.uint8)
+        for i, cond in enumerate(conditions):
+            if cond in maps:
+                stack[i] = maps[cond]
+        arrays[f"{key}{g:05d}"] = stack
+    return arrays
+
+
 def write_predictions(path: Path, results: list[dict[str, Any]], conditions: list[str]) -> None:
     """Every group's predicted label maps (`g<index>`: C x H x W uint8, 255 where the condition's image is
     absent), so that estimators comparing models pixel by pixel (agreement between models, ALine) need no
     second inference pass. Label maps compress well: a few kB per image. Beside them (`c<index>`, C x H/2 x W/2
     uint8, 0 where absent) the max probability at CONFIDENCE_STEP, what the figures show of it, so that no figure
-    predicts again (an entry from before has none: the figures then do)."""
+    predicts again (an entry from before has none: the figures then do). `PredictionWriter` writes the same
+    archive while evaluate runs; this one is for groups merged from shard jobs, whose maps are all in memory."""
     arrays: dict[str, np.ndarray] = {"group_id": np.array([str(r["group_id"]) for r in results], dtype=str),
                                      "conditions": np.array(conditions, dtype=str)}
     for g, r in enumerate(results):
-        for key, maps, fill in (("g", r.get("pred") or {}, IGNORE_INDEX), ("c", r.get("conf") or {}, 0)):
-            if not maps:
-                continue
-            shape = next(iter(maps.values())).shape
-            stack = np.full((len(conditions), *shape), fill, dtype=np.uint8)
-            for i, cond in enumerate(conditions):
-                if cond in maps:
-                    stack[i] = maps[cond]
-            arrays[f"{key}{g:05d}"] = stack
+        arrays.update(_map_stacks(g, r, conditions))
     write_npz(path, arrays)
+
+
+class PredictionWriter:
+    """predictions.npz written while evaluate counts: each group's maps are handed over as its results come
+    (`add`) and compressed into the archive on a thread of their own (zlib releases the GIL), at zlib level 1.
+    Compressing every map at the end at numpy's level 6 had been a third to a half of the stage on an H100
+    at 2048x1024 (2.5 MB of maps an image; experiments/results/gpu_2026-11-27_*.md), and keeping them all until
+    then grew the memory with the dataset. Up to `ahead` bytes of maps wait for the thread (1 GiB: about 45
+    groups of nine 2048x1024 images), so a slower disk or zlib stalls the forwards only past that. The archive is the one
+    `np.load` reads (the same members as `write_predictions`), under a temporary name until `close`; `abort`
+    removes it. A failed write (a full disk) is raised by the next `add` or by `close`."""
+
+    def __init__(self, path: Path, conditions: list[str], ahead: int = 2**30) -> None:
+        import uuid
+        import zipfile
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.path, self.conditions, self.ahead = Path(path), list(conditions), ahead
+        self.tmp = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        self.ids: list[str] = []
+        self.pending: list[Any] = []
+        self.file = open(self.tmp, "wb")  # noqa: SIM115 - closed by close/abort, whatever happens
+        try:
+            self.zip = zipfile.ZipFile(self.file, "w", zipfile.ZIP_DEFLATED, allowZip64=True, compresslevel=1)
+        except BaseException:
+            self._discard()
+            raise
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="predictions")
+
+    def _member(self, name: str, array: np.ndarray) -> None:
+        with self.zip.open(f"{name}.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array(f, np.ascontiguousarray(array), allow_pickle=False)
+
+    def _group(self, g: int, r: dict[str, Any]) -> None:
+        for name, stack in _map_stacks(g, r, self.conditions).items():
+            self._member(name, stack)
+
+    def _wait(self, keep: int) -> None:
+        while self.pending and (sum(n for _, n in self.pending) > keep or self.pending[0][0].done()):
+            self.pending.pop(0)[0].result()  # a failed write is raised here
+
+    def add(self, group_id: str, pred: dict[str, np.ndarray], conf: dict[str, np.ndarray]) -> None:
+        size = sum(m.nbytes for maps in (pred, conf) for m in maps.values())
+        self.pending.append((self.pool.submit(self._group, len(self.ids), {"pred": pred, "conf": conf}), size))
+        self.ids.append(str(group_id))
+        self._wait(self.ahead)
+
+    def close(self, group_ids: list[str]) -> None:
+        """The last groups, `group_id` and `conditions`, then the archive renamed into place. `group_ids`: the
+        entry's groups in order, which must be the ones added, in the order added."""
+        import os
+
+        if [str(g) for g in group_ids] != self.ids:
+            raise RuntimeError(f"{self.path}: the groups written ({len(self.ids)}) are not the entry's "
+                               f"({len(group_ids)}), or not in its order")
+        self._wait(0)
+        self.pool.shutdown()
+        self._member("group_id", np.array(self.ids, dtype=str))
+        self._member("conditions", np.array(self.conditions, dtype=str))
+        self.zip.close()
+        self.file.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        """Nothing left behind: the thread stopped, the archive closed (its errors dropped) and removed."""
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        try:
+            self.zip.close()  # writes the central directory, which a full disk refuses: that is fine here
+        except Exception:  # noqa: BLE001
+            pass
+        self._discard()
+
+    def _discard(self) -> None:
+        try:
+            self.file.close()  # a buffered write the disk refuses raises here, the file closed all the same
+        except OSError:
+            pass
+        self.tmp.unlink(missing_ok=True)
 
 
 def read_prediction(path: Path, group_id: str, condition: str) -> tuple[np.ndarray, np.ndarray | None] | None:

@@ -158,7 +158,7 @@ def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: 
 
 
 def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any],
-                 conditions: list[str], groups: list[Any], s: dict[str, Any]) -> list[dict[str, Any]]:
+                 conditions: list[str], groups: list[Any], s: dict[str, Any], maps: Any = None) -> list[dict[str, Any]]:
     """The groups' counts (`counting.group_counts`) under the metric settings `s` (the ones the stage hashed):
     the model on `device`, with `threads` inference threads, images decoded by `evaluate.num_workers` workers."""
     if not groups:
@@ -167,7 +167,7 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
     segmenter = shared_segmenter(model_cfg, device=device)
     with torch_threads(ctx.run.threads):
         return counting.count_groups(dataset, pseudo.labels, segmenter, s, conditions, groups, ev.batch_size,
-                                      ev.decode_workers(device))
+                                      ev.decode_workers(device), maps=maps)
 
 
 def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
@@ -187,8 +187,21 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
     missing = [g for g in dataset.groups if g.group_id not in done]
     if done:
         log.info("evaluate: merging %d group(s) from shard jobs, computing %d", len(done), len(missing))
-    for r in count_groups(ctx, dataset, pseudo, model_cfg, conditions, missing, s):
-        done[r["group_id"]] = r
+    # the label maps go to predictions.npz as they come, unless groups merged from shards must be put between them
+    writer = None if done else entry.PredictionWriter(out / entry.PREDICTIONS, conditions)
+    try:
+        for r in count_groups(ctx, dataset, pseudo, model_cfg, conditions, missing, s,
+                              maps=writer.add if writer is not None else None):
+            done[r["group_id"]] = r
+        return _write(dataset, model_cfg, conditions, s, reference_model, out, done, writer)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+
+
+def _write(dataset: PairedDataset, model_cfg: dict[str, Any], conditions: list[str], s: dict[str, Any],
+           reference_model: str, out: Path, done: dict[str, dict[str, Any]], writer: Any) -> dict[str, Any]:
     model = str(model_cfg["name"])
     covered = entry.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
     space, unpredictable = entry.label_space(model_cfg)
@@ -199,7 +212,7 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
         dataset=dataset.name, model=model, reference_model=reference_model, conditions=conditions, settings=s,
         groups=[done[g.group_id] for g in dataset.groups if g.group_id in done], coverage=covered,
         unpredictable=unpredictable, label_space=space)
-    return entry.write_outputs(out, evaluation)
+    return entry.write_outputs(out, evaluation, predictions=writer)
 
 
 def parts_dir(ctx: Context, key: str) -> Path:
