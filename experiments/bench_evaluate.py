@@ -249,7 +249,9 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     from pairedgta.configs import CONFIG_DIR
     from pairedgta.datasets import load_image, open_dataset
     from pairedgta.models import build_segmenter
+    from pairedgta.models.runtime import reuse_freed_memory
 
+    reuse_freed_memory()  # as app.run does before the stages: the bare forward under the same allocator
     args = overrides(root, cache, model, workers, batch, arch, device, amp, model_batch, full, conditions, extra)
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("config", overrides=args)

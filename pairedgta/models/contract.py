@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module
-from pairedgta.models.base import Segmenter
+from pairedgta.models.base import Segmenter, logsumexp_classes
 from pairedgta.models.labels import LabelMap, fit_outputs, resolve_labels
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
@@ -250,7 +250,7 @@ class ContractSegmenter(Segmenter):
         out = self.scores(images)
         if self.contract.output == "logits":
             probs = out.softmax(dim=1)
-            lse = out.logsumexp(dim=1) if energy else None
+            lse = logsumexp_classes(out) if energy else None
         else:
             probs = out.clamp_min(0)
             probs = probs / probs.sum(dim=1, keepdim=True).clamp_min(1e-12)

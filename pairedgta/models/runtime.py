@@ -85,4 +85,33 @@ def torch_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-__all__ = ["torch_threads", "RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]
+_REUSING: list[bool] = []
+
+
+def reuse_freed_memory() -> bool:
+    """Keep freed memory in the process for the next allocation instead of giving it back to the kernel.
+
+    glibc maps every allocation above 32 MB afresh and unmaps it when freed. A batch's probabilities are such
+    allocations (4 x 19 x 256 x 512 floats = 40 MB), and each forward makes several. Every new map is faulted in and
+    zeroed page by page: on the 2-core machine that was half of a SegFormer-B0 forward at 512x256 (76 against
+    38 ms an image; experiments/bench_evaluate.py). With mmap off (M_MMAP_MAX 0) and no trimming, freed blocks are
+    reused. The numbers do not change; the process keeps its peak memory until it ends. glibc only (elsewhere
+    nothing); once per process; True where it applies."""
+    if _REUSING:
+        return _REUSING[0]
+    import ctypes
+    import platform
+
+    ok = False
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        try:
+            libc = ctypes.CDLL(None)
+            m_trim_threshold, m_mmap_max = -1, -4  # glibc's malloc.h
+            ok = bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold, 2**31 - 1))
+        except (OSError, AttributeError):
+            ok = False
+    _REUSING.append(ok)
+    return ok
+
+
+__all__ = ["torch_threads", "reuse_freed_memory", "RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]
