@@ -96,14 +96,17 @@ def reuse_freed_memory() -> bool:
     zeroed page by page: on the 2-core machine that was half of a SegFormer-B0 forward at 512x256 (76 against
     38 ms an image; experiments/bench_evaluate.py). With mmap off (M_MMAP_MAX 0) and no trimming, freed blocks are
     reused. The numbers do not change; the process keeps its peak memory until it ends. glibc only (elsewhere
-    nothing); once per process; True where it applies."""
+    nothing); once per process; True where it applies. PAIREDGTA_REUSE_FREED_MEMORY=0 in the environment keeps
+    glibc's defaults (a process that must give memory back while it runs)."""
     if _REUSING:
         return _REUSING[0]
     import ctypes
+    import os
     import platform
 
     ok = False
-    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+    wanted = os.environ.get("PAIREDGTA_REUSE_FREED_MEMORY", "1") != "0"
+    if wanted and platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
         try:
             libc = ctypes.CDLL(None)
             m_trim_threshold, m_mmap_max = -1, -4  # glibc's malloc.h
