@@ -201,7 +201,8 @@ def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cf
 
 
 def _write(dataset: PairedDataset, model_cfg: dict[str, Any], conditions: list[str], s: dict[str, Any],
-           reference_model: str, out: Path, done: dict[str, dict[str, Any]], writer: Any) -> dict[str, Any]:
+           reference_model: str, out: Path, done: dict[str, dict[str, Any]],
+           writer: entry.PredictionWriter | None) -> dict[str, Any]:
     model = str(model_cfg["name"])
     covered = entry.coverage(dataset, conditions, s["clean"], model, s["sampling"], s["sampling_seed"])
     space, unpredictable = entry.label_space(model_cfg)
