@@ -293,7 +293,8 @@ def stage(rep: Report, step: str, be: Any, root: Path, name: str, model: str, dt
 
     try:
         r = be.measure(root, tmp / f"cache-{step}-{name}-{dtype}", model, workers, batch, "-", device,
-                       None if dtype == "fp32" else dtype, full=False, conditions=9, extra=model_overrides(options) + list(extra))
+                       None if dtype == "fp32" else dtype, full=False, conditions=9,
+                       extra=model_overrides(options) + list(extra))
     except Exception as exc:  # noqa: BLE001 - a row that says so, the next measurement goes on
         rep.add(step, model=name, dtype=dtype, batch=batch, note=failed(exc))
         free()
@@ -423,7 +424,8 @@ def main() -> None:
     groups = (lambda name: 2) if args.tiny else GROUPS.get
     model = (lambda name: TINY[name]) if args.tiny else (lambda name: name)
     options = (lambda name: {}) if args.tiny else (lambda name: dict(PAPER[name]))
-    cost = {"check": 5, "mainjob": 40, "ratio": 25, "sources": 40, "forward": 12, "eta": 25}  # seconds a unit of each step may take
+    # seconds a unit of each step may take
+    cost = {"check": 5, "mainjob": 40, "ratio": 25, "sources": 40, "forward": 12, "eta": 25}
 
     def skip(step: str, what: str) -> bool:
         if left() < cost[step]:

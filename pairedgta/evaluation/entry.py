@@ -148,9 +148,9 @@ class PredictionWriter:
     Compressing every map at the end at numpy's level 6 had been a third to a half of the stage on an H100
     at 2048x1024 (2.5 MB of maps an image; experiments/results/gpu_2026-11-27_*.md), and keeping them all until
     then grew the memory with the dataset. Up to `ahead` bytes of maps wait for the thread (1 GiB: about 45
-    groups of nine 2048x1024 images), so a slower disk or zlib stalls the forwards only past that. The archive is the one
-    `np.load` reads (the same members as `write_predictions`), under a temporary name until `close`; `abort`
-    removes it. A failed write (a full disk) is raised by the next `add` or by `close`."""
+    groups of nine 2048x1024 images), so a slower disk or zlib stalls the forwards only past that. The archive is
+    the one `np.load` reads (the same members as `write_predictions`), under a temporary name until `close`;
+    `abort` removes it. A failed write (a full disk) is raised by the next `add` or by `close`."""
 
     def __init__(self, path: Path, conditions: list[str], ahead: int = 2**30) -> None:
         import uuid

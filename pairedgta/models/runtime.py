@@ -117,4 +117,5 @@ def reuse_freed_memory() -> bool:
     return ok
 
 
-__all__ = ["torch_threads", "reuse_freed_memory", "RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS", "split_runtime", "runtime_defaults"]
+__all__ = ["torch_threads", "reuse_freed_memory", "RuntimeOptions", "IMAGENET_MEAN", "IMAGENET_STD", "MODEL_KEYS",
+           "split_runtime", "runtime_defaults"]
