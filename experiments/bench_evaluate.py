@@ -8,7 +8,9 @@ upsampling, softmax, label map and max probability, left on the device; the benc
 both and their ratio (target: >= 0.9 on the CPU, >= 0.7 on a GPU), and splits the stage's time into columns
 that add up to 100 %: the forward, the rest of the counting (decoding not hidden by the workers, the reductions,
 copies), and writing the entry's tables. On a GPU the forward is the GPU time between CUDA events around each
-forward (the host only queues it), the other columns the wall time around it; and the peak GPU memory.
+forward (the host only queues it), the other columns the wall time around it; and the peak GPU memory. Last, the
+forward evaluate runs (the prediction and the estimators' maps: entropy, the logits' logsumexp, the Gram matrices)
+and the stage against it ("vs maps"): what the stage's own work costs beside the estimators' arithmetic.
 
     python experiments/bench_evaluate.py [--groups 24] [--width 512 --height 256] [--workers 2] [--batch 4]
     python experiments/bench_evaluate.py --memory 50 500 --width 128 --height 64 --model tiny_segformer
@@ -194,21 +196,31 @@ def _timers(device_type: str) -> Iterator[dict[str, Any]]:
         t["forward"] += sum(a.elapsed_time(b) for a, b in t.pop("events")) / 1000.0
 
 
-def bare_forward(seg: Any, groups: list[list[Any]], batch: int, warmup: int = 1) -> float:
+def estimator_maps() -> dict[str, bool]:
+    """What evaluate's forward computes beyond the prediction, for the registered metrics: the entropy, and what
+    their `needs` ask (energy: the logits' logsumexp; gram: the Gram matrices)."""
+    from pairedgta.evaluation import registry
+
+    return {"entropy": True, **{n: True for m in registry.metrics() for n in m.needs}}
+
+
+def bare_forward(seg: Any, groups: list[list[Any]], batch: int, warmup: int = 1, maps: bool = False) -> float:
     """Seconds of the bare forward (`predict_maps` without entropy: the prediction, left on the device) over
     `groups` (per group, its images in batches of `batch`, as evaluate batches them), the images decoded
-    beforehand and already on the device as float in [0, 1]."""
+    beforehand and already on the device as float in [0, 1]. With `maps`, the forward evaluate runs: the
+    prediction and the estimators' maps (`estimator_maps`), without decoding, counting or writing."""
     import numpy as np
     import torch
 
     batches = [seg.to_device(np.stack(g[s : s + batch])) for g in groups for s in range(0, len(g), batch)]
     sync = torch.cuda.synchronize if seg.device.type == "cuda" else (lambda: None)
+    kw = estimator_maps() if maps else {"entropy": False}
     for x in batches[:warmup]:
-        seg.predict_maps(x, entropy=False)
+        seg.predict_maps(x, **kw)
     sync()
     start = time.perf_counter()
     for x in batches:
-        seg.predict_maps(x, entropy=False)
+        seg.predict_maps(x, **kw)
     sync()
     seg.check_finite()
     return time.perf_counter() - start
@@ -223,13 +235,30 @@ def columns(t: dict[str, Any]) -> dict[str, float]:
     total = count + write
     eval_ips, bare_ips = n / count, n / t["bare"]
     steady_ips = n / t.get("steady", count) if t.get("steady", count) > 0 else eval_ips
-    return {"eval_ips": eval_ips, "bare_ips": bare_ips, "ratio": eval_ips / bare_ips, "forward_share": forward / total,
+    # against the forward with the estimators' maps: what the stage's own work (decoding, counting, copies) costs
+    maps = {"maps_ips": n / t["maps"], "maps_ratio": eval_ips * t["maps"] / n} if t.get("maps") else {}
+    return {"eval_ips": eval_ips, "bare_ips": bare_ips, "ratio": eval_ips / bare_ips, **maps,
+            "forward_share": forward / total,
             "other_share": (count - forward) / total, "write_share": write / total,
             # parts of the host's time in the counting (the forward runs beside them on a GPU): waiting for decoded
             # groups, putting a group's inputs on the device, starting its forward and reductions (GroupJob(); on
             # the CPU the forward itself), reading its results back (GroupJob.result)
             **{f"{k}_share": t.get(k, 0.0) / total for k in ("wait", "staging", "launch", "result")},
             "stage_steady_ips": steady_ips, "steady_ratio": steady_ips / bare_ips}
+
+
+def ready_workers_server(workers: int | str) -> None:
+    """The decoding workers' fork server started and done importing before anything is timed: in the app it starts
+    while the stage loads its model (seconds for a paper model), which the bench does before its timing."""
+    from pairedgta.evaluation.inputs import start_workers_server, worker_context
+
+    n = 0 if workers == "auto" else int(workers)
+    start_workers_server(n)
+    ctx = worker_context() if n > 0 else None
+    if ctx is not None:
+        p = ctx.Process(target=time.sleep, args=(0,))  # served only once the server has imported its modules
+        p.start()
+        p.join()
 
 
 def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int, arch: str, device: str = "cpu",
@@ -263,9 +292,11 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     clean = c["conditions"]["reference"]
     images = [[load_image(g.images[k]) for k in sorted(g.images, key=lambda k: (k != clean, k))] for g in ds.groups]
     seg = build_segmenter(c["model"], device=device)
+    ready_workers_server(workers)
     if cuda:
         torch.cuda.reset_peak_memory_stats()
-    out: dict[str, Any] = {"bare": bare_forward(seg, images, batch), "images": sum(len(g) for g in images)}
+    out: dict[str, Any] = {"bare": bare_forward(seg, images, batch), "images": sum(len(g) for g in images),
+                           "maps": bare_forward(seg, images, batch, maps=True)}
     if cuda:
         out["bare_peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.empty_cache()
@@ -279,7 +310,7 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     # the stage `repeats` times (evaluate forced after the first), a bare forward after each: every stage run is
     # compared with the bare forwards just before and after it, so a machine that speeds up or slows down within
     # the run moves both sides of that ratio together; the median run is reported, with the spread of the ratios
-    bare, runs = [out["bare"]], []
+    bare, with_maps, runs = [out["bare"]], [out["maps"]], []
     try:
         for i in range(repeats):
             if i:
@@ -292,8 +323,9 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
             t["stages"] = time.perf_counter() - start
             torch.set_num_threads(int(c["threads"]))
             bare.append(bare_forward(seg, images, batch))
+            with_maps.append(bare_forward(seg, images, batch, maps=True))
             t["bare_before"], t["bare_after"] = bare[-2], bare[-1]
-            t["bare"] = (bare[-2] + bare[-1]) / 2
+            t["bare"], t["maps"] = (bare[-2] + bare[-1]) / 2, (with_maps[-2] + with_maps[-1]) / 2
             t["ratio"] = columns({**t, "images": out["images"]})["ratio"]
             runs.append(t)
     finally:
@@ -329,13 +361,16 @@ def measure_child(*args: Any, **kwargs: Any) -> dict[str, Any]:
 
 # ratio: the stage's counting (evaluate's part that scales with the images) over the bare forward; steady: the
 # same from the first decoded group on (without starting the decoding workers)
+# maps: the stage against the forward with the estimators' maps (`bare_forward(maps=True)`)
 HEADER = (f"{'workers':>7} {'eval img/s':>10} {'bare img/s':>10} {'ratio':>6} {'steady':>6} {'forward':>8} "
-          f"{'decode+reduce':>13} {'writing':>8}")
+          f"{'decode+reduce':>13} {'writing':>8} {'maps img/s':>10} {'vs maps':>7}")
 
 
 def row(workers: Any, r: dict[str, Any]) -> str:
+    maps = f"{r['maps_ips']:>10.2f} {r['maps_ratio']:>7.2f}" if "maps_ips" in r else f"{'-':>10} {'-':>7}"
     return (f"{str(workers):>7} {r['eval_ips']:>10.2f} {r['bare_ips']:>10.2f} {r['ratio']:>6.2f} "
-            f"{r['steady_ratio']:>6.2f} {r['forward_share']:>8.1%} {r['other_share']:>13.1%} {r['write_share']:>8.1%}")
+            f"{r['steady_ratio']:>6.2f} {r['forward_share']:>8.1%} {r['other_share']:>13.1%} {r['write_share']:>8.1%} "
+            f"{maps}")
 
 
 def main() -> None:

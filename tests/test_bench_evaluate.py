@@ -28,6 +28,10 @@ def test_columns_add_up_and_the_ratio_is_as_stated():
     assert c["other_share"] == 0.0 and c["forward_share"] == 1.0
     assert c["stage_steady_ips"] == 20.0 and c["steady_ratio"] == 2.0  # from the first decoded group on
     assert "100.0%" in b.row(0, c) and "-" not in b.row(0, c).split()[6]
+    # against the forward with the estimators' maps, where it was measured
+    c = b.columns({"images": 48, "count": 4.0, "forward": 3.0, "write": 1.0, "bare": 3.0, "maps": 3.6})
+    assert c["maps_ips"] == pytest.approx(48 / 3.6) and c["maps_ratio"] == pytest.approx(0.9)
+    assert b.row(0, c).split()[-2:] == ["13.33", "0.90"]
 
 
 def test_the_evaluated_model_is_the_benchmarked_one_alone():
@@ -69,7 +73,8 @@ def test_a_measurement_on_a_fake_segmenter_adds_up(tmp_path, monkeypatch):
     # three stage runs, each between two bare forwards: the reported columns are the median run's
     assert len(r["ratios"]) == 3 and r["ratio"] == pytest.approx(sorted(r["ratios"])[1])
     assert r["ratio_spread"] == pytest.approx(max(r["ratios"]) - min(r["ratios"]))
-    assert 0 < r["forward"] <= r["count"] and r["write"] > 0 and r["bare"] > 0
+    assert 0 < r["forward"] <= r["count"] and r["write"] > 0 and r["bare"] > 0 and r["maps"] > 0
+    assert r["maps_ratio"] == pytest.approx(r["eval_ips"] / r["maps_ips"])
     assert r["forward_share"] + r["other_share"] + r["write_share"] == pytest.approx(1.0, abs=1e-12)
     assert r["eval_ips"] == pytest.approx(9 / r["count"]) and r["ratio"] == pytest.approx(r["eval_ips"] / r["bare_ips"])
     assert 0 < r["steady"] <= r["count"] and r["steady_ratio"] >= r["ratio"]

@@ -11,7 +11,9 @@ On a GPU the groups are pipelined: group g+1's images are copied to the device (
 while group g computes, and group g-1's results are read on the host meanwhile."""
 from __future__ import annotations
 
-from typing import Any
+import gc
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -166,6 +168,19 @@ def estimator_sums(pred: Any, conf: Any, entropy: Any, clean_pred: Any) -> dict[
             "agree_clean": int((p == q).sum())}
 
 
+@contextmanager
+def frozen_heap() -> Iterator[None]:
+    """The objects alive before the counting loop (the app, the model, the earlier stages' garbage) left out of
+    the garbage collector's passes until it ends: a full pass over them, due by chance inside the loop, stalled
+    a few of its groups by a tenth of a second each (one stage run of three in experiments/bench_evaluate.py).
+    Objects made inside the loop are collected as ever; the frozen ones go back to the collector on exit."""
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+
+
 def count_groups(dataset: PairedDataset, labels: LabelMaps, segmenter: Any, s: dict[str, Any], conditions: list[str],
                  groups: list[Any], batch: int, workers: int, maps: Any = None) -> list[dict[str, Any]]:
     """`group_counts` of `groups` (those with the clean image), under the metric settings `s`, images
@@ -200,16 +215,17 @@ def count_groups(dataset: PairedDataset, labels: LabelMaps, segmenter: Any, s: d
             maps(r["group_id"], r.pop("pred"), r.pop("conf"))
         return r
 
-    staged = next_staged()
-    while staged is not None:
-        item, on_device = staged
-        job = GroupJob(item, on_device, segmenter, s, use_pl, batch, segmenter.name, dataset.name)
+    with frozen_heap():
+        staged = next_staged()
+        while staged is not None:
+            item, on_device = staged
+            job = GroupJob(item, on_device, segmenter, s, use_pl, batch, segmenter.name, dataset.name)
+            if waiting is not None:
+                results.append(finish(waiting))
+            waiting = job
+            staged = next_staged()  # decoded while the device computes; copied on the side stream
         if waiting is not None:
             results.append(finish(waiting))
-        waiting = job
-        staged = next_staged()  # decoded while the device computes; copied on the side stream
-    if waiting is not None:
-        results.append(finish(waiting))
     check = getattr(segmenter, "check_finite", None)
     if check is not None:
         check()

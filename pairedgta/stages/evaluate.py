@@ -26,6 +26,7 @@ from pairedgta.cache import canonical_json
 from pairedgta.datasets import PairedDataset
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation import counting, entry, registry, setup_check, shards, tables
+from pairedgta.evaluation.inputs import start_workers_server
 from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.settings import conditions_for, metric_settings
 from pairedgta.schema import as_dict
@@ -164,6 +165,7 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
     if not groups:
         return []
     device, ev = ctx.run.device, ctx.run.evaluate
+    start_workers_server(ev.decode_workers(device))  # imports torch beside the model's loading
     segmenter = shared_segmenter(model_cfg, device=device)
     with torch_threads(ctx.run.threads):
         return counting.count_groups(dataset, pseudo.labels, segmenter, s, conditions, groups, ev.batch_size,
