@@ -40,6 +40,19 @@ def test_the_evaluated_model_is_the_benchmarked_one_alone():
     assert "models=null" in args and "model=tiny_segformer" in args and "reference_model=tiny_segformer" in args
 
 
+def test_a_full_paper_graph_is_built_with_its_own_widths():
+    """`--full` once built SegFormer-B5 as B0: a family's default config is its smallest member."""
+    args = bench().overrides(Path("/d"), Path("/c"), "segformer_b5", 0, 4, "-", "cpu", full=True)
+    arch = [a for a in args if a.startswith("++model.arch=")]
+    assert "++model.random_init=true" in args and len(arch) == 1
+    assert "hidden_sizes:[64,128,320,512]" in arch[0] and "depths:[3,6,40,3]" in arch[0]
+    # a graph whose family has one architecture gets none; an explicit --arch wins
+    assert not [a for a in bench().overrides(Path("/d"), Path("/c"), "ddrnet_23", 0, 4, "-", "cpu", full=True)
+                if a.startswith("++model.arch=")]
+    assert [a for a in bench().overrides(Path("/d"), Path("/c"), "segformer_b5", 0, 4, "{depths:[1,1,1,1]}", "cpu",
+                                         full=True) if a.startswith("++model.arch=")] == ["++model.arch={depths:[1,1,1,1]}"]
+
+
 class _Fake:
     """A segmenter with a 1x1 convolution for a network: every stage path runs, in milliseconds."""
 
