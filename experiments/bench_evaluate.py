@@ -259,9 +259,9 @@ def ready_workers_server(workers: int | str) -> None:
     from pairedgta.evaluation.inputs import start_workers_server, worker_context
 
     n = 0 if workers == "auto" else int(workers)
-    start_workers_server(n)
     ctx = worker_context() if n > 0 else None
     if ctx is not None:
+        start_workers_server(n)
         p = ctx.Process(target=time.sleep, args=(0,))  # served only once the server has imported its modules
         p.start()
         p.join()

@@ -165,11 +165,12 @@ def count_groups(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, mod
     if not groups:
         return []
     device, ev = ctx.run.device, ctx.run.evaluate
-    start_workers_server(ev.decode_workers(device))  # imports torch beside the model's loading
+    workers = ev.decode_workers(device)
+    start_workers_server(workers)  # imports torch beside the model's loading
     segmenter = shared_segmenter(model_cfg, device=device)
     with torch_threads(ctx.run.threads):
         return counting.count_groups(dataset, pseudo.labels, segmenter, s, conditions, groups, ev.batch_size,
-                                      ev.decode_workers(device), maps=maps)
+                                      workers, maps=maps)
 
 
 def compute(ctx: Context, dataset: PairedDataset, pseudo: PseudoLabels, model_cfg: dict[str, Any], conditions: list[str],
