@@ -30,6 +30,9 @@ class Group:
     labels: dict[str, Path] = field(default_factory=dict)
     descriptor: Path | None = None
     transmittance: dict[str, Path] = field(default_factory=dict)  # generated datasets from backends with depth
+    # instance ids (uint16, one id per object, the same object the same id in every condition): detection's ground
+    # truth boxes (pairedgta/detection/boxes.py); or a renderer's 2D boxes (`<condition>_boxes.json`, DeepGTAV)
+    instances: dict[str, Path] = field(default_factory=dict)
 
 
 @dataclass

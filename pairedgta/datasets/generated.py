@@ -5,6 +5,7 @@
     <root>/scenes/<scene_id>/<condition>_labels.png    train ids (backends with labels)
     <root>/scenes/<scene_id>/<condition>_instances.png instance ids
     <root>/scenes/<scene_id>/<condition>_transmittance.png  exp(-extinction * distance), 16-bit (backends with depth)
+    <root>/scenes/<scene_id>/<condition>_boxes.json    2D boxes where a backend gives no instance ids (DeepGTAV)
     <root>/scenes/<scene_id>/descriptor.json           the replay file
     <root>/scenes/<scene_id>/timings.json
 """
@@ -30,6 +31,11 @@ def scene_files(scene_dir: Path, condition: str) -> tuple[Path, Path, Path]:
 
 def transmittance_file(scene_dir: Path, condition: str) -> Path:
     return scene_dir / f"{condition}_transmittance.png"
+
+
+def boxes_file(scene_dir: Path, condition: str) -> Path:
+    """A renderer's own 2D boxes where it gives no instance mask (DeepGTAV's bbox2d): detection's ground truth."""
+    return scene_dir / f"{condition}_boxes.json"
 
 
 TRANSMITTANCE_SCALE = 65535
@@ -61,20 +67,25 @@ def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "genera
     groups, skipped = [], 0
     for scene in scenes:
         scene_dir = root / scene["dir"]
-        images, labels, transmittance = {}, {}, {}
+        images, labels, transmittance, instances = {}, {}, {}, {}
         for cond in grid.names:
-            img, lab, _ = scene_files(scene_dir, cond)
+            img, lab, inst = scene_files(scene_dir, cond)
             if img.is_file():
                 images[cond] = img
                 if lab.is_file():
                     labels[cond] = lab
+                if inst.is_file():
+                    instances[cond] = inst
+                elif boxes_file(scene_dir, cond).is_file():
+                    instances[cond] = boxes_file(scene_dir, cond)
                 if transmittance_file(scene_dir, cond).is_file():
                     transmittance[cond] = transmittance_file(scene_dir, cond)
         if grid.reference not in images:
             skipped += 1
             continue
         desc = scene_dir / "descriptor.json"
-        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None, transmittance))
+        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None, transmittance,
+                            instances))
     if skipped:
         log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
     if not groups:
