@@ -101,7 +101,7 @@ def overrides(root: Path, cache: Path, model: str, workers: int | str, batch: in
         out.append("++model.random_init=true")
         if arch == "-":  # the paper graph's widths: without them a family builds its default (SegFormer's is B0)
             sys.path.insert(0, str(Path(__file__).resolve().parent))
-            from bench_models import PAPER, hydra_value
+            from paper_graphs import PAPER, hydra_value
 
             if "arch" in PAPER.get(model, {}):
                 out.append(f"++model.arch={hydra_value(PAPER[model]['arch'])}")

@@ -17,7 +17,7 @@ the network, upsampling and softmax written out by hand), on the same images: to
 moves them together; it prints the median per call, the ratio source / native (target <= 1.10 on the CPU; ONNX
 may be faster) and the spread of the per-round ratios.
 
-`--graphs full` are the paper's eight graphs (PAPER): the in-project ones with random weights, the transformers
+`--graphs full` are the paper's eight graphs (PAPER, experiments/paper_graphs.py): the in-project ones with random weights, the transformers
 ones random-initialised with the published widths (no hub access, and no image processor: they run at the
 input's size, where the hub's processor may resize first).
 """
@@ -36,24 +36,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a checkout without the package installed
 
 from pairedgta.models import build_segmenter, model_config  # noqa: E402
+from paper_graphs import PAPER, hydra_value  # noqa: E402  (experiments/paper_graphs.py, beside this script)
 
-SWIN = {"depths": [2, 2, 18, 2]}
-# the paper's eight graphs (pairedgta/conf/experiment/paper_table.yaml), as built without their weights
-PAPER: dict[str, dict[str, Any]] = {
-    "segformer_b5": {"random_init": True, "arch": {"depths": [3, 6, 40, 3], "hidden_sizes": [64, 128, 320, 512],
-                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 768}},
-    "mask2former_swin_l": {"random_init": True, "arch": {"backbone": {**SWIN, "embed_dim": 192,
-                                                                      "num_heads": [6, 12, 24, 48], "window_size": 12}}},
-    "segformer_b2": {"random_init": True, "arch": {"depths": [3, 4, 6, 3], "hidden_sizes": [64, 128, 320, 512],
-                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 768}},
-    "mask2former_swin_s": {"random_init": True, "arch": {"backbone": {**SWIN, "embed_dim": 96,
-                                                                      "num_heads": [3, 6, 12, 24], "window_size": 7}}},
-    "segformer_b0": {"random_init": True, "arch": {"depths": [2, 2, 2, 2], "hidden_sizes": [32, 64, 160, 256],
-                                                   "num_attention_heads": [1, 2, 5, 8], "decoder_hidden_size": 256}},
-    "ddrnet_23": {"random_init": True},
-    "pidnet_m": {"random_init": True},
-    "deeplabv3plus_r101": {"random_init": True},
-}
 TINY = {"deeplabv3plus": "tiny_deeplabv3plus", "pidnet": "tiny_pidnet", "ddrnet": "tiny_ddrnet",
         "segformer": "tiny_segformer", "mask2former": "tiny_mask2former"}
 IN_PROJECT = ("deeplabv3plus", "pidnet", "ddrnet")
@@ -74,17 +58,6 @@ def graphs(kinds: list[str], families: list[str], names: list[str] | None) -> li
         else:
             out += [("full", n, dict(o)) for n, o in PAPER.items() if family(n) in families]
     return out
-
-
-def hydra_value(value: Any) -> str:
-    """A Python value in Hydra's override grammar (dicts and lists nest)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, dict):
-        return "{" + ",".join(f"{k}:{hydra_value(v)}" for k, v in value.items()) + "}"
-    if isinstance(value, (list, tuple)):
-        return "[" + ",".join(hydra_value(v) for v in value) + "]"
-    return "null" if value is None else str(value)
 
 
 def model_overrides(options: dict[str, Any]) -> list[str]:

@@ -1,6 +1,6 @@
 """One model's evaluate entry from its groups' records: every registered metric's tables
 (`registry.METRICS`), the arrays they contribute to group_counts.npz, the label maps (predictions.npz) and
-summary.json. The entry's own files are named here, the metrics' files by their metrics.
+summary.json. The entry's own files are named in `entry_files`, the metrics' files by their metrics.
 
 A model whose label space cannot predict some Cityscapes classes (`label_space`: a model source with
 model.labels=ade20k, coco_panoptic or a TSV that maps no channel to them) has those classes' xi and IoU NaN with
@@ -19,14 +19,13 @@ import numpy as np
 
 from pairedgta.cityscapes import IGNORE_INDEX
 from pairedgta.datasets import PairedDataset
+from pairedgta.evaluation.entry_files import GROUP_COUNTS, PREDICTIONS, SUMMARY
 from pairedgta.evaluation.inputs import sampled_conditions
 from pairedgta.evaluation.metric import Metric, ModelEvaluation
 from pairedgta.jsonio import write_json, write_npz
 
 log = logging.getLogger("pairedgta.evaluate")
 
-SUMMARY, GROUP_COUNTS, PREDICTIONS = "summary.json", "group_counts.npz", "predictions.npz"
-OWN_FILES = (SUMMARY, GROUP_COUNTS)  # the entry's tables besides the metrics' (predictions.npz: label maps)
 CONFIDENCE_STEP = 2  # predictions.npz keeps the max probability at 1/2 resolution, uint8 (counting.confidence_thumbnail)
 # The layout summary.json and group_counts.npz have had since evaluate VERSION 8, which these files keep byte for
 # byte; what a metric registered since adds follows, in registry order.

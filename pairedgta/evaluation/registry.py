@@ -9,6 +9,7 @@ from typing import Any
 from pairedgta.cityscapes import NUM_CLASSES
 
 from pairedgta.evaluation import estimator_sums, tables
+from pairedgta.evaluation.entry_files import OWN_FILES
 from pairedgta.evaluation.metric import GroupContext, Metric
 
 METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators(),
@@ -38,8 +39,6 @@ def stage_version(version: str, ms: list[Metric] | None = None) -> str:
 
 def result_files(ms: list[Metric] | None = None) -> tuple[str, ...]:
     """Every table of an entry: the metrics' files in registry order, then the entry's own."""
-    from pairedgta.evaluation.entry import OWN_FILES
-
     return tuple(f for m in (metrics() if ms is None else ms) for f in m.files) + OWN_FILES
 
 

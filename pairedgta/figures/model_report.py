@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import markdown_table
 from pairedgta.figures.inputs import Evaluation, FigurePass, Passes
+from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
 from pairedgta.figures.qualitative import AGREEMENT_TOL, clean_condition
 from pairedgta.figures.report_population import cache_key, members, subject_name
 from pairedgta.metrics.model_report import standing, standing_interval, tracking
@@ -43,39 +43,6 @@ from pairedgta.metrics.model_report import standing, standing_interval, tracking
 log = logging.getLogger("pairedgta.plot")
 GT_SOURCE = "ground_truth"  # the xi rows scored against the true labels, not the pseudo-labels
 __all__ = ["Report", "cache_key", "compute", "draw", "markdown"]  # cache_key: the FigureSpec's key, read from here too
-CASE_COLUMNS = ("adverse image", "pseudo-label\n(reference, clean)", "prediction", "disagreement with\npseudo-label")
-
-
-@dataclass
-class Report:
-    """The numbers of one pass's report; `models[0]` is the subject."""
-
-    subject: str
-    reference: str
-    population: list[str]              # the members evaluated on this pass, in the listed order
-    missing: list[str]                 # listed members without an evaluation here
-    clean: str
-    conditions: list[str]              # adverse conditions, grid order
-    xi: np.ndarray                     # M x C'
-    gt: np.ndarray                     # M x C'
-    gt_clean: np.ndarray               # M
-    n_scenes: int
-    scene: dict[str, np.ndarray] | None  # xi, gt (M x R x C'), gt_clean (M x R) on scene resamples; None: no counts
-    confidence: float
-    resamples: int
-    seed: int
-    rows: list[dict] = field(default_factory=list)      # the subject's standing per (condition, measure)
-    track: list[dict] = field(default_factory=list)     # xi vs GT within each condition, and their mean
-    worst: list[dict] = field(default_factory=list)     # the conditions where it loses most
-    cases: list[dict] = field(default_factory=list)     # its worst (group, condition) images
-
-    @property
-    def models(self) -> list[str]:
-        return [self.subject, *self.population]
-
-    @property
-    def has_gt(self) -> bool:
-        return bool(np.isfinite(self.gt[0]).any())
 
 
 def _means(e: Evaluation) -> tuple[pd.Series, pd.Series]:
@@ -178,10 +145,6 @@ def _standings(r: Report) -> None:
     r.rows.append(_standing(r, r.clean, "gt_miou", r.gt_clean, None if r.scene is None else r.scene["gt_clean"]))
 
 
-def row(r: Report, condition: str, measure: str) -> dict:
-    return next(x for x in r.rows if x["condition"] == condition and x["measure"] == measure)
-
-
 def _worst(r: Report, k: int) -> None:
     """The k conditions where the subject loses the most GT mIoU from the clean image (1 − ξ without labels)."""
     out = []
@@ -244,14 +207,6 @@ def compute(p: FigurePass, opts: FigureOptions) -> Report:
 # -- text ---------------------------------------------------------------------------------------------------------
 def _num(v: float, fmt: str = "{:.3f}") -> str:
     return "–" if v is None or not math.isfinite(v) else fmt.format(v)
-
-
-def rank_text(d: dict) -> str:
-    return "–" if not math.isfinite(d["rank"]) else f"{d['rank']:.0f}/{d['n']:.0f}"
-
-
-def pct_text(d: dict) -> str:
-    return "–" if not math.isfinite(d["percentile"]) else f"{d['percentile']:.1f}"
 
 
 def _ci(lo: float, hi: float, fmt: str = "{:.1f}") -> str:

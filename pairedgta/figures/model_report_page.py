@@ -14,10 +14,11 @@ import numpy as np
 from pairedgta.cityscapes import colorize
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
-from pairedgta.figures.model_report import CASE_COLUMNS, Report, pct_text, rank_text, row
+from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
 from pairedgta.figures.qualitative import disagreement_overlay, draw_strip, strip_geometry
 
 SUBJECT_COLOR, POPULATION_COLOR = "#d62728", "0.55"
+CASE_COLUMNS = ("adverse image", "pseudo-label\n(reference, clean)", "prediction", "disagreement with\npseudo-label")
 
 
 def _standing_panel(ax: Any, r: Report, values: np.ndarray, measure: str, title: str) -> None:

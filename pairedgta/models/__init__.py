@@ -46,9 +46,23 @@ FAMILIES.register("smp", "pairedgta.models.sources.smp:load", **SOURCE)
 FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE)
 FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE)
 FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE)
+# Detectors (task=detection): torchvision's detection heads on a small trunk, one builder for what every detector has
+# (pairedgta/detection/models.py: build_detector); `kind` says which task's stages can run them (pairedgta/tasks.py).
+DETECTOR = {"via": "pairedgta.detection.models:build_detector", "kind": "detector",
+            "filled": ("random_init", "init_seed", "score_threshold", "min_size", "max_size")}
+FAMILIES.register("fcos", "pairedgta.detection.models:fcos", **DETECTOR)
+FAMILIES.register("retinanet", "pairedgta.detection.models:retinanet", **DETECTOR)
+FAMILIES.register("fasterrcnn", "pairedgta.detection.models:fasterrcnn", **DETECTOR)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")
 _RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
+
+
+def model_kind(cfg: Mapping[str, Any]) -> str:
+    """What a model config builds: "detector" (boxes) or "segmenter" (label maps); read without building it."""
+    family = cfg.get("family")
+    return str(FAMILIES.meta(family).get("kind", "segmenter")) if isinstance(family, str) and family in FAMILIES \
+        else "segmenter"
 
 
 def available_models() -> list[str]:
@@ -189,4 +203,4 @@ def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Seg
 
 
 __all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
-           "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source"]
+           "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source", "model_kind"]
