@@ -17,9 +17,9 @@ the network, upsampling and softmax written out by hand), on the same images: to
 moves them together; it prints the median per call, the ratio source / native (target <= 1.10 on the CPU; ONNX
 may be faster) and the spread of the per-round ratios.
 
-`--graphs full` are the paper's eight graphs (PAPER, experiments/paper_graphs.py): the in-project ones with random weights, the transformers
-ones random-initialised with the published widths (no hub access, and no image processor: they run at the
-input's size, where the hub's processor may resize first).
+`--graphs full` are the paper's eight graphs (PAPER, experiments/paper_graphs.py): the in-project ones with random
+weights, the transformers ones random-initialised with the published widths (no hub access, and no image processor:
+they run at the input's size, where the hub's processor may resize first).
 """
 from __future__ import annotations
 
@@ -34,9 +34,10 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a checkout without the package installed
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_graphs.py beside it, however this file is loaded
 
 from pairedgta.models import build_segmenter, model_config  # noqa: E402
-from paper_graphs import PAPER, hydra_value  # noqa: E402  (experiments/paper_graphs.py, beside this script)
+from paper_graphs import PAPER, hydra_value  # noqa: E402
 
 TINY = {"deeplabv3plus": "tiny_deeplabv3plus", "pidnet": "tiny_pidnet", "ddrnet": "tiny_ddrnet",
         "segformer": "tiny_segformer", "mask2former": "tiny_mask2former"}
