@@ -3,11 +3,14 @@
     <root>/rgb_anon/<cond>/<split>/<seq>/<seq>_frame_<n>_rgb_anon.png          adverse image
     <root>/rgb_anon/<cond>/<split>_ref/<seq>/<seq>_frame_<n>_rgb_ref_anon.png   clear-daytime reference
     <root>/gt/<cond>/<split>/<seq>/<seq>_frame_<n>_gt_labelTrainIds.png          labels of the ADVERSE image
+    <root>/gt_panoptic/<cond>/<split>/<seq>/<seq>_frame_<n>_gt_panoptic.png      its panoptic labels (optional; with
+    <root>/gt_panoptic/<cond>/<cond>_<split>_gt_panoptic.json                     their JSON: detection/real_boxes.py)
 
 One group = (reference, adverse) of one frame. The dataset carries its own two-condition grid,
 `ACDC-reference` (the clean condition) and `ACDC-<cond>`. Ground truth describes the adverse frame only
 (the reference was driven at another time: other objects, a slightly different pose), so it is stored
-as `Group.labels["ACDC-<cond>"]` and never as the reference's labels.
+as `Group.labels["ACDC-<cond>"]` and never as the reference's labels; its panoptic PNG likewise as
+`Group.instances["ACDC-<cond>"]` only.
 
 Download: https://acdc.vision.ee.ethz.ch (registration required); `rgb_anon` and `gt` packages.
 """
@@ -67,6 +70,10 @@ def label_path(root: Path, cond: str, split: str, seq: str, n: str) -> Path:
     return root / "gt" / cond / split / seq / f"{seq}_frame_{n}_gt_labelTrainIds.png"
 
 
+def panoptic_path(root: Path, cond: str, split: str, seq: str, n: str) -> Path:
+    return root / "gt_panoptic" / cond / split / seq / f"{seq}_frame_{n}_gt_panoptic.png"
+
+
 def _as_list(value: Any) -> list[str]:
     if value is None:
         return list(SPLITS[:2])
@@ -121,7 +128,10 @@ def open_acdc(
             if gt.is_file():
                 labels[adverse] = gt  # the adverse frame's truth, not the reference's
                 labelled += 1
-            groups.append(Group(f"{split}_{seq}_frame_{n}", {REFERENCE: ref, adverse: img}, labels))
+            pan = panoptic_path(root, cond, split, seq, n)
+            instances = {adverse: pan} if pan.is_file() else {}  # the adverse frame's objects, as its labels
+            groups.append(Group(f"{split}_{seq}_frame_{n}", {REFERENCE: ref, adverse: img}, labels,
+                                instances=instances))
     if skipped:
         log.warning(
             "ACDC %s: %d adverse image(s) without their reference were skipped, e.g. %s missing",

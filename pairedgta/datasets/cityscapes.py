@@ -3,6 +3,7 @@
     <root>/leftImg8bit/<split>/<city>/<city>_<seq>_<frame>_leftImg8bit.png         image
     <root>/gtFine/<split>/<city>/<city>_<seq>_<frame>_gtFine_labelTrainIds.png     train ids (preferred)
     <root>/gtFine/<split>/<city>/<city>_<seq>_<frame>_gtFine_labelIds.png          label ids (fallback, mapped)
+    <root>/gtFine/<split>/<city>/<city>_<seq>_<frame>_gtFine_instanceIds.png       instance ids (detection, optional)
 
 Every problem a run would hit later (no images, an image without ground truth, a label map whose size
 differs from its image) is found when the split is opened, before any model runs; only file headers
@@ -28,6 +29,7 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIX = "_leftImg8bit.png"
 TRAIN_IDS_SUFFIX = "_gtFine_labelTrainIds.png"
 LABEL_IDS_SUFFIX = "_gtFine_labelIds.png"
+INSTANCE_IDS_SUFFIX = "_gtFine_instanceIds.png"
 FRAME = re.compile(r"^(?P<city>.+)_(?P<seq>[^_]+)_(?P<frame>[^_]+)$")
 
 
@@ -38,6 +40,7 @@ class CityscapesSample:
     label: Path
     label_kind: str        # "trainIds" or "labelIds"
     size: tuple[int, int]  # (width, height) of image and label
+    instances: Path | None = None  # its *_gtFine_instanceIds.png where present (detection/real_boxes.py)
 
 
 @dataclass
@@ -188,7 +191,8 @@ def open_cityscapes(
                 f"{label}: label map is {label_size[0]}x{label_size[1]} but its image {image} is {size[0]}x{size[1]}; "
                 "use the gtFine file of the same frame at full resolution"
             )
-        samples.append(CityscapesSample(frame_id, image, label, kind, size))
+        instances = gt_dir / f"{frame_id}{INSTANCE_IDS_SUFFIX}"
+        samples.append(CityscapesSample(frame_id, image, label, kind, size, instances if instances.is_file() else None))
     ds = CityscapesSplit(name, root, split, samples, scale)
     kinds = ds.label_kinds()
     log.info(
