@@ -15,7 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Optional
 
-from pairedgta import stage_registry
+from pairedgta import stage_registry, tasks
 from pairedgta.errors import ConfigError
 
 MISSING = "???"
@@ -295,9 +295,19 @@ class ReportConfig:
 
 
 @dataclass(frozen=True)
+class DetectionConfig:
+    """task=detection: box matching and the ground truth's rules (pairedgta/detection/boxes.py)."""
+    iou: float = key(0.5, ok=lambda v: 0.0 < v < 1.0, use="use an IoU strictly between 0 and 1, e.g. 0.5")
+    min_area: int = key(100, ok=lambda v: v >= 0, use="use a number of visible pixels >= 0 (Cityscapes: 100)")
+    min_boxes: int = key(5, ok=lambda v: v >= 1, use="use a number of reference boxes >= 1")
+    max_detections: int = key(100, ok=lambda v: v >= 1, use="use a number of boxes per image >= 1 (COCO: 100)")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """The composed config of one run (or of one pass of a run with `variants`)."""
     name: str = key("default")
+    task: str = key("segmentation", choices=tasks.NAMES)
     models: Optional[list[str]] = key(["demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"])
     reference_model: Optional[str] = key("demo_segformer")  # null: the `model` group's
     model_overrides: dict[str, Any] = key({})
@@ -317,6 +327,7 @@ class RunConfig:
     metric: MetricConfig = node(MetricConfig)
     cost: CostConfig = node(CostConfig)
     report: ReportConfig = node(ReportConfig)
+    detection: DetectionConfig = node(DetectionConfig)
     photometry: dict[str, Any] = key({})  # bands and limits of the photometry figure (its defaults live there)
     # the chosen group options: checked by their builders, which know the option's keys
     conditions: dict[str, Any] = key({})

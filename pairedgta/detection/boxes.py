@@ -30,6 +30,7 @@ _TRAIN_TO_INSTANCE = np.full(256, -1, dtype=np.int64)
 for _i, _n in enumerate(INSTANCE_CLASSES):
     _TRAIN_TO_INSTANCE[CLASS_NAMES.index(_n)] = _i
 CITYSCAPES_MIN_AREA = 100
+RULES_VERSION = "1"  # bumped when a rule below changes the boxes (it keys the labels stage)
 IGNORE_SMALL, IGNORE_FOG, IGNORE_CROWD = "small", "fog", "crowd"
 
 

@@ -81,7 +81,12 @@ def _backbone(width: float, fpn_channels: int, extra: str) -> Any:
 
 def fcos(name: str | None, num_classes: int, min_size: int, max_size: int, /, *, width: float = 0.5,
          fpn_channels: int = 64, center_sampling_radius: float = 1.5) -> Any:
-    """FCOS (anchor-free, one stage) on P3-P7."""
+    """FCOS (anchor-free, one stage) on P3-P7; its head's GroupNorm needs fpn_channels in multiples of 32."""
+    from pairedgta.errors import ConfigError
+
+    if int(fpn_channels) % 32:
+        raise ConfigError(f"model ({name}): fpn_channels={fpn_channels} must be a multiple of 32 for fcos (its head's "
+                          "GroupNorm has 32 groups), e.g. fpn_channels=64")
     from torchvision.models.detection import FCOS
     from torchvision.models.detection.anchor_utils import AnchorGenerator
 

@@ -78,6 +78,11 @@ FIGURES: tuple[FigureSpec, ...] = (
                key="pairedgta.figures.photometry:cache_key"),
     FigureSpec("authors_table", "pairedgta.figures.paper_table:draw", source="plot.table_csv",
                key="pairedgta.figures.paper_table:cache_key"),
+    # task=detection (pairedgta/tasks.py): the detection results of the same paired scenes
+    FigureSpec("det_xi", "pairedgta.figures.det_xi:draw", needs="evaluate"),
+    FigureSpec("det_robustness", "pairedgta.figures.det_robustness:draw", needs="evaluate"),
+    FigureSpec("det_objects", "pairedgta.figures.det_objects:draw", needs="evaluate"),
+    FigureSpec("det_qualitative", "pairedgta.figures.det_qualitative:draw", needs="evaluate"),
     FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw", source="plot.frame_counts_csv",
                key="pairedgta.figures.authors_ranking:cache_key"),
 )

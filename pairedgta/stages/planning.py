@@ -26,7 +26,7 @@ from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
 from pairedgta.models import check_model_config, model_config, with_defaults
-from pairedgta import schema, stage_registry
+from pairedgta import schema, stage_registry, tasks
 from pairedgta.schema import MISSING
 from pairedgta.stages.common import Context
 from pairedgta.tracking.recorder import Recorder
@@ -107,6 +107,7 @@ class Plan:
     force: set[str]
     needs: set[str]  # upstream stages the requested stages' config makes them read (the figures')
     models: Any = None  # RunModels, once resolved: checked for availability before a new dataset is rendered
+    task: tasks.Task = tasks.TASKS["segmentation"]  # whose pseudo-labeller and evaluation the stages run
 
     def runs(self, name: str) -> bool:
         """Whether a stage runs: listed in `stages`, read by a listed stage's config, or upstream of either."""
@@ -114,7 +115,7 @@ class Plan:
 
     def steps(self, *scopes: str) -> list[stage_registry.StageSpec]:
         """The stages of these scopes that run, in the order they run."""
-        return [s for s in stage_registry.in_scope(*scopes) if self.runs(s.name)]
+        return [self.task.resolve(s) for s in stage_registry.in_scope(*scopes) if self.runs(s.name)]
 
     @property
     def plotting(self) -> bool:
@@ -159,7 +160,10 @@ def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
     needs = set().union(*(stage_registry.spec(name).needs_of(cfg) for name in stages))
     if not sourced:
         check_renderer(cfg)
-    return Plan(stages, force, needs)
+    task = tasks.get(run.task)
+    if "plot" in stages:
+        tasks.check_figures(task, list(run.plot.figures))
+    return Plan(stages, force, needs, task=task)
 
 
 def check_renderer(cfg: dict[str, Any]) -> None:
@@ -256,6 +260,8 @@ def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
         merged = with_defaults(_merge(base, extra))  # the hashed config names every shared option
         check_model_config(merged, "model" if name == primary["name"] and not extra else f"model_overrides.{name}")
         resolved[name] = merged
+    tasks.check_models(tasks.get(run.task), [*(("model", resolved[n]) for n in names),
+                                             ("reference_model", resolved[reference])])
     return RunModels([resolved[n] for n in names], resolved[reference])
 
 

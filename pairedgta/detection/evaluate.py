@@ -1,0 +1,350 @@
+"""Detection's evaluate stage (task=detection), per model: the detector on every condition of every group, then the
+detection metrics of pairedgta/detection/registry.py over the stored detections (detection xi with its precision
+side and pseudo-AP against the reference's clean boxes; COCO AP, P / mPC / rPC against the renderer's ground truth;
+the per-object view). Every model's detections are kept per condition in COCO results format
+(detections/<condition>.json), so a user can re-score them elsewhere.
+
+Per group only its detections (at most `detection.max_detections` boxes an image) and a few counts are kept; shard
+jobs store those per group and the unsharded run merges them, as segmentation's evaluate does."""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from pairedgta.datasets import PairedDataset, load_group_images
+from pairedgta.detection import registry
+from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
+from pairedgta.detection.models import Detections
+from pairedgta.detection.pseudolabel import (DetectionLabels, detections_from_json, detections_json, image_ids,
+                                             write_json_atomic)
+from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.evaluation.settings import conditions_for
+from pairedgta.jsonio import write_bytes
+from pairedgta.metrics import detection_xi, per_object
+from pairedgta.models import shared_segmenter
+from pairedgta.models.runtime import torch_threads
+from pairedgta.schema import as_dict
+from pairedgta.stages.common import Context, StageResult, model_config_from_hash, model_hash_config, run_cached
+
+if TYPE_CHECKING:
+    from pairedgta.stages.planning import PassResult, RunState
+
+log = logging.getLogger("pairedgta.evaluate")
+VERSION = "det1"
+SUMMARY = "summary.json"
+DETECTIONS_DIR = "detections"
+
+
+@dataclass
+class GroupResult:
+    """One group's detections and counts under every condition (what a shard job stores)."""
+
+    group_id: str
+    detections: dict[str, Detections]
+    counts: dict[str, np.ndarray]  # condition -> 4 x C (detection_xi.image_counts)
+    objects: list[dict[str, Any]]
+    sizes: dict[str, tuple[int, int]]  # condition -> (height, width)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"group_id": self.group_id, "detections": {c: detections_json(d) for c, d in self.detections.items()},
+                "counts": {c: v.tolist() for c, v in self.counts.items()}, "objects": self.objects,
+                "sizes": {c: list(s) for c, s in self.sizes.items()}}
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "GroupResult":
+        return GroupResult(d["group_id"], {c: detections_from_json(v) for c, v in d["detections"].items()},
+                           {c: np.asarray(v, np.int64) for c, v in d["counts"].items()},
+                           [{**o, "transmittance": math.nan if o["transmittance"] is None else o["transmittance"],
+                             "luma": math.nan if o["luma"] is None else o["luma"]} for o in d["objects"]],
+                           {c: (int(s[0]), int(s[1])) for c, s in d["sizes"].items()})
+
+
+@dataclass
+class Inputs:
+    """What the metrics read: the groups' results, the reference's boxes, the ground truth, the settings."""
+
+    model: str
+    reference_model: str
+    conditions: list[str]
+    clean: str
+    groups: list[GroupResult]
+    image_ids: dict[str, int]
+    pseudo: dict[str, Detections]
+    ground_truth: dict[str, Any]  # condition -> COCO dict (pycocotools' input), only where it exists
+    threshold: float
+    settings: dict[str, Any]
+
+    @property
+    def adverse(self) -> list[str]:
+        return [c for c in self.conditions if c != self.clean]
+
+    def coco_results(self, condition: str) -> list[dict[str, Any]]:
+        from pairedgta.metrics.coco_ap import results_format
+
+        out: list[dict[str, Any]] = []
+        for g in self.groups:
+            d = g.detections.get(condition)
+            if d is not None:
+                out += results_format(self.image_ids[g.group_id], d.boxes, d.scores, d.labels + 1,
+                                      self.settings["max_detections"])
+        return out
+
+
+class DetectionEvaluateResult(StageResult):
+    """One detector's evaluate entry; its tables are read by the readers the registered metrics declare."""
+
+    def model_config(self) -> dict[str, Any]:
+        if "model_config" in self.extra:
+            return dict(self.extra["model_config"])
+        return model_config_from_hash(self.manifest()["config"]["model"])
+
+    @property
+    def model(self) -> str:
+        return str(self.model_config()["name"])
+
+    def read(self, file: str) -> pd.DataFrame:
+        return pd.read_csv(self.path / file)
+
+    def xi(self) -> pd.DataFrame:
+        return self.read(registry.XI)
+
+    def summary(self) -> dict[str, Any]:
+        return json.loads((self.path / SUMMARY).read_text())
+
+    def detections(self, condition: str) -> list[dict[str, Any]]:
+        return json.loads((self.path / DETECTIONS_DIR / f"{condition}.json").read_text())
+
+    def artifacts(self) -> list[Path]:
+        return [self.path / f for f in (*registry.result_files(), SUMMARY) if (self.path / f).is_file()]
+
+    def metrics(self, per_class: bool = False, headline: str | None = None) -> dict[str, float]:
+        """The MLflow view: det_xi_mean/<cond>, pseudo_ap50/<cond>, precision/<cond>, ap/<cond>, ap50/<cond>,
+        P/mPC/rPC; with `per_class` also det_xi/<cond>/<class>."""
+        s = self.summary()
+        out: dict[str, float] = {}
+        for key in ("xi_mean", "pseudo_ap50", "precision", "gt_ap", "gt_ap50"):
+            for cond, v in (s.get(key) or {}).items():
+                if isinstance(v, (int, float)) and math.isfinite(v):
+                    out[f"det_{key}/{cond}"] = float(v)
+        for k, v in (s.get("robustness") or {}).items():
+            if isinstance(v, (int, float)) and math.isfinite(v):
+                out[f"det_{k}"] = float(v)
+        if per_class:
+            for row in self.xi().itertuples():
+                if row.class_name != "mean" and math.isfinite(row.xi):
+                    out[f"det_xi/{row.condition}/{row.class_name}"] = float(row.xi)
+        return out
+
+
+def _detect_group(detector: Any, group: Any, conditions: list[str], pseudo: Detections, gt: dict[str, Any],
+                  threshold: float, iou: float) -> GroupResult:
+    images = load_group_images(group, conditions)
+    present = [c for c in conditions if c in images]
+    found = detector.detect(np.stack([images[c] for c in present])) if present else []
+    dets, counts, objects, sizes = {}, {}, [], {}
+    for c, d in zip(present, found):
+        dets[c] = d
+        sizes[c] = images[c].shape[:2]
+        counts[c] = detection_xi.image_counts(pseudo.boxes, pseudo.labels, d.boxes, d.scores, d.labels, threshold,
+                                              iou, NUM_INSTANCE_CLASSES)
+        boxes = (gt.get(c) or {}).get(group.group_id)
+        if boxes:
+            objects += per_object.object_rows(group.group_id, c, boxes, per_object.luma_in_boxes(images[c], boxes),
+                                              d.boxes, d.scores, d.labels, threshold, iou, INSTANCE_CLASSES)
+    return GroupResult(group.group_id, dets, counts, objects, sizes)
+
+
+def detect_groups(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
+                  conditions: list[str], groups: list[Any]) -> list[GroupResult]:
+    if not groups:
+        return []
+    detector = shared_segmenter(model_cfg, device=ctx.run.device)
+    pseudo = labels.boxes()
+    gt = {c: labels.ground_truth(c) for c in conditions}
+    det = ctx.run.detection
+    out = []
+    with torch_threads(ctx.run.threads):
+        for g in tqdm(groups, desc=f"evaluate [{detector.name}]", unit="group"):
+            out.append(_detect_group(detector, g, conditions, pseudo.get(g.group_id, Detections.empty()), gt,
+                                     detector.score_threshold, det.iou))
+    return out
+
+
+def read_parts(parts: Path) -> dict[str, GroupResult]:
+    found: dict[str, GroupResult] = {}
+    for path in sorted(parts.glob("part-*.json")) if parts.is_dir() else []:
+        try:
+            for r in json.loads(path.read_text()):
+                found[r["group_id"]] = GroupResult.from_json(r)
+        except (OSError, ValueError, KeyError, TypeError):
+            log.warning("evaluate: ignoring unreadable shard result %s (its groups are computed again)", path)
+    return found
+
+
+def write_part(parts: Path, shard: int, num: int, results: list[GroupResult]) -> None:
+    from pairedgta.jsonio import dumps
+
+    parts.mkdir(parents=True, exist_ok=True)
+    write_bytes(parts / f"part-{shard:05d}-of-{num:05d}.json", dumps([r.to_json() for r in results]).encode())
+
+
+def settings(ctx: Context, reference: str) -> dict[str, Any]:
+    m = ctx.run.metric
+    return {**as_dict(ctx.run.detection), "min_images": m.min_images, "min_transmittance": m.min_transmittance,
+            "bootstrap": as_dict(m.bootstrap), "clean": reference}
+
+
+def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
+            conditions: list[str], s: dict[str, Any], out: Path, parts: Path) -> dict[str, Any]:
+    done = read_parts(parts)
+    missing = [g for g in dataset.groups if g.group_id not in done]
+    if done:
+        log.info("evaluate: merging %d group(s) from shard jobs, computing %d", len(done), len(missing))
+    for r in detect_groups(ctx, dataset, labels, model_cfg, conditions, missing):
+        done[r.group_id] = r
+    detector_threshold = float(model_cfg.get("score_threshold", 0.5))
+    gts = {c: json.loads(p.read_text()) for c in conditions if (p := labels.ground_truth_file(c)) is not None}
+    inputs = Inputs(str(model_cfg["name"]), labels.reference_model(), conditions, s["clean"],
+                    [done[g.group_id] for g in dataset.groups if g.group_id in done], image_ids(dataset),
+                    labels.boxes(), gts, detector_threshold, s)
+    return write_outputs(out, inputs)
+
+
+def write_outputs(out: Path, inputs: Inputs) -> dict[str, Any]:
+    """The registered metrics' tables, the detections per condition (COCO results) and summary.json."""
+    for cond in inputs.conditions:
+        write_json_atomic(out / DETECTIONS_DIR / f"{cond}.json", inputs.coco_results(cond))
+    summary: dict[str, Any] = {"task": "detection", "model": inputs.model, "reference_model": inputs.reference_model,
+                               "conditions": inputs.conditions, "clean": inputs.clean, "groups": len(inputs.groups),
+                               "score_threshold": inputs.threshold, "settings": inputs.settings}
+    if not inputs.ground_truth:
+        summary["ground_truth"] = "none: the dataset has no instance masks or boxes; GT AP skipped, xi computed"
+    for metric in registry.metrics():
+        tables, values = metric.compute(inputs)
+        for file, table in tables.items():
+            tmp = out / f".{file}.tmp"
+            table.to_csv(tmp, index=False)
+            tmp.replace(out / file)
+        summary.update(values)
+    write_json_atomic(out / SUMMARY, summary)
+    return {k: summary[k] for k in ("groups",)}
+
+
+def parts_dir(ctx: Context, key: str) -> Path:
+    return ctx.cache.root / "evaluate" / f".parts-{key}"
+
+
+@dataclass
+class DetectionEvaluate:
+    """The detection evaluate stage (pairedgta.stages.common.Stage) of one detector on one dataset's labels."""
+
+    ctx: Context
+    dataset: PairedDataset
+    dataset_key: str
+    pseudo: DetectionLabels
+    model_cfg: dict[str, Any]
+    name: str = "evaluate"
+    version: str = VERSION
+    resumable: bool = False
+    result_cls: type[DetectionEvaluateResult] = DetectionEvaluateResult
+
+    def __post_init__(self) -> None:
+        self.version = f"{VERSION}+{'+'.join(registry.versions())}"
+        grid = self.dataset.grid or self.ctx.grid
+        self.conditions = conditions_for(self.ctx.run.evaluate, grid)
+        self.settings = settings(self.ctx, self.dataset.reference)
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return {"task": "detection", "model": model_hash_config(self.model_cfg), "metric": self.settings,
+                "conditions": self.conditions, "threads": self.ctx.run.threads}
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key, "pseudolabel": self.pseudo.key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings, out,
+                       parts_dir(self.ctx, key))
+
+    def shards(self) -> tuple[int, int]:
+        return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
+
+    def build_shard(self, key: str) -> Path | None:
+        num, shard = self.shards()
+        parts, groups = parts_dir(self.ctx, key), self.dataset.groups
+        mine = groups[shard::num]
+        done = read_parts(parts)
+        todo = [g for g in mine if g.group_id not in done]
+        log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", self.model_cfg["name"], shard, num,
+                 len(mine), len(groups), len(mine) - len(todo))
+        if todo:
+            new = detect_groups(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, todo)
+            write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + new)
+        covered = read_parts(parts)
+        if all(g.group_id in covered for g in groups):
+            return None
+        log.info("evaluate [%s]: %d of %d groups evaluated by shards so far; run the remaining shards, then without "
+                 "evaluate.shard to merge", self.model_cfg["name"], len(covered), len(groups))
+        return parts
+
+
+def run(ctx: Context, dataset: PairedDataset, dataset_key: str, labels: DetectionLabels,
+        model_cfg: dict[str, Any]) -> DetectionEvaluateResult:
+    stage = DetectionEvaluate(ctx, dataset, dataset_key, labels, model_cfg)
+    result = run_cached(ctx, stage)
+    assert isinstance(result, DetectionEvaluateResult)
+    if result.complete:
+        result.extra["model_config"] = dict(model_cfg)
+        shutil.rmtree(parts_dir(ctx, result.key), ignore_errors=True)
+    return result
+
+
+def step(ctx: Context, p: PassResult, state: RunState) -> None:
+    """The app's step for one pass (task=detection): every detector's evaluation, each in a nested MLflow run."""
+    from pairedgta.tracking import bundle, dataset_label, run_name
+
+    plan, recorder = state.plan, state.recorder
+    for model_cfg in state.models.evaluated:
+        name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]
+        try:
+            result = run(ctx, p.dataset, p.dataset_key, p.pseudo, model_cfg)
+        except PairedGTAError:
+            raise
+        if not result.complete:
+            if plan.plotting:
+                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
+                                  "shards, then plot without evaluate.shard/num_shards")
+            continue
+        p.evaluations.append(result)
+        label = dataset_label(p.dataset.name, p.dataset_key)
+        with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
+            recorder.params({"model": model_cfg, "detection": as_dict(ctx.run.detection), "task": "detection",
+                             "reference_model": state.models.reference["name"]})
+            recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
+                           "pass": p.label, "model": model_cfg["name"], "task": "detection"})
+            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
+            p.record_dataset(recorder)
+            recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
+            recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
+                                 tables={"det_xi_table.json": xi_table(result.xi())})
+            state.model_runs.append((recorder.run_id(), model_cfg["name"], p.label))
+        state.summary["evaluate"][name] = str(result.path)
+    if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
+        raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")
+
+
+def xi_table(xi: pd.DataFrame) -> pd.DataFrame:
+    cols = ["model", "reference_model", "condition", "class_name", "xi", "ci_low", "ci_high", "precision", "pseudo_ap50"]
+    return xi[[c for c in cols if c in xi.columns]].reset_index(drop=True) if not xi.empty else xi
