@@ -117,14 +117,14 @@ def test_full_scene_three_conditions(server):
         assert e.heading == pytest.approx((DESCRIPTOR.location.heading + obj.heading) % 360)
     assert by_model["blista"].color == (27, 4)  # red and grey descriptor colours -> paint indices
     assert server.dropped == []
-    assert wait_for(lambda: len(server.received) == 16)
+    assert wait_for(lambda: len(server.received) == 18)
     received = server.received
-    assert received[:7] == [
-        "stop", "start", "TeleportToLocation", "SetCameraPositionAndRotation", "CreateVehicle",
+    assert received[:8] == [  # StartRecording: the plugin exports the 2D boxes only while recording
+        "stop", "start", "StartRecording", "TeleportToLocation", "SetCameraPositionAndRotation", "CreateVehicle",
         "CreateVehicle", "CreatePed",
     ]
-    assert received[7:-1] == ["SetClockTime", "SetWeather"] * 4
-    assert wait_for(lambda: server.received[-1] == "stop")  # close() ends the session
+    assert received[8:-2] == ["SetClockTime", "SetWeather"] * 4
+    assert received[-2:] == ["StopRecording", "stop"]  # close() ends the recording and the session
 
 
 def test_physical_parameters_are_mapped_to_gta_and_collapsed_steps_are_named(server, caplog):
@@ -259,8 +259,8 @@ def test_bad_descriptor_or_condition_raises_before_sending(server):
     # thing the server sees (messages arrive in order, so earlier ones would come before it)
     r.prepare(DESCRIPTOR)
     assert wait_for(lambda: "CreatePed" in server.received)
-    assert server.received[:7] == [
-        "stop", "start", "TeleportToLocation", "SetCameraPositionAndRotation", "CreateVehicle",
+    assert server.received[:8] == [
+        "stop", "start", "StartRecording", "TeleportToLocation", "SetCameraPositionAndRotation", "CreateVehicle",
         "CreateVehicle", "CreatePed",
     ]
     assert server.dropped == []

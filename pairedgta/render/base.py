@@ -19,13 +19,17 @@ class RenderResult:
     """Layers of one rendered image: RGB uint8 HxWx3, optional Cityscapes train-id labels HxW uint8
     (255 = unlabeled), optional instance ids HxW uint16, the backend-reported entity state, and the
     optional distance from the camera along each pixel's ray in metres (float32, inf where the ray
-    leaves the scene): the generate stage turns it into the condition's transmittance map."""
+    leaves the scene): the generate stage turns it into the condition's transmittance map. `boxes`: a
+    backend's own 2D boxes where it gives no instance ids (DeepGTAV's bbox2d), each {"class": a Cityscapes
+    instance class, "bbox": [x0, y0, x1, y1] pixels, "instance": int, "truncated": bool, "occluded": int};
+    the generate stage writes them to <condition>_boxes.json (pairedgta.detection.boxes.read_box_file)."""
 
     image: np.ndarray
     labels: np.ndarray | None = None
     instances: np.ndarray | None = None
     state: dict[str, Any] = field(default_factory=dict)
     distance: np.ndarray | None = None
+    boxes: list[dict[str, Any]] | None = None
 
 
 class Renderer(abc.ABC):

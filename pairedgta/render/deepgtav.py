@@ -15,6 +15,12 @@ the scene (the connection forgets both when its socket is replaced).
 Frames arrive as 8-bit BGR rows padded to 4 bytes; `render` returns RGB HxWx3 and the plugin's
 JSON document as `RenderResult.state` (ego location, clock, spawned entities when reported), for
 `pairedgta.scene.validation.validate_group` to check against the descriptor.
+
+Ground-truth boxes (`boxes`, default true): the session asks for `dataset.exportBBox2D` and sends
+StartRecording (DeepGTAV-PreSIL fills `bbox2d` only while recording; close() sends StopRecording), and
+`render` turns the frame's `bbox2d` string into `RenderResult.boxes` (deepgtav_protocol.parse_bbox2d:
+Cityscapes instance classes, xyxy pixels of the frame). A plugin that sends no `bbox2d` at all (the classic
+one) gives `boxes=None`, said once.
 """
 from __future__ import annotations
 
@@ -31,6 +37,7 @@ from pairedgta.render.deepgtav_protocol import (
     WEATHERS,
     decode_frame,
     paint_index,
+    parse_bbox2d,
     ped_model,
     validate_message,
     wire_float,
@@ -81,6 +88,7 @@ class DeepGTAVRenderer(Renderer):
         check_state: bool = True,
         clock_tolerance_min: int = 10,
         ego_tolerance_m: float = 5.0,
+        boxes: bool = True,
     ) -> None:
         given = dict(locals())
 
@@ -113,6 +121,7 @@ class DeepGTAVRenderer(Renderer):
         need("clock_tolerance_min", isint(clock_tolerance_min) and clock_tolerance_min >= 0,
              "set the allowed clock drift in minutes")
         need("ego_tolerance_m", isnum(ego_tolerance_m) and ego_tolerance_m > 0, "set a distance in metres")
+        need("boxes", isinstance(boxes, bool), "use true (ask the plugin for its 2D boxes) or false")
         super().__init__(width, height)
         self.host, self.port, self.transport = host, int(port), transport
         self.timeout_s, self.retries, self.backoff_s = float(timeout_s), int(retries), float(backoff_s)
@@ -123,6 +132,8 @@ class DeepGTAVRenderer(Renderer):
         self.object_heading, self.place_on_ground = object_heading, bool(place_on_ground)
         self.check_state, self.clock_tolerance_min = bool(check_state), int(clock_tolerance_min)
         self.ego_tolerance_m = float(ego_tolerance_m)
+        self.boxes = boxes
+        self._said_no_boxes = False
         self._session = False  # a session was started on the current connection
         self._scene: SceneDescriptor | None = None  # scene built on the current connection
         self.last_state: dict[str, Any] = {}
@@ -153,6 +164,8 @@ class DeepGTAVRenderer(Renderer):
             linger = 0.0
             if self._session:
                 try:
+                    if self.boxes:  # recording outlives the session in the plugin (and slows every frame)
+                        self.link.send({"StopRecording": None})
                     self.link.send({"stop": None})  # back to normal gameplay
                     linger = min(self.timeout_s, 1.0)
                 except Transient:
@@ -170,7 +183,27 @@ class DeepGTAVRenderer(Renderer):
         `descriptor` is not the one built on the current connection)."""
         self.scene_messages(descriptor)
         self.condition_messages(condition)
-        return self.link.run(f"rendering of condition '{condition.name}'", lambda: self._capture(descriptor, condition))
+        result = self.link.run(f"rendering of condition '{condition.name}'",
+                               lambda: self._capture(descriptor, condition))
+        result.boxes = self.frame_boxes(result, f"frame {result.state.get('index', '?')} (scene "
+                                                f"{descriptor.scene_id}, condition {condition.name})")
+        return result
+
+    def frame_boxes(self, result: RenderResult, where: str) -> list[dict[str, Any]] | None:
+        """The frame's boxes from its `bbox2d` string, in pixels of `result.image`; None when not asked for or
+        when the plugin sends none (said once). A malformed line: DataError naming `where` and the line."""
+        if not self.boxes:
+            return None
+        raw = result.state.get("bbox2d")
+        if not isinstance(raw, str):
+            if not self._said_no_boxes:
+                self._said_no_boxes = True
+                log.warning("DeepGTAV: the plugin sent %s for bbox2d (the classic plugin has no 2D boxes; "
+                            "DeepGTAV-PreSIL sends them with dataset.exportBBox2D while recording); the frames get "
+                            "no <condition>_boxes.json", "no field" if "bbox2d" not in result.state else repr(raw))
+            return None
+        h, w = result.image.shape[:2]
+        return parse_bbox2d(raw, where=where, box_size=(self.width, self.height), image_size=(w, h))
 
     # ------------------------------------------------------------------ messages
     def session_message(self, descriptor: SceneDescriptor, key: str = "start") -> dict[str, Any]:
@@ -195,6 +228,7 @@ class DeepGTAVRenderer(Renderer):
             "time": True,
             "offscreen": None,
             "stationaryScene": True,
+            "exportBBox2D": self.boxes,  # the objects' 2D boxes in each frame's JSON ("bbox2d")
             "vehiclesToCreate": None,
             "pedsToCreate": None,
         }
@@ -276,6 +310,8 @@ class DeepGTAVRenderer(Renderer):
         if not self._session:
             self.link.send({"stop": None})  # a session left over by another client ignores `start`
             self.link.send(self.session_message(descriptor, "start"))
+            if self.boxes:  # the plugin fills bbox2d only while recording
+                self.link.send({"StartRecording": None})
             self._session = True
         else:
             self.link.send(self.session_message(descriptor, "config"))
@@ -329,6 +365,9 @@ class DeepGTAVRenderer(Renderer):
         return "; ".join(problems[:3]) if problems else None
 
     def _condition_objection(self, condition: Condition, state: Mapping[str, Any]) -> str | None:
+        if self.boxes and "bbox2d" in state and not isinstance(state["bbox2d"], str):
+            return (f"its bbox2d is {state['bbox2d']!r}, not the boxes (the plugin exports them only while recording; "
+                    "renderer.boxes=false renders without them)")
         weather = state.get("weather")
         if isinstance(weather, str) and weather.upper() != condition.weather.upper():
             return f"weather is {weather}, requested {condition.weather}"

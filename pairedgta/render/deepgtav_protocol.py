@@ -5,9 +5,10 @@ JSON object with exactly one key; the plugin reads its fields with typed getters
 sent as a string, or a missing field, is dropped silently or crashes it), so `validate_message`
 checks every field's JSON type and range before anything is sent. A frame is 8-bit BGR rows
 padded to 4 bytes followed by a JSON state document; `decode_frame` returns RGB and
-`parse_state` the document. The transports that carry these bytes are in
-pairedgta/render/deepgtav_transport.py; the test server (pairedgta/testing/deepgtav_server.py)
-shares the constants below.
+`parse_state` the document; with `dataset.exportBBox2D` the document carries the objects' 2D
+boxes as KITTI-like text lines, which `parse_bbox2d` turns into Cityscapes-class boxes. The
+transports that carry these bytes are in pairedgta/render/deepgtav_transport.py; the test server
+(pairedgta/testing/deepgtav_server.py) shares the constants below.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pairedgta.errors import RendererError
+from pairedgta.errors import DataError, RendererError
 from pairedgta.scene.validation import joaat
 
 WEATHERS = frozenset(
@@ -94,6 +95,109 @@ def parse_state(raw: bytes) -> dict[str, Any]:
     return doc
 
 
+# --------------------------------------------------------------------------- 2D boxes (dataset.exportBBox2D)
+
+# The plugin's bbox2d (DeepGTAV-PreSIL, ObjectDetection::exportDetectionsString): one line per vehicle, then per
+# pedestrian, fields separated by single spaces, in the order of its augmented KITTI labels
+# (dataformat-augmented.txt): type truncated occluded alpha left top right bottom height width length x y z
+# rotation_y, then entity_id points_2d points_3d speed roll pitch model v_ped_is_in. left..bottom are whole pixels of
+# the `dataset.frame` size: the first and last column and row of the object's visible pixels (its segmentation);
+# an object with none keeps "width height 0 0" (left > right), which is not a box. `truncated` is the fraction of
+# the object's projected 3D box outside the image, `occluded` the fraction of its points hidden (0..1).
+BBOX2D_FIELDS = ("type", "truncated", "occluded", "alpha", "left", "top", "right", "bottom")
+BBOX2D_AUGMENTED_FIELDS = 23  # the 15 KITTI fields and the 8 augmented ones
+# the plugin's types (KITTI's and those of its GTA vehicle table) -> Cityscapes instance classes; any other type
+# (Misc, DontCare, Trailer, Industrial, Utility, Boat, Airplane, Animal, ...) is not a Cityscapes instance: dropped
+BBOX2D_CLASSES = {
+    "car": "car", "van": "car", "truck": "truck", "bus": "bus",
+    "pedestrian": "person", "person_sitting": "person",
+    # the plugin's Cyclist is a bicycle with its rider's pixels merged in (KITTI: the person riding it): one box,
+    # the rider's class, and no separate bicycle box (Cityscapes would have both)
+    "cyclist": "rider",
+    # Motorbike boxes hold their riders' pixels too; "Moterbike" is the plugin's own spelling for models
+    # missing from its vehicle table
+    "motorbike": "motorcycle", "motorcycle": "motorcycle", "moterbike": "motorcycle",
+    "bicycle": "bicycle", "train": "train", "tram": "train", "railed": "train",
+}
+_TWO_WHEELERS = frozenset({"cyclist", "motorbike", "motorcycle", "moterbike", "bicycle"})
+_PEDESTRIANS = frozenset({"pedestrian", "person_sitting"})
+
+
+def _occlusion_level(value: float) -> int:
+    """KITTI's occlusion level (0 fully visible, 1 partly, 2 largely occluded, 3 unknown) of the plugin's hidden
+    fraction (0..1; a negative value is its 'unknown'); a KITTI level above 1 (2, 3) is kept as it is."""
+    if value < 0:
+        return 3
+    if value == 0:
+        return 0
+    if value < 0.5:
+        return 1
+    return 2 if value <= 1 else min(int(value), 3)
+
+
+def parse_bbox2d(text: str, *, where: str, box_size: tuple[int, int],
+                 image_size: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+    """The Cityscapes-class boxes of one frame's bbox2d string: [{"class", "bbox": [x0, y0, x1, y1], "instance",
+    "truncated", "occluded"}], bbox in pixels of the delivered image (`image_size`, default `box_size`: the boxes
+    come in `dataset.frame` pixels and are scaled when the image differs), right/bottom one past the object's
+    last column/row (as boxes from instance masks) and clipped to the image. `instance` is the plugin's entity
+    id (augmented lines), else the line's 1-based number. Types that are no Cityscapes instance class, and objects
+    without visible pixels, are left out; a pedestrian inside a vehicle (v_ped_is_in) is a rider when that vehicle
+    is a two-wheeler of the same frame and left out otherwise (Cityscapes labels the vehicle, not its occupants).
+    A line that is not a box line raises DataError naming `where` (the frame) and the line."""
+    bw, bh = box_size
+    iw, ih = image_size or box_size
+    sx, sy = iw / bw, ih / bh
+    rows: list[tuple[int, str, list[float], int, int]] = []  # (line number, type, numbers, entity id, ped in)
+    for n, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split()
+        if not tokens:
+            continue
+
+        def bad(why: str) -> DataError:
+            shown = line if len(line) <= 100 else line[:97] + "..."
+            return DataError(f"DeepGTAV {where}: bbox2d line {n} {shown!r} is not a 2D box line ({why}); expected "
+                             "'type truncated occluded alpha left top right bottom ...' (DeepGTAV-PreSIL's "
+                             "augmented KITTI labels): check the plugin build, or set renderer.boxes=false")
+
+        if len(tokens) < len(BBOX2D_FIELDS):
+            raise bad(f"{len(tokens)} fields, at least {len(BBOX2D_FIELDS)} needed")
+        numbers = []
+        for name, token in zip(BBOX2D_FIELDS[1:], tokens[1:len(BBOX2D_FIELDS)]):
+            try:
+                value = float(token)
+            except ValueError:
+                raise bad(f"{name} {token!r} is not a number") from None
+            if not math.isfinite(value):
+                raise bad(f"{name} {token!r} is not finite")
+            numbers.append(value)
+        entity, ped_in = n, 0
+        if len(tokens) >= BBOX2D_AUGMENTED_FIELDS:  # entity_id is field 16, v_ped_is_in the last
+            for name, token in (("entity_id", tokens[15]), ("v_ped_is_in", tokens[-1])):
+                if not re.fullmatch(r"-?\d+", token):
+                    raise bad(f"{name} {token!r} is not an integer")
+            entity, ped_in = int(tokens[15]), int(tokens[-1])
+        rows.append((n, tokens[0].lower(), numbers, entity, ped_in))
+    two_wheelers = {entity for _, kind, _, entity, _ in rows if kind in _TWO_WHEELERS}
+    boxes: list[dict[str, Any]] = []
+    for n, kind, (truncated, occluded, _alpha, left, top, right, bottom), entity, ped_in in rows:
+        cls = BBOX2D_CLASSES.get(kind)
+        if cls is None or right < left or bottom < top:  # not a Cityscapes instance, or not seen
+            continue
+        if kind in _PEDESTRIANS and ped_in:
+            if ped_in not in two_wheelers:
+                continue
+            cls = "rider"
+        x0, y0 = min(max(left * sx, 0.0), iw), min(max(top * sy, 0.0), ih)
+        x1, y1 = min(max((right + 1) * sx, 0.0), iw), min(max((bottom + 1) * sy, 0.0), ih)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        edge = x0 <= 0 or y0 <= 0 or x1 >= iw or y1 >= ih
+        boxes.append({"class": cls, "bbox": [x0, y0, x1, y1], "instance": entity,
+                      "truncated": bool(truncated > 0 or edge), "occluded": _occlusion_level(occluded)})
+    return boxes
+
+
 # --------------------------------------------------------------------------- message schemas
 
 # field kinds as the plugin reads them: float = GetFloat (any JSON number), int = GetInt (JSON
@@ -121,7 +225,8 @@ _SCENARIO_FIELDS = ("location", "time", "weather", "vehicle", "drivingMode", "sp
 _DATASET_BOOLS = (
     "vehicles", "peds", "trafficSigns", "direction", "reward", "throttle", "brake", "steering", "speed",
     "yawRate", "drivingMode", "location", "time", "offscreen", "showBoxes", "pointclouds",
-    "stationaryScene", "collectTracking", "recordScenario", "positionScenario",
+    "stationaryScene", "collectTracking", "recordScenario", "positionScenario", "exportBBox2D",
+    "exportBBox2DUnprocessed",
 )
 
 
@@ -301,6 +406,7 @@ def wire_int(value: Any) -> Any:
 
 
 __all__ = [
+    "BBOX2D_CLASSES",
     "INT32",
     "MESSAGE_FIELDS",
     "WEATHERS",
@@ -311,6 +417,7 @@ __all__ = [
     "encode_message",
     "frame_nbytes",
     "paint_index",
+    "parse_bbox2d",
     "parse_state",
     "ped_model",
     "row_stride",

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
-from pairedgta.datasets.generated import INDEX, scene_files, transmittance_file, transmittance_png
+from pairedgta.datasets.generated import INDEX, boxes_file, scene_files, transmittance_file, transmittance_png
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError, reason
 from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer, renderer_versions
@@ -202,6 +202,8 @@ def render_scene(
                 save_png_atomic(result.labels.astype(np.uint8), lab_path)
             if result.instances is not None:
                 save_png_atomic(result.instances.astype(np.uint16), inst_path)
+            elif result.boxes is not None:  # the backend's own 2D boxes where it gives no instance ids (DeepGTAV)
+                write_json(boxes_file(tmp, condition.name), {"boxes": result.boxes})
             states[condition.name] = result.state
             images[condition.name] = result.image
         rendering = time.perf_counter() - t1

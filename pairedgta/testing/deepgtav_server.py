@@ -23,6 +23,14 @@ constants both sides share are pairedgta/render/deepgtav_protocol.py's):
 Extensions: the JSON also reports ``"weather"`` and the spawned entities under ``"vehicles"`` /
 ``"peds"`` (``"spawned": true``), which the client uses to check that a condition was applied.
 
+2D boxes as DeepGTAV-PreSIL gives them: with ``dataset.exportBBox2D`` the JSON has ``"bbox2d"``, ``[]`` until
+``StartRecording`` (the plugin fills it only while recording, until ``StopRecording``), then one augmented
+KITTI line per entity within ``REPORT_RADIUS_M`` (vehicles, then peds, by entity id): its type from the
+model (the plugin's vehicle table: Car, Truck, Bus, Motorbike, Cyclist; Pedestrian), the first and last
+column and row of its visible pixels in the synthetic picture (``width height 0 0`` when none is visible),
+the hidden fraction of its drawn box as ``occluded``, the part of that box outside the frame as
+``truncated``, and a made-up but plausible 3D part. ``SyntheticView.instance_map`` gives the pixels.
+
 Fault injection (for the first ``fault_sessions`` sessions, or all when None):
 ``silent`` (never send a frame), ``close_mid_frame`` (send half a frame, then drop the
 connection), ``garbage`` (correct-size frame, undecodable JSON), ``wrong_size`` (frame without
@@ -53,15 +61,19 @@ from typing import Any, Self
 import numpy as np
 
 from pairedgta.render.deepgtav_protocol import INT32, WEATHERS, row_stride
+from pairedgta.scene.validation import joaat
 
 log = logging.getLogger(__name__)
 
 FAULTS = ("silent", "close_mid_frame", "garbage", "wrong_size")
 _MAX_TCP_MESSAGE = 1 << 20  # the plugin reads messages into a fixed buffer
 REPORT_RADIUS_M = 150.0  # classic DeepGTAV lists vehicles/peds within 150 m of the ego
+FIRST_HANDLE = 4098  # entity ids: FIRST_HANDLE + 256 * n for the n-th entity created (like GTA's script handles)
 
 # GTA bicycle and motorcycle model names, for the classic DeepGTAV classID in the state JSON
 _BICYCLES = frozenset(["bmx", "cruiser", "fixter", "scorcher", "tribike", "tribike2", "tribike3"])
+_BUSES = frozenset(["airbus", "bus", "coach", "pbus", "rentalbus", "tourbus"])
+_TRUCKS = frozenset(["benson", "mule", "mule2", "mule3", "packer", "phantom", "pounder"])
 _MOTORCYCLES = frozenset(
     ["akuma", "avarus", "bagger", "bati", "bati2", "bf400", "carbonrs", "chimera", "cliffhanger", "daemon", "daemon2", "defiler", "diablous", "double", "enduro", "esskey", "faggio", "faggio2", "faggio3", "fcr", "gargoyle", "hakuchou", "hexer", "innovation", "lectro", "manchez", "nemesis", "nightblade", "pcj", "policeb", "ratbike", "ruffian", "sanchez", "sanchez2", "sovereign", "thrust", "vader", "vindicator", "vortex", "wolfsbane", "zombiea", "zombieb"]
 )
@@ -88,6 +100,7 @@ class Entity:
     heading: float
     spawned_at: float
     color: tuple[int, int] = (-1, -1)
+    handle: int = 0  # the game's entity id (bbox2d's entity_id)
 
 
 def _object_or_null(value: Any, name: str) -> dict[str, Any]:
@@ -122,6 +135,8 @@ class GameState:
         default_factory=lambda: {"vehicles": True, "peds": True, "location": True, "time": True}
     )
     stationary: bool = False
+    export_bbox2d: bool = False
+    recording: bool = False  # StartRecording/StopRecording: the plugin keeps it across sessions
     # camera relative to the ego vehicle: x right, y forward, z up; degrees
     camera: tuple[float, float, float, float, float, float] = (0.0, 0.5, 1.6, 0.0, 0.0, 0.0)
     commands: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -211,6 +226,7 @@ class Plugin:
         self.sessions = 0
         self.received: list[str] = []  # keys of messages that were applied or ignored
         self.dropped: list[tuple[str, str]] = []  # (raw text, reason)
+        self.spawned = 0  # entities created so far (their handles follow from it)
 
     # ------------------------------------------------------------ dispatch (plugin order)
     def handle(self, raw: bytes) -> bool:
@@ -227,8 +243,8 @@ class Plugin:
             ("config", self._config),
             ("start", self._start),
             ("stop", self._stop),
-            ("StartRecording", lambda body: None),
-            ("StopRecording", lambda body: None),
+            ("StartRecording", lambda body: self._record(True)),
+            ("StopRecording", lambda body: self._record(False)),
             ("GoToLocation", self._go_to),
             ("TeleportToLocation", self._teleport),
             ("SetCameraPositionAndRotation", self._camera),
@@ -279,6 +295,9 @@ class Plugin:
     def _stop(self, body: Any) -> None:
         self.state.running = False
         self.state.commands = (0.0, 0.0, 0.0)
+
+    def _record(self, on: bool) -> None:
+        self.state.recording = on
 
     def _go_to(self, body: Any) -> None:
         for key in ("x", "y", "z", "speed"):
@@ -403,9 +422,13 @@ class Plugin:
             elif defaults:
                 report[key] = False
         out["report"] = report
-        for key in ("trafficSigns", "speed", "offscreen", "showBoxes", "collectTracking"):
+        for key in ("trafficSigns", "speed", "offscreen", "showBoxes", "collectTracking", "exportBBox2DUnprocessed"):
             if dc.get(key) is not None:
                 _bool(dc[key], f"dataset.{key}")
+        if dc.get("exportBBox2D") is not None:
+            out["export_bbox2d"] = _bool(dc["exportBBox2D"], "dataset.exportBBox2D")
+        elif defaults:
+            out["export_bbox2d"] = False
         if dc.get("stationaryScene") is not None:
             out["stationary"] = _bool(dc["stationaryScene"], "dataset.stationaryScene")
         elif defaults:
@@ -425,9 +448,10 @@ class Plugin:
                color: tuple[int, int]) -> None:
         s = self.state
         (fx, fy), (rx, ry) = s.forward_right()
+        self.spawned += 1
         s.entities.append(
             Entity(kind, model, s.x + fwd * fx + right * rx, s.y + fwd * fy + right * ry,
-                   s.z + up, heading % 360.0, self.clock(), color)
+                   s.z + up, heading % 360.0, self.clock(), color, handle=FIRST_HANDLE + 256 * self.spawned)
         )
 
     def tick(self) -> None:
@@ -437,8 +461,8 @@ class Plugin:
         if s.entities:
             s.entities = [e for e in s.entities if now - e.spawned_at <= s.despawn_s]
 
-    def message(self) -> dict[str, Any]:
-        """The JSON document sent after each frame."""
+    def message(self, bbox2d: str | None = None) -> dict[str, Any]:
+        """The JSON document sent after each frame (`bbox2d`: the frame's boxes, sent while recording)."""
         s = self.state
         s.index += 1
         (fx, fy), (rx, ry) = s.forward_right()
@@ -467,12 +491,34 @@ class Plugin:
                  "speed": 0.0, "spawned": True}
                 for e in near if e.kind == "ped"
             ]
+        if s.export_bbox2d:  # the plugin's empty placeholder until it records
+            doc["bbox2d"] = bbox2d if s.recording and bbox2d is not None else []
         return doc
 
 
 def _class_id(model: str) -> int:
     m = model.lower()
     return 2 if m in _BICYCLES else 1 if m in _MOTORCYCLES else 0
+
+
+def bbox2d_type(e: Entity) -> str:
+    """The plugin's object type of an entity (its vehicle table for vehicles; KITTI's Pedestrian for peds)."""
+    if e.kind != "vehicle":
+        return "Pedestrian"
+    m = e.model.lower()
+    if m in _BUSES:
+        return "Bus"
+    if m in _TRUCKS:
+        return "Truck"
+    return {0: "Car", 1: "Motorbike", 2: "Cyclist"}[_class_id(m)]
+
+
+def _model_string(e: Entity) -> str:
+    """The plugin's model field: the vehicle's name, a ped's model hash in decimal."""
+    if e.kind == "vehicle":
+        return e.model
+    text = e.model.strip()
+    return str(int(text, 16) if text.lower().startswith("0x") else joaat(text))
 
 
 # --------------------------------------------------------------------------- synthetic picture
@@ -490,7 +536,7 @@ _WEATHER_FOG = {
 
 def _geometry_key(s: GameState) -> tuple:
     ents = tuple(
-        (e.kind, e.model, round(e.x, 2), round(e.y, 2), round(e.heading, 1)) for e in s.entities
+        (e.kind, e.model, round(e.x, 2), round(e.y, 2), round(e.heading, 1), e.handle) for e in s.entities
     )
     return (s.width, s.height, round(s.x, 2), round(s.y, 2), round(s.z, 2), round(s.heading, 2),
             tuple(round(c, 3) for c in s.camera), ents)
@@ -503,15 +549,64 @@ class SyntheticView:
         self._key: tuple | None = None
         self._albedo: np.ndarray | None = None
         self._depth: np.ndarray | None = None
+        self._owner: np.ndarray | None = None  # entity handle per pixel (0: none)
+        self._drawn: dict[int, tuple[int, int, int, int]] = {}  # handle -> its drawn box, before clipping
         self._lit: dict[tuple, np.ndarray] = {}
+        self._boxes: str | None = None
 
-    def render(self, s: GameState) -> np.ndarray:
+    def _ensure(self, s: GameState) -> None:
         key = _geometry_key(s)
         if key != self._key:
             with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-                self._albedo, self._depth = self._geometry(s)
+                self._albedo, self._depth, self._owner, self._drawn = self._geometry(s)
             self._key = key
             self._lit.clear()
+            self._boxes = None
+
+    def instance_map(self, s: GameState) -> np.ndarray:
+        """The entity handle of every pixel of the picture of `s` (0 where no entity is seen), int32 HxW."""
+        self._ensure(s)
+        assert self._owner is not None
+        return self._owner
+
+    def bbox2d(self, s: GameState) -> str:
+        """The plugin's bbox2d string for the picture of `s` (see the module docstring)."""
+        self._ensure(s)
+        if self._boxes is None:
+            self._boxes = self._bbox2d(s)
+        return self._boxes
+
+    def _bbox2d(self, s: GameState) -> str:
+        owner, w, h = self.instance_map(s), s.width, s.height
+        near = [e for e in s.entities if math.hypot(e.x - s.x, e.y - s.y) < REPORT_RADIUS_M]
+        (fx, fy), (rx, ry) = s.forward_right()
+        cam_x, cam_y, cam_z = s.camera[:3]
+        lines = []
+        for e in sorted(near, key=lambda e: (e.kind != "vehicle", e.handle)):
+            rows, cols = np.nonzero(owner == e.handle)
+            if len(rows):
+                left, top, right, bottom = int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max())
+            else:  # the plugin's untouched box: nothing of it on screen
+                left, top, right, bottom = w, h, 0, 0
+            u0, v0, u1, v1 = self._drawn.get(e.handle, (0, 0, 0, 0))
+            full = max(u1 - u0, 0) * max(v1 - v0, 0)
+            inside = max(min(u1, w) - max(u0, 0), 0) * max(min(v1, h) - max(v0, 0), 0)
+            truncated = 1.0 - inside / full if full else 0.0
+            occluded = 1.0 - len(rows) / inside if inside else 1.0
+            width, height, length = _entity_size(e)
+            dx, dy = e.x - s.x, e.y - s.y
+            x, z = dx * rx + dy * ry - cam_x, dx * fx + dy * fy - cam_y  # KITTI camera frame: x right, z ahead
+            y = cam_z + 0.5  # y down, from the camera to the object's bottom
+            ry_cam = math.remainder(math.radians(e.heading - s.heading) - math.pi / 2, 2 * math.pi)
+            alpha = math.remainder(ry_cam - math.atan2(x, z), 2 * math.pi)
+            values = [bbox2d_type(e), truncated, occluded, alpha, left, top, right, bottom, height, width, length,
+                      x, y, z, ry_cam, e.handle, len(rows), 0, 0.0, 0.0, 0.0, _model_string(e), 0]
+            lines.append(" ".join(v if isinstance(v, str) else str(v) if isinstance(v, int) else f"{v:g}"
+                                  for v in values) + "\n")
+        return "".join(lines)
+
+    def render(self, s: GameState) -> np.ndarray:
+        self._ensure(s)
         assert self._albedo is not None and self._depth is not None
         light_key = (s.hour, s.minute, s.weather)
         if light_key not in self._lit:
@@ -519,7 +614,7 @@ class SyntheticView:
         return self._lit[light_key]
 
     @staticmethod
-    def _geometry(s: GameState) -> tuple[np.ndarray, np.ndarray]:
+    def _geometry(s: GameState) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, tuple[int, int, int, int]]]:
         w, h = s.width, s.height
         seed = zlib.crc32(repr((round(s.x, 1), round(s.y, 1), round(s.heading, 1))).encode())
         rng = np.random.default_rng(seed)
@@ -530,6 +625,8 @@ class SyntheticView:
         horizon = h * 0.45 + focal * math.tan(math.radians(rot_x))
         albedo = np.empty((h, w, 3), dtype=np.float32)
         depth = np.full((h, w), np.inf, dtype=np.float32)
+        owner = np.zeros((h, w), dtype=np.int32)
+        drawn: dict[int, tuple[int, int, int, int]] = {}
         rows = np.arange(h, dtype=np.float32)[:, None] + 0.5
         cols = np.arange(w, dtype=np.float32)[None, :] + 0.5
         # sky: vertical gradient
@@ -571,14 +668,12 @@ class SyntheticView:
             if fwd > 1.0:
                 items.append((fwd, right, e))
         for fwd, right, e in sorted(items, key=lambda it: -it[0]):
-            cls = _class_id(e.model) if e.kind == "vehicle" else -1
-            size = {0: (2.0, 1.5), 1: (0.8, 1.4), 2: (0.7, 1.3), -1: (0.6, 1.8)}[cls]
-            if e.kind == "vehicle" and e.model.lower() in ("bus", "coach", "airbus", "pbus"):
-                size = (2.6, 3.2)
+            size = _entity_size(e)
             hue = zlib.crc32(e.model.encode()) & 0xFFFFFF
             colour = np.array([(hue >> 16) & 255, (hue >> 8) & 255, hue & 255], np.float32) / 255 * 0.7 + 0.15
-            _box(albedo, depth, focal, cx, horizon, cam_h, cam_x, fwd, right, size[0], size[1], colour)
-        return albedo, depth
+            drawn[e.handle] = _box(albedo, depth, focal, cx, horizon, cam_h, cam_x, fwd, right, size[0], size[1],
+                                   colour, owner=owner, ident=e.handle)
+        return albedo, depth, owner, drawn
 
     @staticmethod
     def _light(albedo: np.ndarray, depth: np.ndarray, hour: int, minute: int, weather: str) -> np.ndarray:
@@ -600,19 +695,32 @@ class SyntheticView:
         return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+def _entity_size(e: Entity) -> tuple[float, float, float]:
+    """(width, height, length) in metres of an entity's stand-in box."""
+    if e.kind != "vehicle":
+        return 0.6, 1.8, 0.5
+    if e.model.lower() in _BUSES:
+        return 2.6, 3.2, 12.0
+    return {0: (2.0, 1.5, 4.5), 1: (0.8, 1.4, 2.1), 2: (0.7, 1.3, 1.8)}[_class_id(e.model)]
+
+
 def _box(albedo, depth, focal, cx, horizon, cam_h, cam_x, dist, lateral, width, height, colour,
-         windows: bool = False) -> None:
-    """Paint a front-facing box at ground distance `dist`, centred `lateral` metres right."""
+         windows: bool = False, owner: np.ndarray | None = None, ident: int = 0) -> tuple[int, int, int, int]:
+    """Paint a front-facing box at ground distance `dist`, centred `lateral` metres right (its pixels get `ident`
+    in `owner`); returns the box in pixels (u0, v0, u1, v1) before clipping to the picture."""
     h, w = depth.shape
     u0 = round(cx + focal * (lateral - cam_x - width / 2) / dist)
     u1 = round(cx + focal * (lateral - cam_x + width / 2) / dist)
     v1 = round(horizon + focal * cam_h / dist)
     v0 = round(horizon - focal * (height - cam_h) / dist)
+    full = (u0, v0, u1, v1)
     u0, u1, v0, v1 = max(u0, 0), min(u1, w), max(v0, 0), min(v1, h)
     if u0 >= u1 or v0 >= v1:
-        return
+        return full
     region = depth[v0:v1, u0:u1]
     closer = region > dist
+    if owner is not None:
+        owner[v0:v1, u0:u1][closer] = ident
     patch = albedo[v0:v1, u0:u1]
     patch[closer] = colour
     if windows and (u1 - u0) > 4 and (v1 - v0) > 4:
@@ -621,6 +729,7 @@ def _box(albedo, depth, focal, cx, horizon, cam_h, cam_x, dist, lateral, width, 
         win = (((vv - v0) % step) < step // 2) & (((uu - u0) % step) < step // 2) & closer
         patch[win] = np.asarray(colour) * 0.45
     region[closer] = dist
+    return full
 
 
 # --------------------------------------------------------------------------- transports
@@ -971,7 +1080,8 @@ class DeepGTAVTestServer:
                 self._last_sent = time.monotonic()
                 return
             frame = self._encode(self.view.render(state))
-            doc = json.dumps(self.plugin.message()).encode()
+            boxes = self.view.bbox2d(state) if state.export_bbox2d and state.recording else None
+            doc = json.dumps(self.plugin.message(boxes)).encode()
             width, height = state.width, state.height
         self._last_sent = time.monotonic()
         self._session_frames += 1
