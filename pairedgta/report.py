@@ -19,12 +19,15 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
     the column's best among the models other than the reference marked `*`; [] when no evaluation has a
     summary. `reference`: the clean condition, left out of the columns."""
     means: dict[str, dict[str, float]] = {}
+    title = "mean xi"
     teachers: set[str] = set()
     own: set[str] = set()  # evaluations of the model whose pseudo-labels they are scored against
     for name, path in evaluations.items():
         summary = Path(path) / SUMMARY
         if summary.is_file():
             data = json.loads(summary.read_text())
+            if data.get("task") == "detection":
+                title = "mean detection xi"
             teacher = str(data.get("reference_model"))
             teachers.add(teacher)
             if str(data.get("model", name.rsplit("/", 1)[-1])) == teacher:
@@ -37,9 +40,9 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
     marked = len(ranked) > 1
     best = {c: max((means[n][c] for n in ranked if _finite(means[n].get(c))), default=None) for c in conditions}
     order = ranked + [n for n in means if n in own]
-    label = max(len("mean xi"), *(len(n) + (len(REFERENCE_TAG) if n in own else 0) for n in means)) + 2
+    label = max(len(title), *(len(n) + (len(REFERENCE_TAG) if n in own else 0) for n in means)) + 2
     cols = [max(width, len(c) + 1) for c in conditions]
-    lines = ["mean xi".ljust(label) + "".join(c.rjust(w) for c, w in zip(conditions, cols))]
+    lines = [title.ljust(label) + "".join(c.rjust(w) for c, w in zip(conditions, cols))]
     for name in order:
         row = means[name]
         cells = []

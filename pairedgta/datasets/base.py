@@ -57,7 +57,7 @@ class PairedDataset:
         memo = default()
         h = hashlib.sha256()
         for g in self.groups:
-            for kind, files in (("", g.images), ("L|", g.labels), ("T|", g.transmittance)):
+            for kind, files in (("", g.images), ("L|", g.labels), ("T|", g.transmittance), ("I|", g.instances)):
                 for cond in sorted(files):
                     p = files[cond]
                     st = p.stat()

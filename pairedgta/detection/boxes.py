@@ -132,6 +132,10 @@ def read_ground_truth(instances: Path, labels: Path | None, *, min_area: int = C
 
     if instances.suffix == ".json":
         return read_box_file(instances, min_area)
+    if instances.name.endswith(("_gtFine_instanceIds.png", "_gt_panoptic.png")):  # real labels name their classes
+        from pairedgta.detection.real_boxes import read_real_boxes
+
+        return read_real_boxes(instances, min_area)
     if labels is None:
         raise DataError(f"{instances}: no label map beside it (the objects' classes); regenerate the dataset")
     try:
