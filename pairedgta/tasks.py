@@ -37,8 +37,8 @@ SEGMENTATION_FIGURES = ("xi_models", "xi_table", "ranking", "qualitative", "cont
 TASKS: dict[str, Task] = {
     "segmentation": Task("segmentation", "segmenter", {}, SEGMENTATION_FIGURES, "label maps"),
     "detection": Task("detection", "detector",
-                      {"pseudolabel": "pairedgta.detection.pseudolabel:DetectionPseudolabel",
-                       "evaluate": "pairedgta.detection.evaluate:DetectionEvaluate"},
+                      {"pseudolabel": "pairedgta.stages.detection_pseudolabel:DetectionPseudolabel",
+                       "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate"},
                       ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet"), "boxes"),
 }
 NAMES = tuple(TASKS)

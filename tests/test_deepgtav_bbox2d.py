@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from pairedgta.conditions import Condition
-from pairedgta.detection.boxes import INSTANCE_CLASSES, read_box_file, read_ground_truth
+from pairedgta.detection.boxes import INSTANCE_CLASSES, read_box_file
+from pairedgta.detection.ground_truth import read_ground_truth
 from pairedgta.errors import DataError
 from pairedgta.render.base import RenderResult
 from pairedgta.render.deepgtav import DeepGTAVRenderer

@@ -139,7 +139,7 @@ def test_corruption_scores_as_michaelis():
 def test_a_detector_firing_everywhere_keeps_every_box_but_is_scored_low():
     """xi is a recall: boxes everywhere find every reference box. The precision side and pseudo-AP show it."""
     from pairedgta.detection import registry
-    from pairedgta.detection.evaluate import GroupResult, Inputs
+    from pairedgta.detection.inputs import GroupResult, Inputs
     from pairedgta.detection.models import Detections
 
     rng = np.random.default_rng(0)
@@ -221,7 +221,8 @@ def test_task_detection_through_the_cli(tmp_path):
                                                                               "Night-EXTRASUNNY"}
         dets = json.loads((e / "detections" / "Night-EXTRASUNNY.json").read_text())
         assert all(set(d) == {"image_id", "category_id", "bbox", "score"} for d in dets)
-        for f in ("xi.csv", "gt_ap.csv", "robustness.csv", "objects.csv", "objects_found.csv"):
+        for f in ("detection_xi.csv", "detection_ap.csv", "detection_robustness.csv", "detection_objects.csv",
+                  "detection_objects_found.csv"):
             assert (e / f).is_file(), f
     plots = list((cache / "plot").glob("*/det_xi_models.png"))
     assert plots and list((cache / "plot").glob("*/det_robustness.png")) and list((cache / "plot").glob("*/det_objects.png"))
@@ -245,7 +246,7 @@ def test_detection_shards_merge_to_the_unsharded_result(tmp_path):
     merged = run_cli(base + ["stages=[evaluate]"], tmp_path)
     assert merged.returncode == 0 and "cache hit" in merged.stdout + merged.stderr
     (entry,) = entries(tmp_path / "cache" / "evaluate")
-    sharded = (entry / "xi.csv").read_text()
+    sharded = (entry / "detection_xi.csv").read_text()
     fresh = run_cli(base + ["stages=[evaluate]", "force=[evaluate]"], tmp_path)
     assert fresh.returncode == 0
-    assert (entry / "xi.csv").read_text() == sharded
+    assert (entry / "detection_xi.csv").read_text() == sharded

@@ -14,9 +14,10 @@ from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES, co
 from pairedgta.metrics import bootstrap, coco_ap, corruption, detection_xi, per_object
 
 if TYPE_CHECKING:
-    from pairedgta.detection.evaluate import Inputs
+    from pairedgta.detection.inputs import Inputs
 
-XI, GT_AP, ROBUSTNESS, OBJECTS, OBJECTS_FOUND = "xi.csv", "gt_ap.csv", "robustness.csv", "objects.csv", "objects_found.csv"
+XI, GT_AP, ROBUSTNESS = "detection_xi.csv", "detection_ap.csv", "detection_robustness.csv"
+OBJECTS, OBJECTS_FOUND = "detection_objects.csv", "detection_objects_found.csv"
 Tables = tuple[dict[str, pd.DataFrame], dict[str, Any]]
 
 

@@ -19,8 +19,7 @@ PANELS = (("height", "object height (px)"), ("transmittance", "fog transmittance
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
     files: list[Path] = []
     for p in passes:
-        found = pd.concat([e.read("objects_found.csv") for e in p.evaluations
-                           if (e.path / "objects_found.csv").is_file()] or [pd.DataFrame()], ignore_index=True)
+        found = pd.concat([e.objects_found() for e in p.evaluations] or [pd.DataFrame()], ignore_index=True)
         if found.empty:
             continue
         stem = opts.stem("det_objects", p.label)

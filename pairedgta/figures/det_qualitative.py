@@ -32,7 +32,7 @@ def _from_results(results: list[dict], image_id: int) -> tuple[np.ndarray, np.nd
 
 
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
-    from pairedgta.detection.pseudolabel import image_ids
+    from pairedgta.detection.inputs import image_ids
 
     files: list[Path] = []
     n_cases = max(1, opts.plot.qualitative_groups)

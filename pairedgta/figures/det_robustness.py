@@ -17,10 +17,8 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     files: list[Path] = []
     metrics: dict[str, float] = {}
     for p in passes:
-        ap = pd.concat([e.read("gt_ap.csv") for e in p.evaluations if (e.path / "gt_ap.csv").is_file()] or
-                       [pd.DataFrame()], ignore_index=True)
-        rob = pd.concat([e.read("robustness.csv") for e in p.evaluations if (e.path / "robustness.csv").is_file()] or
-                        [pd.DataFrame()], ignore_index=True)
+        ap = pd.concat([e.gt_ap() for e in p.evaluations] or [pd.DataFrame()], ignore_index=True)
+        rob = pd.concat([e.robustness() for e in p.evaluations] or [pd.DataFrame()], ignore_index=True)
         if ap.empty:
             continue
         stem = opts.stem("det_robustness", p.label)

@@ -161,7 +161,7 @@ def make_plan(cfg: dict[str, Any], run: schema.RunConfig) -> Plan:
     if not sourced:
         check_renderer(cfg)
     task = tasks.get(run.task)
-    if "plot" in stages:
+    if set(stages) & set(over_passes):  # the figures are drawn: each must be of the run's task
         tasks.check_figures(task, list(run.plot.figures))
     return Plan(stages, force, needs, task=task)
 

@@ -24,8 +24,8 @@ from pairedgta.datasets import PairedDataset, load_group_images
 from pairedgta.detection import registry
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.detection.models import Detections
-from pairedgta.detection.pseudolabel import (DetectionLabels, detections_from_json, detections_json, image_ids,
-                                             write_json_atomic)
+from pairedgta.detection.inputs import GroupResult, Inputs, image_ids
+from pairedgta.stages.detection_pseudolabel import DetectionLabels, write_json_atomic
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
@@ -42,61 +42,6 @@ log = logging.getLogger("pairedgta.evaluate")
 VERSION = "det1"
 SUMMARY = "summary.json"
 DETECTIONS_DIR = "detections"
-
-
-@dataclass
-class GroupResult:
-    """One group's detections and counts under every condition (what a shard job stores)."""
-
-    group_id: str
-    detections: dict[str, Detections]
-    counts: dict[str, np.ndarray]  # condition -> 4 x C (detection_xi.image_counts)
-    objects: list[dict[str, Any]]
-    sizes: dict[str, tuple[int, int]]  # condition -> (height, width)
-
-    def to_json(self) -> dict[str, Any]:
-        return {"group_id": self.group_id, "detections": {c: detections_json(d) for c, d in self.detections.items()},
-                "counts": {c: v.tolist() for c, v in self.counts.items()}, "objects": self.objects,
-                "sizes": {c: list(s) for c, s in self.sizes.items()}}
-
-    @staticmethod
-    def from_json(d: dict[str, Any]) -> "GroupResult":
-        return GroupResult(d["group_id"], {c: detections_from_json(v) for c, v in d["detections"].items()},
-                           {c: np.asarray(v, np.int64) for c, v in d["counts"].items()},
-                           [{**o, "transmittance": math.nan if o["transmittance"] is None else o["transmittance"],
-                             "luma": math.nan if o["luma"] is None else o["luma"]} for o in d["objects"]],
-                           {c: (int(s[0]), int(s[1])) for c, s in d["sizes"].items()})
-
-
-@dataclass
-class Inputs:
-    """What the metrics read: the groups' results, the reference's boxes, the ground truth, the settings."""
-
-    model: str
-    reference_model: str
-    conditions: list[str]
-    clean: str
-    groups: list[GroupResult]
-    image_ids: dict[str, int]
-    pseudo: dict[str, Detections]
-    ground_truth: dict[str, Any]  # condition -> COCO dict (pycocotools' input), only where it exists
-    threshold: float
-    settings: dict[str, Any]
-
-    @property
-    def adverse(self) -> list[str]:
-        return [c for c in self.conditions if c != self.clean]
-
-    def coco_results(self, condition: str) -> list[dict[str, Any]]:
-        from pairedgta.metrics.coco_ap import results_format
-
-        out: list[dict[str, Any]] = []
-        for g in self.groups:
-            d = g.detections.get(condition)
-            if d is not None:
-                out += results_format(self.image_ids[g.group_id], d.boxes, d.scores, d.labels + 1,
-                                      self.settings["max_detections"])
-        return out
 
 
 class DetectionEvaluateResult(StageResult):
@@ -116,6 +61,16 @@ class DetectionEvaluateResult(StageResult):
 
     def xi(self) -> pd.DataFrame:
         return self.read(registry.XI)
+
+    def gt_ap(self) -> pd.DataFrame:
+        """AP per condition and class against the renderer's boxes; empty without ground truth."""
+        return self.read(registry.GT_AP) if (self.path / registry.GT_AP).is_file() else pd.DataFrame()
+
+    def robustness(self) -> pd.DataFrame:
+        return self.read(registry.ROBUSTNESS) if (self.path / registry.ROBUSTNESS).is_file() else pd.DataFrame()
+
+    def objects_found(self) -> pd.DataFrame:
+        return self.read(registry.OBJECTS_FOUND) if (self.path / registry.OBJECTS_FOUND).is_file() else pd.DataFrame()
 
     def summary(self) -> dict[str, Any]:
         return json.loads((self.path / SUMMARY).read_text())

@@ -16,6 +16,8 @@ from tqdm import tqdm
 
 from pairedgta.datasets import PairedDataset, load_image
 from pairedgta.detection import boxes as gtboxes
+from pairedgta.detection.ground_truth import group_ground_truth
+from pairedgta.detection.inputs import detections_from_json, detections_json, image_ids
 from pairedgta.detection.models import Detections
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_segmenter
@@ -32,24 +34,9 @@ GT_DIR = "ground_truth"
 SUMMARY = "labels_summary.json"
 
 
-def detections_json(d: Detections) -> dict[str, Any]:
-    return {"boxes": np.round(d.boxes, 3).tolist(), "scores": np.round(d.scores, 6).tolist(),
-            "labels": d.labels.tolist()}
-
-
-def detections_from_json(d: dict[str, Any]) -> Detections:
-    return Detections(np.asarray(d["boxes"], np.float32).reshape(-1, 4), np.asarray(d["scores"], np.float32),
-                      np.asarray(d["labels"], np.int64))
-
-
 def write_json_atomic(path: Path, obj: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, obj, indent=None)
-
-
-def image_ids(dataset: PairedDataset) -> dict[str, int]:
-    """COCO image ids of the groups (1-based, dataset order): the same id for a group in every condition's file."""
-    return {g.group_id: i for i, g in enumerate(dataset.groups, start=1)}
 
 
 class DetectionLabels(StageResult):
@@ -101,7 +88,7 @@ def write_ground_truth(dataset: PairedDataset, out: Path, min_area: int, min_tra
         for g in dataset.groups:
             if cond not in g.images:
                 continue
-            boxes = gtboxes.group_ground_truth(g, cond, dataset.reference, min_area=min_area,
+            boxes = group_ground_truth(g, cond, dataset.reference, min_area=min_area,
                                                min_transmittance=min_transmittance)
             if boxes is None:
                 continue
