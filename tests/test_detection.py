@@ -250,3 +250,32 @@ def test_detection_shards_merge_to_the_unsharded_result(tmp_path):
     fresh = run_cli(base + ["stages=[evaluate]", "force=[evaluate]"], tmp_path)
     assert fresh.returncode == 0
     assert (entry / "detection_xi.csv").read_text() == sharded
+
+
+@pytest.mark.slow
+def test_a_dataset_without_instance_masks_skips_gt_with_one_line_and_keeps_xi(tmp_path):
+    """The released PairedGTA layout has images only: GT metrics are skipped with one warning, xi is computed."""
+    import sys
+    from pathlib import Path
+
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_evaluate import make_release_dataset
+
+    root = tmp_path / "release"
+    make_release_dataset(root, 3, 96, 48)
+    proc = run_cli(base_overrides(tmp_path, store=False) + [
+        "task=detection", "dataset=paired_gta", f"dataset.root={root}", "model=tiny_fcos", "models=[tiny_fcos]",
+        "reference_model=tiny_fasterrcnn", "+model_overrides.tiny_fasterrcnn.score_threshold=0.05",
+        "pseudolabel.tau=0.05", "conditions.only=[Day-EXTRASUNNY,Day-RAIN,Night-EXTRASUNNY]",
+        "stages=[pseudolabel,evaluate]", "tracking.enabled=false", "metric.bootstrap.resamples=20", "threads=1"],
+        tmp_path)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    warnings = [line for line in out.splitlines() if "no instance masks or boxes" in line]
+    assert len(warnings) == 1 and "ground-truth AP is skipped, detection xi is still computed" in warnings[0]
+    (entry,) = entries(tmp_path / "cache" / "evaluate")
+    assert (entry / "detection_xi.csv").is_file() and not (entry / "detection_ap.csv").exists()
+    summary = json.loads((entry / "summary.json").read_text())
+    assert "none" in summary["ground_truth"] and "gt_ap" not in summary
