@@ -64,7 +64,7 @@ HASHED_MODEL_CONFIGS = {
     "tiny_ddrnet": "701c74b44119675f",
     # task=detection's test-sized detectors (pairedgta/detection/models.py)
     "tiny_fasterrcnn": "08ff9c0778ee59eb",
-    "tiny_fcos": "0cd377ebeda42d5a",
+    "tiny_fcos": "9ee88cb2ec619e47",
     "tiny_retinanet": "09c01f7f5f407355",
     "tiny_deeplabv3plus": "b604139f0d8a4b97",
     "tiny_mask2former": "85292c6cf1b75e3d",
