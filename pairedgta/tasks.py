@@ -38,7 +38,8 @@ TASKS: dict[str, Task] = {
     "segmentation": Task("segmentation", "segmenter", {}, SEGMENTATION_FIGURES, "label maps"),
     "detection": Task("detection", "detector",
                       {"pseudolabel": "pairedgta.stages.detection_pseudolabel:DetectionPseudolabel",
-                       "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate"},
+                       "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate",
+                       "cityscapes_val": "pairedgta.stages.detection_cityscapes_val:DetectionCityscapesVal"},
                       ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet"), "boxes"),
 }
 NAMES = tuple(TASKS)

@@ -279,3 +279,55 @@ def test_a_dataset_without_instance_masks_skips_gt_with_one_line_and_keeps_xi(tm
     assert (entry / "detection_xi.csv").is_file() and not (entry / "detection_ap.csv").exists()
     summary = json.loads((entry / "summary.json").read_text())
     assert "none" in summary["ground_truth"] and "gt_ap" not in summary
+
+
+def test_the_cityscapes_check_runs_the_tasks_models():
+    from omegaconf import OmegaConf
+
+    from pairedgta.testing.cli import compose_cfg
+
+    for task, first in (("segmentation", "segformer_b5"), ("detection", "demo_fcos")):
+        cfg = OmegaConf.to_container(compose_cfg(["+experiment=cityscapes_val_check", f"task={task}"]), resolve=True)
+        assert cfg["models"][0] == first
+
+
+@pytest.mark.slow
+def test_cityscapes_box_ap_check_through_the_cli(tmp_path):
+    """+experiment=cityscapes_val_check task=detection: box AP against gtFine's instance ids, as pycocotools gives it
+    for the same detections."""
+    from PIL import Image
+
+    from pairedgta.detection.real_boxes import read_cityscapes_boxes
+    from pairedgta.models import build_segmenter
+    from pairedgta.testing.cli import run_cli
+
+    rng = np.random.default_rng(0)
+    img_dir, gt_dir = tmp_path / "cs" / "leftImg8bit" / "val" / "ulm", tmp_path / "cs" / "gtFine" / "val" / "ulm"
+    img_dir.mkdir(parents=True), gt_dir.mkdir(parents=True)
+    detector = build_segmenter("tiny_fcos")
+    images, gts, results = [], [], []
+    for k in range(2):
+        fid = f"ulm_000000_00000{k}"
+        image = rng.integers(0, 256, (64, 128, 3), dtype=np.uint8)
+        ids = np.full((64, 128), 7, np.uint16)
+        ids[10:40, 20:60] = 26001 + k
+        ids[30:60, 80:95] = 24001
+        Image.fromarray(image).save(img_dir / f"{fid}_leftImg8bit.png")
+        Image.fromarray(np.zeros((64, 128), np.uint8)).save(gt_dir / f"{fid}_gtFine_labelTrainIds.png")
+        Image.fromarray(ids).save(gt_dir / f"{fid}_gtFine_instanceIds.png")
+        d = detector.detect(image[None])[0]
+        images.append((k + 1, fid, 128, 64))
+        gts.append(read_cityscapes_boxes(gt_dir / f"{fid}_gtFine_instanceIds.png"))
+        results += coco_ap.results_format(k + 1, d.boxes, d.scores, d.labels + 1)
+    expected = coco_ap.average_precision(coco_ground_truth(images, gts), results)
+    proc = run_cli(["+experiment=cityscapes_val_check", "task=detection", f"dataset.root={tmp_path / 'cs'}",
+                    "models=[tiny_fcos]", "reference_model=tiny_fcos", f"cache_dir={tmp_path / 'cache'}",
+                    "tracking.enabled=false"], tmp_path)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    (entry,) = entries(tmp_path / "cache" / "cityscapes_val")
+    summary = json.loads((entry / "summary.json").read_text())
+    assert summary["task"] == "detection" and summary["objects"] == 4
+    assert summary["ap"] == pytest.approx(expected["ap"], nan_ok=True)
+    assert summary["ap50"] == pytest.approx(expected["ap50"], nan_ok=True)
+    assert "box AP" in out
