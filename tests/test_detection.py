@@ -331,3 +331,21 @@ def test_cityscapes_box_ap_check_through_the_cli(tmp_path):
     assert summary["ap"] == pytest.approx(expected["ap"], nan_ok=True)
     assert summary["ap50"] == pytest.approx(expected["ap50"], nan_ok=True)
     assert "box AP" in out
+
+
+@pytest.mark.slow
+def test_a_sweep_over_detectors_then_plot_collects_them(tmp_path):
+    from pairedgta.testing.cli import run_cli
+
+    base = [o for o in detection_overrides(tmp_path) if not o.startswith("models=")]
+    proc = run_cli(base + ["model=tiny_fcos,tiny_retinanet", "stages=[generate,pseudolabel,evaluate]"], tmp_path,
+                   multirun=True)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    assert len(entries(tmp_path / "cache" / "evaluate")) == 2
+    plot = run_cli(base + ["model=tiny_fcos", "plot.collect_cached=true", "stages=[plot]",
+                           "plot.figures=[det_xi]"], tmp_path)
+    out = plot.stdout + plot.stderr
+    assert plot.returncode == 0 and "collected 1 cached evaluation(s) of this dataset: tiny_retinanet" in out
+    (figure,) = list((tmp_path / "cache" / "plot").glob("*/det_xi_models.csv"))
+    import pandas as pd
+    assert set(pd.read_csv(figure)["model"]) == {"tiny_fcos", "tiny_retinanet"}

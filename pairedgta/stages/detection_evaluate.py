@@ -266,16 +266,44 @@ def run(ctx: Context, dataset: PairedDataset, dataset_key: str, labels: Detectio
     return result
 
 
+def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, labels: StageResult,
+                exclude: set[str]) -> list[DetectionEvaluateResult]:
+    """Every cached detection evaluation of this dataset and labels under the same settings and conditions (the
+    models of an earlier sweep over `model=`): the newest per model, except the models in `exclude`."""
+    from pairedgta.cache import canonical_json
+
+    want_inputs = {"dataset": dataset_key, "pseudolabel": labels.key}
+    grid = dataset.grid or ctx.grid
+    want = json.loads(canonical_json({"metric": settings(ctx, dataset.reference),
+                                      "conditions": conditions_for(ctx.run.evaluate, grid)}))
+    found: dict[str, tuple[float, DetectionEvaluateResult]] = {}
+    for cached in ctx.cache.entries("evaluate"):
+        m = cached.manifest
+        cfg = m.get("config") or {}
+        if m.get("inputs") != want_inputs or cfg.get("task") != "detection" or \
+                {"metric": cfg.get("metric"), "conditions": cfg.get("conditions")} != want:
+            continue
+        name = str((cfg.get("model") or {}).get("name"))
+        if name not in exclude and (name not in found or cached.mtime > found[name][0]):
+            found[name] = (cached.mtime, DetectionEvaluateResult("evaluate", cached.key, cached.path, hit=True))
+    return [r for _, r in sorted(found.values(), key=lambda t: t[1].key)]
+
+
 def step(ctx: Context, p: PassResult, state: RunState) -> None:
-    """The app's step for one pass (task=detection): every detector's evaluation, each in a nested MLflow run."""
+    """The app's step for one pass (task=detection): every detector's evaluation, each in a nested MLflow run; with
+    plot.collect_cached, the cached evaluations of other detectors too."""
     from pairedgta.tracking import bundle, dataset_label, run_name
 
     plan, recorder = state.plan, state.recorder
+    collect = plan.plotting and ctx.run.plot.collect_cached
     for model_cfg in state.models.evaluated:
         name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]
         try:
             result = run(ctx, p.dataset, p.dataset_key, p.pseudo, model_cfg)
-        except PairedGTAError:
+        except PairedGTAError as exc:
+            if collect and "evaluate" not in plan.stages and "no cached output" in str(exc):
+                log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
+                continue
             raise
         if not result.complete:
             if plan.plotting:
@@ -296,6 +324,12 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
                                  tables={"det_xi_table.json": xi_table(result.xi())})
             state.model_runs.append((recorder.run_id(), model_cfg["name"], p.label))
         state.summary["evaluate"][name] = str(result.path)
+    if collect:
+        extra = find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
+        if extra:
+            log.info("plot: collected %d cached evaluation(s) of this dataset: %s", len(extra),
+                     ", ".join(e.model for e in extra))
+            p.evaluations.extend(extra)
     if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
         raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")
 
