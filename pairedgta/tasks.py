@@ -21,6 +21,7 @@ class Task:
     model_kind: str  # what its models build: pairedgta.models.model_kind ("segmenter", "detector")
     stages: Mapping[str, str] = field(default_factory=dict)  # stage name -> "module:StageClass" doing this task's work
     figures: tuple[str, ...] = ()  # the figure families (plot.figures) that draw this task's results
+    metrics: str = ""  # "module:ATTR", the metrics its evaluate stage computes, listed once
     what: str = ""  # one phrase for messages: what its models predict
 
     def resolve(self, spec: Any) -> Any:
@@ -30,17 +31,25 @@ class Task:
         module, stage = self.stages[spec.name].split(":")
         return dataclasses.replace(spec, module=module, stage=stage)
 
+    def metric_list(self) -> tuple[Any, ...]:
+        import importlib
+
+        module, attr = self.metrics.split(":")
+        return tuple(getattr(importlib.import_module(module), attr))
+
 
 SEGMENTATION_FIGURES = ("xi_models", "xi_table", "ranking", "qualitative", "contact_sheet", "robustness",
                         "distribution", "cost", "ablation", "estimators", "metric_validity", "model_report",
                         "authors_table", "authors_ranking", "photometry")
 TASKS: dict[str, Task] = {
-    "segmentation": Task("segmentation", "segmenter", {}, SEGMENTATION_FIGURES, "label maps"),
+    "segmentation": Task("segmentation", "segmenter", {}, SEGMENTATION_FIGURES, "pairedgta.evaluation.registry:METRICS",
+                         "label maps"),
     "detection": Task("detection", "detector",
                       {"pseudolabel": "pairedgta.stages.detection_pseudolabel:DetectionPseudolabel",
                        "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate",
                        "cityscapes_val": "pairedgta.stages.detection_cityscapes_val:DetectionCityscapesVal"},
-                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet"), "boxes"),
+                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet"),
+                      "pairedgta.detection.registry:METRICS", "boxes"),
 }
 NAMES = tuple(TASKS)
 

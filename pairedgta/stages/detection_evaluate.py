@@ -33,6 +33,7 @@ from pairedgta.metrics import detection_xi, per_object
 from pairedgta.models import shared_segmenter
 from pairedgta.models.runtime import torch_threads
 from pairedgta.schema import as_dict
+from pairedgta.tasks import TASKS
 from pairedgta.stages.common import Context, StageResult, model_config_from_hash, model_hash_config, run_cached
 
 if TYPE_CHECKING:
@@ -183,7 +184,7 @@ def write_outputs(out: Path, inputs: Inputs) -> dict[str, Any]:
                                "score_threshold": inputs.threshold, "settings": inputs.settings}
     if not inputs.ground_truth:
         summary["ground_truth"] = "none: the dataset has no instance masks or boxes; GT AP skipped, xi computed"
-    for metric in registry.metrics():
+    for metric in TASKS["detection"].metric_list():  # the task's metrics, listed once (pairedgta/detection/registry.py)
         tables, values = metric.compute(inputs)
         for file, table in tables.items():
             tmp = out / f".{file}.tmp"
