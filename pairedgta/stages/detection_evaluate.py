@@ -35,6 +35,7 @@ from pairedgta.models.runtime import torch_threads
 from pairedgta.schema import as_dict
 from pairedgta.tasks import TASKS
 from pairedgta.stages.common import Context, StageResult, model_config_from_hash, model_hash_config, run_cached
+from pairedgta.stages.evaluate import parts_dir  # shard parts lie where segmentation's do
 
 if TYPE_CHECKING:
     from pairedgta.stages.planning import PassResult, RunState
@@ -193,10 +194,6 @@ def write_outputs(out: Path, inputs: Inputs) -> dict[str, Any]:
         summary.update(values)
     write_json_atomic(out / SUMMARY, summary)
     return {k: summary[k] for k in ("groups",)}
-
-
-def parts_dir(ctx: Context, key: str) -> Path:
-    return ctx.cache.root / "evaluate" / f".parts-{key}"
 
 
 @dataclass
