@@ -349,3 +349,21 @@ def test_a_sweep_over_detectors_then_plot_collects_them(tmp_path):
     (figure,) = list((tmp_path / "cache" / "plot").glob("*/det_xi_models.csv"))
     import pandas as pd
     assert set(pd.read_csv(figure)["model"]) == {"tiny_fcos", "tiny_retinanet"}
+
+
+def test_a_checkpoint_of_other_classes_is_one_line(tmp_path):
+    from safetensors.torch import save_file
+
+    from pairedgta.detection.models import fcos
+    from pairedgta.errors import ModelError
+    from pairedgta.models import build_segmenter, model_config
+
+    cfg = model_config("tiny_fcos")
+    coco = fcos("coco", 91, 128, 256, width=cfg["width"], fpn_channels=cfg["fpn_channels"])
+    path = tmp_path / "coco_fcos.safetensors"
+    save_file({k: v.contiguous() for k, v in coco.state_dict().items()}, str(path))
+    with pytest.raises(ModelError) as err:
+        build_segmenter({**cfg, "random_init": False, "checkpoint_path": str(path)})
+    message = str(err.value)
+    assert "\n" not in message and "predicts 91 classes" in message and "background + person, rider, car" in message
+

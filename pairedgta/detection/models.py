@@ -15,7 +15,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from pairedgta.detection.boxes import NUM_INSTANCE_CLASSES
+from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.lazy import lazy_module
 from pairedgta.models.runtime import RuntimeOptions
 
@@ -186,8 +186,29 @@ def build_detector(network: Callable[..., Any], /, *, name: str, family: str, ch
         torch.manual_seed(int(init_seed))
         module = network(name, NUM_CLASSES, int(min_size), int(max_size), **arch)
     if checkpoint_path:
+        check_classes(module, checkpoint_path, name)
         load_checkpoint_strict(module, checkpoint_path, model_name=name)
     return Detector(name, module, float(score_threshold), runtime)
+
+
+CLASS_KEYS = ("head.classification_head.cls_logits.weight", "roi_heads.box_predictor.cls_score.weight")
+
+
+def check_classes(module: Any, checkpoint_path: str, name: str) -> None:
+    """A checkpoint whose class layer is of another size (COCO's 91, a head of its own) is one line naming both."""
+    from pairedgta.errors import ModelError
+    from pairedgta.models.checkpoint import read_state_dict
+    from pairedgta.models.hf_common import resolve_checkpoint_path
+
+    state = read_state_dict(resolve_checkpoint_path(checkpoint_path), model_name=name)
+    expected = module.state_dict()
+    for key in CLASS_KEYS:
+        if key in state and key in expected and state[key].shape[0] != expected[key].shape[0]:
+            per_class = expected[key].shape[0] // NUM_CLASSES
+            raise ModelError(
+                f"model '{name}': {checkpoint_path} predicts {state[key].shape[0] // per_class} classes "
+                f"({key}), the detection task's detectors {NUM_CLASSES} (background + {', '.join(INSTANCE_CLASSES)}); "
+                "train it on these classes or load it through a detector source with a label map")
 
 
 def build_network(family: str, cfg: dict[str, Any]) -> Any:
