@@ -448,8 +448,9 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
         "as iscrowd)",
         f"- score_threshold {result['score_threshold']} (best F1 {result['f1']:.3f} on the held-out towns)",
         "- weights: float16 (model.safetensors; loaded as float32)",
-        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.1f} min training on "
-        f"{cfg['train']['threads']} CPU threads", "",
+        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.1f} min training (resumed runs summed) on a "
+        f"2-core CPU shared with other jobs, {cfg['train']['threads']} thread{'s' if cfg['train']['threads'] != 1 else ''}"
+        " (the last run)", "",
         "| class | held-out ground-truth boxes | AP50 |", "|---|---|---|",
         *[f"| {c} | {result['gt_per_class'][c]} | {v:.3f} |" for c, v in ap50.items()],
     ]
