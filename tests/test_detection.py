@@ -132,6 +132,7 @@ def test_corruption_scores_as_michaelis():
     s = corruption.corruption_scores(perf, "clean", ["a", "b"])
     assert s == pytest.approx({"P": 0.4, "mPC": 0.15, "rPC": 0.375})
     assert math.isnan(corruption.corruption_scores({"clean": 0.0, "a": 0.0}, "clean", ["a"])["rPC"])
+    assert math.isnan(corruption.corruption_scores({"clean": 0.001, "a": 0.001}, "clean", ["a"])["rPC"])  # no P
     subsets = corruption.subsets(["Day-RAIN", "Night-CLEAR", "Night-RAIN"], "Day-CLEAR")
     assert subsets["Night-*"] == ["Night-CLEAR", "Night-RAIN"] and subsets["*-RAIN"] == ["Day-RAIN", "Night-RAIN"]
 
@@ -286,7 +287,7 @@ def test_the_cityscapes_check_runs_the_tasks_models():
 
     from pairedgta.testing.cli import compose_cfg
 
-    for task, first in (("segmentation", "segformer_b5"), ("detection", "demo_fcos")):
+    for task, first in (("segmentation", "segformer_b5"), ("detection", "demo_retinanet")):
         cfg = OmegaConf.to_container(compose_cfg(["+experiment=cityscapes_val_check", f"task={task}"]), resolve=True)
         assert cfg["models"][0] == first
 
