@@ -457,7 +457,9 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
     (out / "README.md").write_text("\n".join(lines) + "\n")
     for f in out.iterdir():
         f.chmod(0o644)
-    model_conf = ROOT / "pairedgta" / "conf" / "model" / f"{name}.yaml"
+    # a member shipped in the package gets its model config (`model=<name>`); a try elsewhere gets it beside its weights
+    shipped = Path(cfg["out_dir"]).parts[:3] == ("pairedgta", "models", "weights")
+    model_conf = ROOT / "pairedgta" / "conf" / "model" / f"{name}.yaml" if shipped else out / "model.yaml"
     model_conf.write_text(model_yaml(cfg, result["score_threshold"]))
     print(f"{name}: held-out AP50 car {ap50.get('car', float('nan')):.3f} person {ap50.get('person', float('nan')):.3f} "
           f"AP {result['ap']:.3f}, {n_params} parameters, {train_s / 60:.1f} min -> {out}")
