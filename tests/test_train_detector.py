@@ -39,7 +39,7 @@ def synthetic_batch():
     return images, targets
 
 
-@pytest.mark.slow  # 10-30 s on the 2-core machine: three network builds and five steps
+# 4 s on the 2-core machine beside a training job (three network builds, five steps): the fast tier
 def test_two_steps_fp16_weights_load_in_build_detector_and_resume(tmp_path):
     from safetensors import safe_open
 
