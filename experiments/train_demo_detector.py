@@ -1,7 +1,7 @@
 """Train the shipped demo detectors (the detection zoo) on the embedded renderer's daytime scenes.
 
-    python experiments/train_demo_detector.py                                  # demo_det_reference: render (cached) + train
-    python experiments/train_demo_detector.py detector_zoo=demo_fcos_noaug     # another member (pairedgta/conf/detector_zoo/)
+    python experiments/train_demo_detector.py                              # demo_det_reference: render (cached), train
+    python experiments/train_demo_detector.py detector_zoo=demo_fcos_noaug  # another member (conf/detector_zoo/)
     python experiments/train_demo_detector.py train.steps=50 data.train_towns=2    # a quick try
 
 `detector_zoo=<name>` picks the member: its family (`arch.family`: fcos, retinanet or fasterrcnn, the heads of
@@ -288,7 +288,8 @@ def detect(module, samples: list[Sample], batch_size: int = 4) -> list[dict[str,
     for i in range(0, len(samples), batch_size):
         x = [torch.from_numpy(s.image).permute(2, 0, 1).float().div(255) for s in samples[i:i + batch_size]]
         for d in module(x):
-            out.append({k: d[k].float().numpy() if k != "labels" else d[k].numpy() for k in ("boxes", "scores", "labels")})
+            out.append({k: d[k].float().numpy() if k != "labels" else d[k].numpy()
+                        for k in ("boxes", "scores", "labels")})
     return out
 
 
@@ -343,7 +344,8 @@ def best_threshold(samples: list[Sample], dets: list[dict[str, np.ndarray]], iou
             for b, sc, lab in zip(boxes, scores, labels):
                 if sc < th:
                     break
-                ious = box_iou(torch.from_numpy(b[None]), torch.from_numpy(s.xyxy)).numpy()[0] if len(s.xyxy) else np.zeros(0)
+                ious = (box_iou(torch.from_numpy(b[None]), torch.from_numpy(s.xyxy)).numpy()[0] if len(s.xyxy)
+                        else np.zeros(0))
                 ious = np.where((s.labels == lab) & ~used, ious, 0.0)
                 if len(ious) and ious.max() >= iou:
                     used[int(ious.argmax())] = True
@@ -385,8 +387,9 @@ def arch_keys(arch: dict) -> dict:
 
 def model_yaml(cfg: dict, score_threshold: float) -> str:
     name, arch = cfg["model_name"], cfg["arch"]
-    lines = [f"# A detection zoo member shipped with the package: {FAMILY_TEXT[arch['family']]} on a MobileNetV3-Large trunk",
-             f"# + FPN (pairedgta/detection/models.py), trained by experiments/train_demo_detector.py detector_zoo={name}",
+    lines = [f"# A detection zoo member shipped with the package: {FAMILY_TEXT[arch['family']]} on a MobileNetV3-Large",
+             "# trunk + FPN (pairedgta/detection/models.py), trained by experiments/train_demo_detector.py",
+             f"# detector_zoo={name}",
              "# on the embedded renderer's scenes (model card: pairedgta/models/weights/" + name + "/README.md).",
              f"name: {name}", f"family: {arch['family']}",
              f"checkpoint_path: pkg://models/weights/{name}/model.safetensors",
@@ -405,7 +408,8 @@ def recipe_text(cfg: dict) -> str:
              "horizontal flip"]
     parts.append("photometric distortion" if a.get("photometric") else "no photometric distortion")
     text = ", ".join(parts)
-    return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from") else "; random initialisation")
+    return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from")
+                   else "; random initialisation")
 
 
 def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list, render_s: float, train_s: float,
@@ -449,7 +453,8 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
         f"- score_threshold {result['score_threshold']} (best F1 {result['f1']:.3f} on the held-out towns)",
         "- weights: float16 (model.safetensors; loaded as float32)",
         f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.1f} min training (resumed runs summed) on a "
-        f"2-core CPU shared with other jobs, {cfg['train']['threads']} thread{'s' if cfg['train']['threads'] != 1 else ''}"
+        f"2-core CPU shared with other jobs, {cfg['train']['threads']} "
+        f"thread{'s' if cfg['train']['threads'] != 1 else ''}"
         " (the last run)", "",
         "| class | held-out ground-truth boxes | AP50 |", "|---|---|---|",
         *[f"| {c} | {result['gt_per_class'][c]} | {v:.3f} |" for c, v in ap50.items()],
@@ -461,7 +466,8 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
     shipped = Path(cfg["out_dir"]).parts[:3] == ("pairedgta", "models", "weights")
     model_conf = ROOT / "pairedgta" / "conf" / "model" / f"{name}.yaml" if shipped else out / "model.yaml"
     model_conf.write_text(model_yaml(cfg, result["score_threshold"]))
-    print(f"{name}: held-out AP50 car {ap50.get('car', float('nan')):.3f} person {ap50.get('person', float('nan')):.3f} "
+    print(f"{name}: held-out AP50 car {ap50.get('car', float('nan')):.3f} "
+          f"person {ap50.get('person', float('nan')):.3f} "
           f"AP {result['ap']:.3f}, {n_params} parameters, {train_s / 60:.1f} min -> {out}")
 
 
@@ -481,13 +487,15 @@ def check_config(cfg: dict) -> None:
     checks = [
         ("arch.family", arch.get("family"), arch.get("family") in FAMILY_TEXT, "fcos, retinanet or fasterrcnn"),
         ("train.steps", t.get("steps"), seg._number(t.get("steps"), 1, math.inf, True), "an integer >= 1"),
-        ("train.batch_size", t.get("batch_size"), seg._number(t.get("batch_size"), 1, math.inf, True), "an integer >= 1"),
+        ("train.batch_size", t.get("batch_size"), seg._number(t.get("batch_size"), 1, math.inf, True),
+         "an integer >= 1"),
         ("train.lr", t.get("lr"), seg._number(t.get("lr"), 1e-12, 10.0), "a learning rate > 0"),
         ("train.optimizer", t.get("optimizer"), t.get("optimizer") in ("adamw", "sgd"), "adamw or sgd"),
         ("train.checkpoint_every", t.get("checkpoint_every"), seg._number(t.get("checkpoint_every"), 1, math.inf, True),
          "an integer >= 1"),
         ("augment.crop", a.get("crop"), isinstance(a.get("crop"), list) and len(a["crop"]) == 2
-         and all(seg._number(v, 32, 4096, True) and v % 32 == 0 for v in a["crop"]), "[height, width], multiples of 32"),
+         and all(seg._number(v, 32, 4096, True) and v % 32 == 0 for v in a["crop"]),
+         "[height, width], multiples of 32"),
         ("model_name", cfg.get("model_name"), isinstance(cfg.get("model_name"), str)
          and cfg["model_name"].replace("_", "").isalnum(), "a name of letters, digits and _"),
     ]
@@ -554,7 +562,8 @@ def main(dcfg: DictConfig) -> None:
         bar.set_postfix(loss=f"{running:.3f}", lr=f"{sched.get_last_lr()[0]:.1e}", refresh=False)
         if step % t["eval_every"] == 0 and step != t["steps"]:
             r = evaluate(module, val)
-            history.append({"step": step, "loss": running, "ap50": r["ap50"], "ap50_car": r["ap50_per_class"].get("car"),
+            history.append({"step": step, "loss": running, "ap50": r["ap50"],
+                            "ap50_car": r["ap50_per_class"].get("car"),
                             "seconds": time.perf_counter() - t1})
             log.info("step %d loss %.3f held-out AP50 %.3f car %.3f (%.2f s/step)", step, running, r["ap50"],
                      r["ap50_per_class"].get("car", math.nan), (time.perf_counter() - t1) / step)

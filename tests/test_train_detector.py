@@ -109,7 +109,8 @@ def test_coco_eval_and_threshold_of_perfect_detections():
           Box(3, CAR, (100.0, 5.0, 104.0, 10.0), 20.0, ignore="small")]
     samples = [tdd.Sample(image, gt)]
     dets = [{"boxes": np.array([[10, 20, 50, 40], [80, 10, 92, 50], [100, 5, 104, 10], [0, 50, 20, 60]], np.float32),
-             "scores": np.array([0.9, 0.8, 0.7, 0.3], np.float32), "labels": np.array([CAR + 1, PERSON + 1, CAR + 1, CAR + 1])}]
+             "scores": np.array([0.9, 0.8, 0.7, 0.3], np.float32),
+             "labels": np.array([CAR + 1, PERSON + 1, CAR + 1, CAR + 1])}]
     r = tdd.coco_eval(samples, dets)
     assert r["ap50_per_class"] == {"person": pytest.approx(1.0), "car": pytest.approx(1.0)}
     assert r["gt_per_class"] == {"person": 1, "car": 1}
