@@ -287,7 +287,7 @@ def test_the_cityscapes_check_runs_the_tasks_models():
 
     from pairedgta.testing.cli import compose_cfg
 
-    for task, first in (("segmentation", "segformer_b5"), ("detection", "demo_retinanet")):
+    for task, first in (("segmentation", "segformer_b5"), ("detection", "demo_fcos_adverse")):
         cfg = OmegaConf.to_container(compose_cfg(["+experiment=cityscapes_val_check", f"task={task}"]), resolve=True)
         assert cfg["models"][0] == first
 

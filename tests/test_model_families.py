@@ -62,6 +62,12 @@ HASHED_MODEL_CONFIGS = {
     "segformer_b2": "eb58db86a0c765fc",
     "segformer_b5": "e602876c7a2af488",
     "tiny_ddrnet": "701c74b44119675f",
+    # the detection zoo (task=detection)
+    "demo_det_reference": "17f35203c4807fc6",
+    "demo_fasterrcnn": "e96caac53293c3c5",
+    "demo_fcos_adverse": "21d2b19db2c27799",
+    "demo_fcos_lowres": "1cda533119fd3e5c",
+    "demo_retinanet": "dffe63fa5a6931f5",
     # task=detection's test-sized detectors (pairedgta/detection/models.py)
     "tiny_fasterrcnn": "08ff9c0778ee59eb",
     "tiny_fcos": "9ee88cb2ec619e47",
