@@ -382,7 +382,9 @@ def arch_keys(arch: dict) -> dict:
 
     taken = [p.name for p in inspect.signature(getattr(models, arch["family"])).parameters.values()
              if p.kind is p.KEYWORD_ONLY] + ["min_size", "max_size"]
-    return {k: v for k, v in arch.items() if k in taken and v is not None}
+    common = inspect.signature(models.build_detector).parameters  # min/max size only where not the default
+    return {k: v for k, v in arch.items() if k in taken and v is not None
+            and not (k in ("min_size", "max_size") and v == common[k].default)}
 
 
 def model_yaml(cfg: dict, score_threshold: float) -> str:

@@ -127,6 +127,9 @@ def test_model_yaml_names_the_architecture():
     y = yaml.safe_load(text)
     assert y == {"name": "demo_x", "family": "fcos", "checkpoint_path": "pkg://models/weights/demo_x/model.safetensors",
                  **ARCH, "score_threshold": 0.35}
+    default = yaml.safe_load(tdd.model_yaml({"model_name": "demo_x", "arch": {**cfg["arch"], "min_size": 512,
+                                                                              "max_size": 1024}}, 0.35))
+    assert "min_size" not in default and "max_size" not in default  # build_detector's defaults are not repeated
 
 
 def test_model_yaml_keeps_only_the_family_s_keys():
