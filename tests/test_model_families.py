@@ -67,7 +67,10 @@ HASHED_MODEL_CONFIGS = {
     "demo_fasterrcnn": "e96caac53293c3c5",
     "demo_fcos_adverse": "21d2b19db2c27799",
     "demo_fcos_lowres": "1cda533119fd3e5c",
+    "demo_fcos_noaug": "d0352d7096b67a9f",
+    "demo_fcos_small": "7d7e278349927bcc",
     "demo_retinanet": "dffe63fa5a6931f5",
+    "demo_retinanet_lowres": "23321c28a1fa591b",
     # task=detection's test-sized detectors (pairedgta/detection/models.py)
     "tiny_fasterrcnn": "08ff9c0778ee59eb",
     "tiny_fcos": "9ee88cb2ec619e47",
