@@ -39,6 +39,7 @@ def average_precision(ground_truth: dict[str, Any], detections: Sequence[dict[st
     dt = _coco({"images": ground_truth["images"], "categories": ground_truth["categories"], "annotations": dets})
     ev = COCOeval(gt, dt, iouType="bbox")
     ev.params.maxDets = [1, 10, int(max_detections)]
+    ev.params.areaRng, ev.params.areaRngLbl = [[0, 1e10]], ["all"]  # only "all" is reported: a quarter of the work
     with contextlib.redirect_stdout(io.StringIO()):
         ev.evaluate()
         ev.accumulate()
