@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -53,7 +53,9 @@ class Box:
     area: float
     ignore: str = ""  # "" (scored) or why it is an ignore region: small, fog, crowd
     truncated: bool = False
-    transmittance: float = math.nan  # mean fog transmittance over its pixels (nan: no map)
+    # mean fog transmittance over its pixels (nan: no map); a measurement of the box, not part of its identity (and
+    # NaN never equals NaN: dataclass equality compares fields one by one from Python 3.13 on)
+    transmittance: float = field(default=math.nan, compare=False)
 
     @property
     def height(self) -> float:
