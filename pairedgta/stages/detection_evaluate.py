@@ -25,7 +25,7 @@ from pairedgta.detection import registry
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.detection.models import Detections
 from pairedgta.detection.inputs import GroupResult, Inputs, image_ids
-from pairedgta.stages.detection_pseudolabel import DetectionLabels, write_json_atomic
+from pairedgta.stages.detection_pseudolabel import DetectionLabels, boxes_by_group, write_json_atomic
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
@@ -120,13 +120,13 @@ def _detect_group(detector: Any, group: Any, conditions: list[str], pseudo: Dete
     return GroupResult(group.group_id, dets, counts, objects, sizes)
 
 
-def detect_groups(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
-                  conditions: list[str], groups: list[Any]) -> list[GroupResult]:
+def detect_groups(ctx: Context, model_cfg: dict[str, Any], conditions: list[str], groups: list[Any],
+                  pseudo: dict[str, Detections], gt: dict[str, Any]) -> list[GroupResult]:
+    """The detector on `groups`, against the reference's boxes `pseudo` and the ground truth `gt` (condition ->
+    boxes per group, or None), both read once by the caller."""
     if not groups:
         return []
     detector = shared_segmenter(model_cfg, device=ctx.run.device)
-    pseudo = labels.boxes()
-    gt = {c: labels.ground_truth(c) for c in conditions}
     det = ctx.run.detection
     out = []
     with torch_threads(ctx.run.threads):
@@ -166,13 +166,14 @@ def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model
     missing = [g for g in dataset.groups if g.group_id not in done]
     if done:
         log.info("evaluate: merging %d group(s) from shard jobs, computing %d", len(done), len(missing))
-    for r in detect_groups(ctx, dataset, labels, model_cfg, conditions, missing):
+    pseudo = labels.boxes()
+    gts = {c: coco for c in conditions if (coco := labels.coco(c)) is not None}
+    boxes = {c: boxes_by_group(gts[c]) if c in gts else None for c in conditions}
+    for r in detect_groups(ctx, model_cfg, conditions, missing, pseudo, boxes):
         done[r.group_id] = r
-    detector_threshold = float(model_cfg.get("score_threshold", 0.5))
-    gts = {c: json.loads(p.read_text()) for c in conditions if (p := labels.ground_truth_file(c)) is not None}
     inputs = Inputs(str(model_cfg["name"]), labels.reference_model(), conditions, s["clean"],
                     [done[g.group_id] for g in dataset.groups if g.group_id in done], image_ids(dataset),
-                    labels.boxes(), gts, detector_threshold, s)
+                    pseudo, gts, float(model_cfg["score_threshold"]), s)
     return write_outputs(out, inputs)
 
 
@@ -243,7 +244,8 @@ class DetectionEvaluate:
         log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", self.model_cfg["name"], shard, num,
                  len(mine), len(groups), len(mine) - len(todo))
         if todo:
-            new = detect_groups(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, todo)
+            gt = {c: self.pseudo.ground_truth(c) for c in self.conditions}
+            new = detect_groups(self.ctx, self.model_cfg, self.conditions, todo, self.pseudo.boxes(), gt)
             write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + new)
         covered = read_parts(parts)
         if all(g.group_id in covered for g in groups):

@@ -15,6 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pairedgta.datasets import PairedDataset, load_image
+from pairedgta.datasets.base import image_size
 from pairedgta.detection import boxes as gtboxes
 from pairedgta.detection.ground_truth import group_ground_truth
 from pairedgta.detection.inputs import detections_from_json, detections_json, image_ids
@@ -39,6 +40,18 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     write_json(path, obj, indent=None)
 
 
+def boxes_by_group(coco: dict[str, Any]) -> dict[str, list[gtboxes.Box]]:
+    """One condition's COCO ground truth (as `write_ground_truth` writes it) back as boxes per group."""
+    by_image = {im["id"]: im["pairedgta_group"] for im in coco["images"]}
+    out: dict[str, list[gtboxes.Box]] = {gid: [] for gid in by_image.values()}
+    for a in coco["annotations"]:
+        x, y, w, h = a["bbox"]
+        out[by_image[a["image_id"]]].append(gtboxes.Box(
+            int(a["instance"]), int(a["category_id"]) - 1, (x, y, x + w, y + h), float(a["area"]),
+            str(a.get("ignore_reason", "")), bool(a.get("truncated")), float(a.get("transmittance", "nan"))))
+    return out
+
+
 class DetectionLabels(StageResult):
     """The entry: the reference's confident clean boxes per group, and the ground truth per condition."""
 
@@ -50,20 +63,15 @@ class DetectionLabels(StageResult):
         p = self.path / GT_DIR / f"{condition}.json"
         return p if p.is_file() else None
 
+    def coco(self, condition: str) -> dict[str, Any] | None:
+        """The COCO ground truth of `condition` as written (pycocotools' input); None without ground truth."""
+        p = self.ground_truth_file(condition)
+        return None if p is None else json.loads(p.read_text())
+
     def ground_truth(self, condition: str) -> dict[str, list[gtboxes.Box]] | None:
         """Per group the boxes under `condition` (ignore regions included, flagged); None without ground truth."""
-        p = self.ground_truth_file(condition)
-        if p is None:
-            return None
-        raw = json.loads(p.read_text())
-        by_image = {im["id"]: im["pairedgta_group"] for im in raw["images"]}
-        out: dict[str, list[gtboxes.Box]] = {gid: [] for gid in by_image.values()}
-        for a in raw["annotations"]:
-            x, y, w, h = a["bbox"]
-            out[by_image[a["image_id"]]].append(gtboxes.Box(
-                int(a["instance"]), int(a["category_id"]) - 1, (x, y, x + w, y + h), float(a["area"]),
-                str(a.get("ignore_reason", "")), bool(a.get("truncated")), float(a.get("transmittance", "nan"))))
-        return out
+        coco = self.coco(condition)
+        return None if coco is None else boxes_by_group(coco)
 
     def summary(self) -> dict[str, Any]:
         return json.loads((self.path / SUMMARY).read_text())
@@ -84,22 +92,23 @@ def write_ground_truth(dataset: PairedDataset, out: Path, min_area: int, min_tra
     ids = image_ids(dataset)
     counts: dict[str, Any] = {}
     for cond in dataset.conditions:
-        images, per_image = [], []
+        images, per_image, gids = [], [], []
         for g in dataset.groups:
             if cond not in g.images:
                 continue
             boxes = group_ground_truth(g, cond, dataset.reference, min_area=min_area,
-                                               min_transmittance=min_transmittance)
+                                       min_transmittance=min_transmittance)
             if boxes is None:
                 continue
-            h, w = _size(g.images[cond])
+            w, h = image_size(g.images[cond])
             images.append((ids[g.group_id], str(g.images[cond].relative_to(dataset.root)), w, h))
             per_image.append(boxes)
+            gids.append(g.group_id)
         if not images:
             continue
         coco = gtboxes.coco_ground_truth(images, per_image)
-        for im, (_, _, _, _) in zip(coco["images"], images):
-            im["pairedgta_group"] = next(g for g, i in ids.items() if i == im["id"])
+        for im, gid in zip(coco["images"], gids):
+            im["pairedgta_group"] = gid
         coco["info"].update(condition=cond, min_area=min_area, min_transmittance=min_transmittance)
         write_json_atomic(out / GT_DIR / f"{cond}.json", coco)
         flat = [b for bs in per_image for b in bs]
@@ -107,13 +116,6 @@ def write_ground_truth(dataset: PairedDataset, out: Path, min_area: int, min_tra
                         **{f"ignored_{r}": sum(b.ignore == r for b in flat) for r in ("small", "fog")},
                         "truncated": sum(b.truncated for b in flat)}
     return counts
-
-
-def _size(path: Path) -> tuple[int, int]:
-    from pairedgta.datasets.base import image_size
-
-    w, h = image_size(path)
-    return h, w
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
