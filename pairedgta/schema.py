@@ -311,7 +311,7 @@ class RunConfig:
     models: Optional[list[str]] = key(["demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"])
     reference_model: Optional[str] = key("demo_segformer")  # null: the `model` group's
     model_overrides: dict[str, Any] = key({})
-    task_models: dict[str, Any] = key({})  # an experiment's models per task (models: ${task_models.${task}})
+    per_task: dict[str, Any] = key({})  # an experiment's settings per task (models: ${per_task.${task}.models})
     variants: Optional[list[Any]] = key(None)
     stages: list[str] = key(stage_registry.graph())  # every stage of pairedgta/stage_registry.py but the checks
     force: list[str] = key([])

@@ -23,6 +23,7 @@ class Task:
     figures: tuple[str, ...] = ()  # the figure families (plot.figures) that draw this task's results
     metrics: str = ""  # "module:ATTR", the metrics its evaluate stage computes, listed once
     what: str = ""  # one phrase for messages: what its models predict
+    phi: tuple[str, str] = ("pixels", "pixels predicted with\nconfidence ≥ τ_mass")  # what its prediction mass counts
 
     def resolve(self, spec: Any) -> Any:
         """The stage spec (pairedgta.stage_registry.StageSpec) as this task runs it."""
@@ -48,8 +49,9 @@ TASKS: dict[str, Task] = {
                       {"pseudolabel": "pairedgta.stages.detection_pseudolabel:DetectionPseudolabel",
                        "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate",
                        "cityscapes_val": "pairedgta.stages.detection_cityscapes_val:DetectionCityscapesVal"},
-                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet"),
-                      "pairedgta.detection.registry:METRICS", "boxes"),
+                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking"),
+                      "pairedgta.detection.registry:METRICS", "boxes",
+                      ("boxes", "boxes scored ≥ the\nmodel's threshold")),
 }
 NAMES = tuple(TASKS)
 

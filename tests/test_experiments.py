@@ -15,7 +15,8 @@ from PIL import Image
 
 from pairedgta.app import run
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX
-from pairedgta.datasets.acdc import REFERENCE, open_acdc, write_standin
+from pairedgta.datasets.acdc import REFERENCE, open_acdc
+from pairedgta.testing.acdc import write_standin
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.metrics import prediction_mass, rho_valid
 from pairedgta.models import build_segmenter
@@ -262,6 +263,62 @@ def test_night_vs_acdc(work, acdc_root):
     # no reference truth on ACDC, so no pseudo-label quality against it
     pseudo_acdc = json.loads((ev / "manifest.json").read_text())["inputs"]["pseudolabel"]
     assert not (work / "cache" / "pseudolabel" / pseudo_acdc / "quality.csv").exists()
+
+
+@pytest.mark.slow
+def test_night_vs_acdc_with_detectors(work, acdc_root):
+    """task=detection: phi of a frame is the number of the model's boxes of the class scored >= its threshold; the
+    counts and rho_valid recomputed here from the stored COCO results, ACDC's boxes read from its panoptic labels."""
+    from pairedgta.detection.boxes import INSTANCE_CLASSES
+    from pairedgta.detection.real_boxes import read_acdc_boxes
+
+    s = run(compose_cfg(base(work) + ["task=detection", "+experiment=night_vs_acdc", f"acdc.root={acdc_root}",
+                                      "metric.rho.m=3", "models=[tiny_fcos,tiny_fasterrcnn]",
+                                      "reference_model=tiny_fcos"]))
+    out = Path(s["plot"])
+    assert {"ranking.png", "rho_valid.csv", "rho_valid.md"} <= {p.name for p in out.iterdir()}
+    table = pd.read_csv(out / "rho_valid.csv")
+    assert set(zip(table.dataset_label, table.condition)) == {("PairedGTA", "Night-EXTRASUNNY"), ("ACDC", "ACDC-night")}
+    assert set(table.model) == {"tiny_fcos", "tiny_fasterrcnn"} and set(table.class_name) == {"person", "car"}
+    ds = open_acdc(condition="night", splits=["train", "val"], root=acdc_root)
+    nonzero = 0
+    for model in ("tiny_fcos", "tiny_fasterrcnn"):
+        ev = Path(s["evaluate"][f"ACDC/{model}"])
+        threshold = json.loads((ev / "summary.json").read_text())["score_threshold"]
+        counts = pd.read_csv(ev / "detection_frame_counts.csv", dtype={"pair_id": str})
+        assert sorted(set(counts.pair_id)) == sorted(g.group_id for g in ds.groups)
+        for cls in ("person", "car"):
+            want = {}
+            for cond, col in ((REFERENCE, "clean_count"), ("ACDC-night", "adv_count")):
+                dets = json.loads((ev / "detections" / f"{cond}.json").read_text())
+                per_image = [sum(1 for d in dets if d["image_id"] == i and d["score"] >= threshold
+                                 and d["category_id"] == INSTANCE_CLASSES.index(cls) + 1)
+                             for i in range(1, len(ds.groups) + 1)]
+                want[col] = per_image
+            c = counts[counts.class_name == cls].set_index("pair_id").loc[[g.group_id for g in ds.groups]]
+            assert c.clean_count.tolist() == want["clean_count"] and c.adv_count.tolist() == want["adv_count"]
+            nonzero += sum(want["clean_count"]) + sum(want["adv_count"])
+            rows = table[(table.dataset_label == "ACDC") & (table.model == model) & (table.class_name == cls)]
+            for sel in ("top_m", "nonzero"):
+                got = rows[rows.selection == sel].rho.item()
+                expected = rho_valid(want["clean_count"], want["adv_count"], m=3, selection=sel)
+                assert (math.isnan(got) and math.isnan(expected)) or got == pytest.approx(expected, abs=1e-12)
+    assert nonzero > 0  # the check above compared counts, not only zeros
+    # ACDC's boxes are the night frame's, from gt_panoptic: ground truth for ACDC-night only, as the reader gives it
+    labels = Path(s["evaluate"]["ACDC/tiny_fcos"])
+    pseudo = json.loads((labels / "manifest.json").read_text())["inputs"]["pseudolabel"]
+    gt_dir = work / "cache" / "pseudolabel" / pseudo / "ground_truth"
+    assert [p.name for p in gt_dir.iterdir()] == ["ACDC-night.json"]
+    gt = json.loads((gt_dir / "ACDC-night.json").read_text())
+    g = ds.groups[0]
+    png_path = g.instances["ACDC-night"]
+    split = g.group_id.split("_")[0]
+    boxes = read_acdc_boxes(png_path, acdc_root / "gt_panoptic" / "night" / f"night_{split}_gt_panoptic.json",
+                            g.images["ACDC-night"].name)
+    first = [a for a in gt["annotations"] if a["image_id"] == 1]
+    assert boxes and len(first) == len(boxes)
+    assert sorted(tuple(a["bbox"]) for a in first) == sorted(
+        (b.xyxy[0], b.xyxy[1], b.xyxy[2] - b.xyxy[0], b.xyxy[3] - b.xyxy[1]) for b in boxes)
 
 
 @pytest.mark.slow

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import re
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -148,36 +147,3 @@ def open_acdc(
     log.info("ACDC %s %s: %d pairs, %d with ground truth of the adverse image, %d without reference",
              cond, "+".join(splits), len(groups), labelled, len(skipped))
     return PairedDataset(str(name), root, REFERENCE, grid.names, groups, len(skipped), grid=grid)
-
-
-def write_standin(
-    generated_root: str | Path, out: str | Path, clean: str, adverse: str, condition: str = "night",
-    val_share: float = 0.2, frames_per_sequence: int = 5,
-) -> Path:
-    """Copy a generated dataset into ACDC's layout and file naming: `clean` images become the
-    references, `adverse` images (and their labels, as ground truth) the adverse frames.
-
-    A stand-in for demos and tests on machines without ACDC (generated with generate.pairing
-    perturbations it is coarsely paired like ACDC); it is not ACDC."""
-    import json
-
-    generated_root, out = Path(generated_root), Path(out)
-    index = json.loads((generated_root / "index.json").read_text())
-    scenes = index["scenes"]
-    n_val = round(len(scenes) * val_share)
-    for i, scene in enumerate(scenes):
-        split = "val" if i >= len(scenes) - n_val else "train"
-        seq = f"GOPR{i // frames_per_sequence:04d}"
-        n = f"{i:06d}"
-        src = generated_root / scene["dir"]
-        pairs = [
-            (src / f"{clean}.png", reference_path(out, condition, split, seq, n)),
-            (src / f"{adverse}.png", adverse_path(out, condition, split, seq, n)),
-            (src / f"{adverse}_labels.png", label_path(out, condition, split, seq, n)),
-        ]
-        for a, b in pairs:
-            if a.is_file():
-                b.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(a, b)
-    return out
-

@@ -11,13 +11,14 @@ import numpy as np
 import pandas as pd
 
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES, coco_categories
-from pairedgta.metrics import bootstrap, coco_ap, corruption, detection_xi, per_object
+from pairedgta.metrics import bootstrap, coco_ap, corruption, detection_xi, per_object, ranking
 
 if TYPE_CHECKING:
     from pairedgta.detection.inputs import Inputs
 
 XI, GT_AP, ROBUSTNESS = "detection_xi.csv", "detection_ap.csv", "detection_robustness.csv"
 OBJECTS, OBJECTS_FOUND = "detection_objects.csv", "detection_objects_found.csv"
+FRAME_COUNTS, RHO_VALID = "detection_frame_counts.csv", "detection_rho_valid.csv"
 Tables = tuple[dict[str, pd.DataFrame], dict[str, Any]]
 
 
@@ -123,17 +124,48 @@ def object_tables(inputs: "Inputs") -> Tables:
     objects = pd.DataFrame(rows, columns=["model", "group_id", "condition", "instance", "class_name", "height", "area",
                                           "transmittance", "luma", "ignore", "truncated", "found"])
     objects["ignore"] = objects["ignore"].fillna("")
-    found = pd.concat([per_object.found_share(objects, "height", per_object.HEIGHT_BINS),
-                       per_object.found_share(objects, "transmittance", per_object.TRANSMITTANCE_BINS),
-                       per_object.found_share(objects, "luma", per_object.LUMA_BINS)], ignore_index=True)
+    shares = [per_object.found_share(objects, "height", per_object.HEIGHT_BINS),
+              per_object.found_share(objects, "transmittance", per_object.TRANSMITTANCE_BINS),
+              per_object.found_share(objects, "luma", per_object.LUMA_BINS)]
+    found = pd.concat([f for f in shares if not f.empty] or shares[:1], ignore_index=True)
     found.insert(0, "model", inputs.model)
     return {OBJECTS: objects, OBJECTS_FOUND: found}, {"objects": int((objects["ignore"] == "").sum())}
+
+
+def ranking_tables(inputs: "Inputs") -> Tables:
+    """The paper's ranking analysis (eq. valid_spearman) for boxes: phi per image, class and condition is the number
+    of the model's boxes of the class scored >= its operating threshold (the third row of detection_xi.image_counts),
+    clean vs adverse; rho_valid^c is their Spearman over the frames that show the class (top-M or non-zero), with a
+    bootstrap interval over frames. No matching is involved, so it runs on coarsely paired data such as ACDC."""
+    s, r = inputs.settings, inputs.settings["rho"]
+    boot = s["bootstrap"]
+    classes = r["classes"] or list(INSTANCE_CLASSES)
+    counts, rho, summary = [], [], {}
+    for cond in inputs.adverse:
+        both = [g for g in inputs.groups if cond in g.counts and inputs.clean in g.counts]
+        for name in classes:
+            c = INSTANCE_CLASSES.index(name)
+            clean = np.array([int(g.counts[inputs.clean][2, c]) for g in both], np.int64)
+            adverse = np.array([int(g.counts[cond][2, c]) for g in both], np.int64)
+            counts += [{"model": inputs.model, "class_name": name, "pair_id": g.group_id, "condition": cond,
+                        "clean_count": int(a), "adv_count": int(b)} for g, a, b in zip(both, clean, adverse)]
+            for row in ranking.rho_rows(clean, adverse, r["selections"], r["m"], boot["resamples"], boot["confidence"],
+                                        boot["seed"], r["headline"], r["min_frames"]):
+                rho.append({"model": inputs.model, "class_name": name, "condition": cond, **row})
+                if row["headline"]:
+                    summary.setdefault(cond, {})[name] = row["rho"]
+    return ({FRAME_COUNTS: pd.DataFrame(counts, columns=["model", "class_name", "pair_id", "condition", "clean_count",
+                                                         "adv_count"]),
+             RHO_VALID: pd.DataFrame(rho, columns=["model", "class_name", "condition", "selection", "m", "n_frames",
+                                                   "rho", "ci_low", "ci_high", "headline", "min_frames"])},
+            {"rho_valid_headline": summary})
 
 
 METRICS: tuple[DetectionMetric, ...] = (
     DetectionMetric("detection_xi", "1", (XI,), xi_tables),
     DetectionMetric("coco_ap", "1", (GT_AP, ROBUSTNESS), gt_tables),
     DetectionMetric("per_object", "1", (OBJECTS, OBJECTS_FOUND), object_tables),
+    DetectionMetric("box_ranking", "1", (FRAME_COUNTS, RHO_VALID), ranking_tables),
 )
 
 
@@ -149,5 +181,5 @@ def result_files() -> tuple[str, ...]:
     return tuple(f for m in METRICS for f in m.files)
 
 
-__all__ = ["GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
+__all__ = ["FRAME_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
            "result_files", "versions"]

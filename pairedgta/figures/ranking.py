@@ -45,7 +45,9 @@ def sorted_counts(counts: pd.DataFrame, model: str, cls: str, condition: str) ->
 
 
 def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, out: Path, formats: list[str],
-                   dpi: int, stem: str = "ranking", selections: tuple[str, ...] = ("top_m", "nonzero")) -> list[Path]:
+                   dpi: int, stem: str = "ranking", selections: tuple[str, ...] = ("top_m", "nonzero"),
+                   phi: tuple[str, str] = ("pixels", "pixels predicted with\nconfidence \u2265 \u03c4_mass")) -> list[Path]:
+    """`phi`: the unit of the counts and what they count (the run's task, pairedgta/tasks.py)."""
     columns: list[tuple[str, str]] = []
     for inp in inputs:
         for model in dict.fromkeys(inp.counts["model"]):
@@ -76,14 +78,15 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                 if not parts:
                     # no rho_valid (too few frames with the class, or constant counts): say so in words
                     # rather than draw an all-black heatmap
-                    _no_rho_panel(top, bottom, g, f"{inp.label} \u00b7 {model_display(model)}\n{cls}: \u03c1_valid n/a")
+                    _no_rho_panel(top, bottom, g, f"{inp.label} \u00b7 {model_display(model)}\n{cls}: \u03c1_valid n/a",
+                                  phi[1])
                     continue
                 heat = np.vstack([g["clean_count"].to_numpy(), g["adv_count"].to_numpy()]).astype(float)
                 cax = top.inset_axes([1.02, 0.0, 0.035, 1.0])  # outside, so heat and difference align
                 sns.heatmap(heat, ax=top, cbar_ax=cax, cmap="magma", xticklabels=False, yticklabels=["clean", "adverse"],
                             vmin=0, vmax=max(1.0, float(heat.max())))
                 cax.tick_params(labelsize=5, length=2)
-                cax.set_ylabel("\u03c6 (pixels)", fontsize=5, labelpad=1)
+                cax.set_ylabel(f"\u03c6 ({phi[0]})", fontsize=5, labelpad=1)
                 # one line per selection: two on one line run into the neighbouring panel's title
                 top.set_title(f"{inp.label} \u00b7 {model_display(model)} \u00b7 {cls}\n"
                               + "\n".join(f"\u03c1_valid {p}" for p in parts), fontsize=6)
@@ -99,7 +102,7 @@ def ranking_figure(inputs: list[RankingInput], classes: list[str], window: int, 
                 bottom.set_xlabel(f"frames sorted by clean \u03c6 ({condition_display(inp.condition)})", fontsize=5)
                 bottom.tick_params(labelsize=5)
                 if j == 0:
-                    bottom.set_ylabel("\u0394\u03c6 (pixels)", fontsize=6)
+                    bottom.set_ylabel(f"\u0394\u03c6 ({phi[0]})", fontsize=6)
                     if i == 0:
                         bottom.legend(fontsize=5, frameon=False)
         return save(fig, out, stem, formats, dpi)
@@ -127,7 +130,7 @@ def _too_few(row) -> bool:
     return n is not None and least is not None and not pd.isna(n) and not pd.isna(least) and int(n) < int(least)
 
 
-def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
+def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str, what: str) -> None:
     """Both axes of a (model, class) column without rho_valid: the title and a sentence with the
     frame counts that explain why."""
     n = len(g)
@@ -135,8 +138,8 @@ def _no_rho_panel(top, bottom, g: pd.DataFrame, title: str) -> None:
     adverse = int((g["adv_count"] > 0).sum())
     top.set_title(title, fontsize=6)
     top.axis("off")
-    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class has \u03c6 > 0 (pixels predicted with\n"
-             f"confidence \u2265 \u03c4_mass) in {clean} of {n} clean\nand {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
+    top.text(0.5, 0.5, f"too few frames for \u03c1_valid:\nthe class has \u03c6 > 0 ({what})"
+             f" in {clean} of {n} clean\nand {adverse} of {n} adverse frames", ha="center", va="center", fontsize=5.5,
              transform=top.transAxes, wrap=True)
     bottom.axis("off")
     bottom.text(0.5, 0.6, "needs \u2265 2 frames with differing\nclean counts (more scenes that show it)",
@@ -195,7 +198,10 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     if not inputs:
         return [], {}
     selections = tuple(opts.run.metric.rho.selections)
-    files = ranking_figure(inputs, classes, ranking.window, out, opts.formats, opts.dpi, selections=selections)
+    from pairedgta.tasks import get
+
+    files = ranking_figure(inputs, classes, ranking.window, out, opts.formats, opts.dpi, selections=selections,
+                           phi=get(opts.run.task).phi)
     files += rho_table(inputs, classes, out)
     metrics: dict[str, float] = {}
     for inp in inputs:

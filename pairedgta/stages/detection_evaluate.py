@@ -30,6 +30,7 @@ from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
 from pairedgta.metrics import detection_xi, per_object
+from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.models import shared_segmenter
 from pairedgta.models.runtime import torch_threads
 from pairedgta.schema import as_dict
@@ -70,6 +71,14 @@ class DetectionEvaluateResult(StageResult):
 
     def robustness(self) -> pd.DataFrame:
         return self.read(registry.ROBUSTNESS) if (self.path / registry.ROBUSTNESS).is_file() else pd.DataFrame()
+
+    def frame_counts(self) -> pd.DataFrame:
+        """phi of boxes per image, class and adverse condition, clean and adverse (the ranking figure's input)."""
+        path = self.path / registry.FRAME_COUNTS
+        return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
+
+    def rho(self) -> pd.DataFrame:
+        return self.read(registry.RHO_VALID) if (self.path / registry.RHO_VALID).is_file() else pd.DataFrame()
 
     def objects_found(self) -> pd.DataFrame:
         return self.read(registry.OBJECTS_FOUND) if (self.path / registry.OBJECTS_FOUND).is_file() else pd.DataFrame()
@@ -156,8 +165,16 @@ def write_part(parts: Path, shard: int, num: int, results: list[GroupResult]) ->
 
 def settings(ctx: Context, reference: str) -> dict[str, Any]:
     m = ctx.run.metric
+    conv = convention_from_config(as_dict(m), list(m.rho.selections))  # validates selections, headline, min_frames
+    classes = list(m.rho.classes or [])
+    unknown = [c for c in classes if c not in INSTANCE_CLASSES]
+    if unknown:
+        raise ConfigError(f"metric.rho.classes: {unknown} are no detection classes; use some of "
+                          f"{', '.join(INSTANCE_CLASSES)}")
+    rho = {"m": m.rho.m, "selections": list(m.rho.selections), "headline": conv.rho_headline,
+           "min_frames": conv.rho_min_frames, "classes": classes}
     return {**as_dict(ctx.run.detection), "min_images": m.min_images, "min_transmittance": m.min_transmittance,
-            "bootstrap": as_dict(m.bootstrap), "clean": reference}
+            "bootstrap": as_dict(m.bootstrap), "clean": reference, "rho": rho}
 
 
 def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
