@@ -67,6 +67,16 @@ class Inputs:
     ground_truth: dict[str, Any]  # condition -> COCO dict (pycocotools' input), only where it exists
     threshold: float
     settings: dict[str, Any]
+    blind: tuple[str, ...] = ()  # the instance classes the model's label space lacks (COCO: rider)
+
+    def blind_reason(self) -> str:
+        return f"the model's label space has no {'/'.join(self.blind)}: it cannot predict it"
+
+    def scored_categories(self) -> list[int]:
+        """The COCO category ids the model can predict (its AP averages over these)."""
+        from pairedgta.detection.boxes import INSTANCE_CLASSES
+
+        return [k + 1 for k, n in enumerate(INSTANCE_CLASSES) if n not in self.blind]
 
     @property
     def adverse(self) -> list[str]:

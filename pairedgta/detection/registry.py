@@ -61,9 +61,12 @@ def xi_tables(inputs: "Inputs") -> Tables:
         precision = detection_xi.ratio(matched, conf)
         ok = detection_xi.supported(refs, s["min_boxes"], s["min_images"]) if len(refs) else \
             np.zeros(NUM_INSTANCE_CLASSES, bool)
+        blind = np.array([n in inputs.blind for n in INSTANCE_CLASSES])
+        ok = ok & ~blind  # a class the model cannot predict is NaN with that reason, never 0
         lo, hi = bootstrap.ratio_ci(found, refs, boot["resamples"], boot["confidence"], boot["seed"])
         lo, hi = bootstrap.drop_zero_width(lo, hi)
-        ap = coco_ap.average_precision(pseudo_gt, inputs.coco_results(cond), s["max_detections"])
+        ap = coco_ap.average_precision(pseudo_gt, inputs.coco_results(cond), s["max_detections"],
+                                       inputs.scored_categories())
         for c, name in enumerate(INSTANCE_CLASSES):
             rows.append({"model": inputs.model, "reference_model": inputs.reference_model, "condition": cond,
                          "class_name": name, "xi": xi[c] if ok[c] else math.nan, "xi_unsupported": xi[c],
@@ -72,8 +75,8 @@ def xi_tables(inputs: "Inputs") -> Tables:
                          "images": int((refs[:, c] > 0).sum()) if len(refs) else 0, "supported": bool(ok[c]),
                          "precision": precision[c], "confident_boxes": int(conf[:, c].sum()) if len(conf) else 0,
                          "pseudo_ap50": ap["per_class"][c + 1][1],
-                         "reason": "" if ok[c] else f"fewer than {s['min_boxes']} reference boxes or {s['min_images']} "
-                                                    "images"})
+                         "reason": "" if ok[c] else inputs.blind_reason() if blind[c] else
+                         f"fewer than {s['min_boxes']} reference boxes or {s['min_images']} images"})
         mean = float(np.nanmean(xi[ok])) if ok.any() else math.nan
         mlo, mhi = bootstrap.class_mean_ci(found, refs, ok, boot["resamples"], boot["confidence"], boot["seed"]) \
             if ok.any() else (math.nan, math.nan)
@@ -99,14 +102,16 @@ def gt_tables(inputs: "Inputs") -> Tables:
         gt = inputs.ground_truth.get(cond)
         if gt is None:
             continue
-        r = coco_ap.average_precision(gt, inputs.coco_results(cond), inputs.settings["max_detections"])
+        r = coco_ap.average_precision(gt, inputs.coco_results(cond), inputs.settings["max_detections"],
+                                      inputs.scored_categories())
         ap[cond], ap50[cond] = r["ap"], r["ap50"]
         rows.append({"model": inputs.model, "condition": cond, "class_name": "all", "ap": r["ap"], "ap50": r["ap50"],
                      "ap75": r["ap75"], "reason": r.get("reason", "")})
         for c, name in enumerate(INSTANCE_CLASSES):
             a, a50 = r["per_class"][c + 1]
             rows.append({"model": inputs.model, "condition": cond, "class_name": name, "ap": a, "ap50": a50,
-                         "ap75": math.nan, "reason": "" if math.isfinite(a) else "no object of this class"})
+                         "ap75": math.nan, "reason": "" if math.isfinite(a) else inputs.blind_reason()
+                         if name in inputs.blind else "no object of this class"})
     rob = []
     for subset, conds in corruption.subsets([c for c in inputs.adverse if c in ap], inputs.clean).items():
         for metric, perf in (("ap", ap), ("ap50", ap50)):

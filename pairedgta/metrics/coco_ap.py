@@ -23,14 +23,16 @@ def _coco(dataset: dict[str, Any]) -> Any:
 
 
 def average_precision(ground_truth: dict[str, Any], detections: Sequence[dict[str, Any]],
-                      max_detections: int = 100) -> dict[str, Any]:
+                      max_detections: int = 100, categories: Sequence[int] | None = None) -> dict[str, Any]:
     """`ground_truth`: a COCO dataset dict (images, annotations, categories); `detections`: COCO results
-    (image_id, category_id, bbox xywh, score). Returns ap, ap50, ap75 and per_class {category_id: (ap, ap50)}."""
+    (image_id, category_id, bbox xywh, score). Returns ap, ap50, ap75 and per_class {category_id: (ap, ap50)}.
+    `categories`: the ones scored (a model that cannot predict a class is not averaged over it; its AP is NaN)."""
     from pycocotools.cocoeval import COCOeval
 
     cats = [c["id"] for c in ground_truth["categories"]]
+    scored = set(cats if categories is None else categories)
     nan = {"ap": math.nan, "ap50": math.nan, "ap75": math.nan, "per_class": {c: (math.nan, math.nan) for c in cats}}
-    if not any(not a.get("iscrowd") for a in ground_truth["annotations"]):
+    if not any(not a.get("iscrowd") and a["category_id"] in scored for a in ground_truth["annotations"]):
         return {**nan, "reason": "no scored object in these images"}
     gt = _coco(ground_truth)
     image_ids = {im["id"] for im in ground_truth["images"]}
@@ -39,6 +41,7 @@ def average_precision(ground_truth: dict[str, Any], detections: Sequence[dict[st
     dt = _coco({"images": ground_truth["images"], "categories": ground_truth["categories"], "annotations": dets})
     ev = COCOeval(gt, dt, iouType="bbox")
     ev.params.maxDets = [1, 10, int(max_detections)]
+    ev.params.catIds = [c for c in cats if c in scored]
     ev.params.areaRng, ev.params.areaRngLbl = [[0, 1e10]], ["all"]  # only "all" is reported: a quarter of the work
     with contextlib.redirect_stdout(io.StringIO()):
         ev.evaluate()
@@ -50,7 +53,8 @@ def average_precision(ground_truth: dict[str, Any], detections: Sequence[dict[st
         return float(a.mean()) if a.size else math.nan
 
     t50, t75 = int(np.argmin(abs(ev.params.iouThrs - 0.5))), int(np.argmin(abs(ev.params.iouThrs - 0.75)))
-    per_class = {c: (mean(p[:, :, k]), mean(p[t50, :, k])) for k, c in enumerate(ev.params.catIds)}
+    per_class = {c: (math.nan, math.nan) for c in cats}
+    per_class.update({c: (mean(p[:, :, k]), mean(p[t50, :, k])) for k, c in enumerate(ev.params.catIds)})
     return {"ap": mean(p), "ap50": mean(p[t50]), "ap75": mean(p[t75]), "per_class": per_class}
 
 

@@ -40,12 +40,19 @@ FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:architecture", **IN_PROJECT
 # Model sources: a researcher's own model in one format (`model=<source>`), loaded by the source's module and run
 # under the one input/output contract and label map of pairedgta/models/contract.py (its `build_source`).
 SOURCE = {"via": "pairedgta.models.contract:build_source", "filled": CONTRACT_OPTIONS, "source": True}
-FAMILIES.register("hf", "pairedgta.models.sources.hf:load", **SOURCE)
-FAMILIES.register("torchvision", "pairedgta.models.sources.torchvision:load", **SOURCE)
+# With task=detection the same `model=<source>` loads a detector: its twin family `det_<source>` (pairedgta/detection/
+# sources/), under the detectors' contract, layout and label space (pairedgta/detection/contract.py).
+FAMILIES.register("hf", "pairedgta.models.sources.hf:load", **SOURCE, detector="det_hf")
+FAMILIES.register("torchvision", "pairedgta.models.sources.torchvision:load", **SOURCE, detector="det_torchvision")
 FAMILIES.register("smp", "pairedgta.models.sources.smp:load", **SOURCE)
-FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE)
-FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE)
-FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE)
+FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE, detector="det_export")
+FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE, detector="det_onnx")
+FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE, detector="det_python")
+DETECTOR_SOURCE = {"via": "pairedgta.detection.contract:build_detector_source", "kind": "detector", "source": True,
+                   "filled": ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels",
+                              "score_threshold", "nms_iou", "max_detections")}
+for _source in ("hf", "torchvision", "export", "onnx", "python"):
+    FAMILIES.register(f"det_{_source}", f"pairedgta.detection.sources.{_source}:load", **DETECTOR_SOURCE)
 # Detectors (task=detection): torchvision's detection heads on a small trunk, one builder for what every detector has
 # (pairedgta/detection/models.py: build_detector); `kind` says which task's stages can run them (pairedgta/tasks.py).
 DETECTOR = {"via": "pairedgta.detection.models:build_detector", "kind": "detector",
@@ -63,6 +70,18 @@ def model_kind(cfg: Mapping[str, Any]) -> str:
     family = cfg.get("family")
     return str(FAMILIES.meta(family).get("kind", "segmenter")) if isinstance(family, str) and family in FAMILIES \
         else "segmenter"
+
+
+def for_kind(cfg: Mapping[str, Any], kind: str) -> dict[str, Any]:
+    """A source model's config for the run's task: `model=onnx` under task=detection is the detector source
+    `det_onnx` (the same keys, read by the detector's loader); anything else as it is."""
+    out = dict(cfg)
+    family = out.get("family")
+    if kind == "detector" and isinstance(family, str) and family in FAMILIES:
+        twin = FAMILIES.meta(family).get("detector")
+        if twin:
+            out["family"] = twin
+    return out
 
 
 def available_models() -> list[str]:
@@ -131,7 +150,12 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
 
     if is_source(cfg):
         check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
-        check_contract(cfg, f"{where} ({cfg.get('name')})")
+        if model_kind(cfg) == "detector":
+            from pairedgta.detection.contract import check_contract as check_detector_contract
+
+            check_detector_contract(cfg, f"{where} ({cfg.get('name')})")
+        else:
+            check_contract(cfg, f"{where} ({cfg.get('name')})")
         RuntimeOptions.from_config(cfg)
         return
     examples = {"mean": "[0.485,0.456,0.406]", "std": "[0.229,0.224,0.225]"}
@@ -203,4 +227,4 @@ def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Seg
 
 
 __all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
-           "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source", "model_kind"]
+           "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source", "model_kind", "for_kind"]

@@ -188,9 +188,10 @@ def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model
     boxes = {c: boxes_by_group(gts[c]) if c in gts else None for c in conditions}
     for r in detect_groups(ctx, model_cfg, conditions, missing, pseudo, boxes):
         done[r.group_id] = r
+    detector = shared_segmenter(model_cfg, device=ctx.run.device)  # built once per run: the shards' too
     inputs = Inputs(str(model_cfg["name"]), labels.reference_model(), conditions, s["clean"],
                     [done[g.group_id] for g in dataset.groups if g.group_id in done], image_ids(dataset),
-                    pseudo, gts, float(model_cfg["score_threshold"]), s)
+                    pseudo, gts, float(detector.score_threshold), s, tuple(getattr(detector, "blind", ())))
     return write_outputs(out, inputs)
 
 

@@ -25,7 +25,7 @@ from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.configs import merge_variant
 from pairedgta.datasets import DATASETS, PairedDataset, image_notes, missing_root_message, open_dataset
 from pairedgta.errors import ConfigError
-from pairedgta.models import check_model_config, model_config, with_defaults
+from pairedgta.models import check_model_config, for_kind, model_config, with_defaults
 from pairedgta import schema, stage_registry, tasks
 from pairedgta.schema import MISSING
 from pairedgta.stages.common import Context
@@ -225,7 +225,7 @@ def run_models(run: schema.RunConfig, model_chosen: bool = False) -> RunModels:
     evaluates the chosen model and its population instead (pairedgta/figures/report_population.py), the model first."""
     from pairedgta.figures import report_population
 
-    primary = dict(run.model)
+    primary = for_kind(run.model, tasks.get(run.task).model_kind)  # model=onnx is a detector under task=detection
     if not primary.get("name"):  # a source model named by its file (pairedgta/models: default_name)
         primary = with_defaults(primary)
     names = list(run.models or [])

@@ -11,9 +11,10 @@ ARCHS = ("deeplabv3_resnet50", "deeplabv3_resnet101", "deeplabv3_mobilenet_v3_la
          "lraspp_mobilenet_v3_large")
 
 
-def load(name: str, device: str, /, *, arch: str | None = None, num_classes: int = 19,
+def load(name: str, device: str, /, *, arch: str | None = None, num_classes: int | None = None,
          checkpoint_path: str | None = None) -> Network:
     """Build `arch` without any download (no pretrained backbone), then load `checkpoint_path` strictly."""
+    num_classes = 19 if num_classes is None else num_classes
     if arch not in ARCHS:
         raise ConfigError(f"model ({name}): arch={arch!r} is not a torchvision segmentation builder; "
                           f"choose one of {', '.join(ARCHS)}, e.g. model.arch=deeplabv3_resnet50")

@@ -1,0 +1,33 @@
+"""`task=detection model=python`: a factory in the user's own code (`model.target=package.module:function`, called
+with `model.kwargs`) returning an `nn.Module`. By default it is a torchvision-style detector: it takes a list of
+3 x H x W images in 0-1 and returns per image a dict of `boxes` (xyxy pixels), `scores`, `labels` (0 = background);
+with another `model.layout` (e.g. detr) it takes the prepared batch and returns named outputs.
+
+Naming `model=python` is the user's choice to run that code: it is imported and called, nothing else is. The weights
+(`model.checkpoint_path`) load as data only (safetensors, or torch.load(weights_only=True)), keys matched exactly."""
+from __future__ import annotations
+
+from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.errors import ModelError, reason
+
+
+def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict | None = None,
+         checkpoint_path: str | None = None) -> DetectorNetwork:
+    import torch
+
+    from pairedgta.models.sources.python import import_target
+
+    where = f"model ({name})"
+    factory = import_target(target, where)
+    try:
+        module = factory(**dict(kwargs or {}))
+    except Exception as exc:
+        raise ModelError(f"{where}: {target}(**model.kwargs) failed ({reason(exc)[:200]}); check model.kwargs") from None
+    if not isinstance(module, torch.nn.Module):
+        raise ModelError(f"{where}: {target} returned {type(module).__name__}, not a torch.nn.Module")
+    if checkpoint_path:
+        from pairedgta.models.checkpoint import load_checkpoint_strict
+
+        load_checkpoint_strict(module, checkpoint_path, model_name=name)
+    return DetectorNetwork(module, declared={"layout": "torchvision"}, takes_list=None,
+                           executes=f"the user's code {target} (model=python)")

@@ -1,0 +1,62 @@
+"""Tiny detectors for the detector-source tests: a user's own code, as `task=detection model=python
+model.target=detector_nets:<fn>` (the tests directory is on sys.path under pytest), and the same networks exported
+to the other formats (ONNX, torch.export)."""
+from __future__ import annotations
+
+import torch
+
+from pairedgta.detection.boxes import INSTANCE_CLASSES
+
+
+class TinyYolo(torch.nn.Module):
+    """A YOLOv8-style head (B, 4 + C, N): one box per stride-8 cell, cxcywh pixels of the input, sigmoid class
+    scores, no objectness and no NMS. Made to give well-separated scores (no ties, so every format keeps the same
+    boxes through NMS): the class logits carry a per-cell ramp."""
+
+    def __init__(self, classes: int = 8, width: int = 8) -> None:
+        super().__init__()
+        self.classes = classes
+        self.stem = torch.nn.Conv2d(3, width, 3, stride=2, padding=1)
+        self.mid = torch.nn.Conv2d(width, width, 3, stride=2, padding=1)
+        self.out = torch.nn.Conv2d(width, width, 3, stride=2, padding=1)
+        self.box = torch.nn.Conv2d(width, 4, 1)
+        self.cls = torch.nn.Conv2d(width, classes, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = torch.relu(self.out(torch.relu(self.mid(torch.relu(self.stem(x))))))
+        b, _, h, w = f.shape
+        ys = (torch.arange(h, dtype=x.dtype, device=x.device) + 0.5) * 8
+        xs = (torch.arange(w, dtype=x.dtype, device=x.device) + 0.5) * 8
+        cy, cx = ys.view(1, h, 1).expand(b, h, w), xs.view(1, 1, w).expand(b, h, w)
+        d = self.box(f)
+        cx = cx + 4 * torch.tanh(d[:, 0])
+        cy = cy + 4 * torch.tanh(d[:, 1])
+        bw = 12 * torch.exp(d[:, 2].clamp(-1, 1))
+        bh = 20 * torch.exp(d[:, 3].clamp(-1, 1))
+        ramp = torch.linspace(-2.0, 2.0, h * w, dtype=x.dtype, device=x.device).view(1, 1, h, w)
+        logits = self.cls(f) + ramp
+        boxes = torch.stack([cx, cy, bw, bh], dim=1)
+        return torch.cat([boxes, torch.sigmoid(logits)], dim=1).flatten(2)  # B x (4 + C) x N
+
+
+def tiny_yolo(classes: int = 8, width: int = 8, seed: int = 0) -> TinyYolo:
+    torch.manual_seed(seed)
+    return TinyYolo(classes, width).eval()
+
+
+def zoo_fcos() -> torch.nn.Module:
+    """The zoo's reference detector as a user's own torchvision-style module (weights given as checkpoint_path)."""
+    from pairedgta.detection.models import NUM_CLASSES, fcos
+
+    return fcos("zoo_fcos", NUM_CLASSES, 512, 1024, width=0.5, fpn_channels=64).eval()
+
+
+def ssdlite(num_classes: int = 91) -> torch.nn.Module:
+    """torchvision's SSDlite as a user's factory: the same network model=torchvision builds."""
+    import torchvision
+
+    return torchvision.models.detection.ssdlite320_mobilenet_v3_large(weights=None, weights_backbone=None,
+                                                                      num_classes=num_classes)
+
+
+CITYSCAPES_CLASSES = len(INSTANCE_CLASSES)
