@@ -30,7 +30,7 @@ HASHED_MODEL_CONFIGS = {
     "onnx": "b3d621a3dac2cd39",
     "python": "ac3745d90dac34a0",
     "smp": "60138f30bf1323c3",
-    "torchvision": "6ad0b0135540f89a",
+    "torchvision": "81f1897c8a18e126",  # num_classes: null (19 for segmentation, 91 for a detector), detection release
     "ddrnet_23": "8c297ab3cc1d718e",
     "deeplabv3plus_r101": "23d7eed2184ff292",
     "demo_ddrnet": "62e76832938c7849",

@@ -218,7 +218,8 @@ class ContractDetector:
                              f"{images.shape}")
         out: list[Detections] = []
         for i in range(0, len(images), self.runtime.batch_size):
-            x = torch.from_numpy(np.ascontiguousarray(images[i:i + self.runtime.batch_size])).to(self.device)
+            chunk = np.ascontiguousarray(images[i:i + self.runtime.batch_size])
+            x = torch.from_numpy(chunk if chunk.flags.writeable else chunk.copy()).to(self.device)
             for raw in self.forward(x.permute(0, 3, 1, 2).float().div_(255.0)):
                 mapped = self.labels.apply(raw.labels) if len(raw.labels) else raw.labels
                 keep = mapped >= 0

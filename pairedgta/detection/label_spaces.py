@@ -117,7 +117,7 @@ def resolve(spec: Any, id2label: Mapping[int, str] | None, where: str, default: 
     if "/" in spec or spec.endswith((".tsv", ".txt")):
         return _from_table(Path(spec).expanduser(), spec)
     raise ConfigError(f"{where}: model.labels={spec!r} is not a detection label space; use one of "
-                      f"{', '.join(SPACES + SEG_TABLES)} or a TSV of 'source class<TAB>Cityscapes class'")
+                      f"{', '.join((*SPACES, *SEG_TABLES))} or a TSV of 'source class<TAB>Cityscapes class'")
 
 
 __all__ = ["COCO80", "COCO91", "DetectionLabels", "SPACES", "from_names", "resolve"]

@@ -171,7 +171,7 @@ def decode(outputs: Any, layout: Layout, input_size: tuple[int, int], where: str
         named = [{role: _numpy(d[layout.outputs[role]]) for role in ("boxes", "scores", "labels")}
                  for d in images]
         return [_finish(_plain(n["boxes"], n["scores"], n["labels"], layout, input_size, where, num_classes),
-                        layout, nms_iou, max_detections) for n in named]
+                        layout, nms_iou, max_detections, where) for n in named]
     named = {role: _numpy(outputs[layout.outputs[role]]) for role in required_roles(layout)}
     if "combined" in named:
         return _combined(named["combined"], layout, input_size, where, num_classes, nms_iou, max_detections)
@@ -187,7 +187,7 @@ def decode(outputs: Any, layout: Layout, input_size: tuple[int, int], where: str
             n = int(np.asarray(named["count"][i]).reshape(-1)[0]) if "count" in named else boxes.shape[1]
             raw = _plain(boxes[i][:n], named["scores"][i][:n], named["labels"][i][:n], layout, input_size, where,
                          num_classes)
-        out.append(_finish(raw, layout, nms_iou, max_detections))
+        out.append(_finish(raw, layout, nms_iou, max_detections, where))
     return out
 
 
@@ -250,13 +250,16 @@ def _combined(out: np.ndarray, layout: Layout, input_size, where, num_classes, n
         labels = probs.argmax(axis=1)
         raw = Raw(_scale(image[:, :4], layout, input_size), probs[np.arange(len(labels)), labels],
                   labels.astype(np.int64))
-        res.append(_finish(raw, layout, nms_iou, max_detections))
+        res.append(_finish(raw, layout, nms_iou, max_detections, where))
     return res
 
 
-def _finish(raw: Raw, layout: Layout, nms_iou: float, max_detections: int) -> Raw:
+def _finish(raw: Raw, layout: Layout, nms_iou: float, max_detections: int, where: str) -> Raw:
     """NMS per class where the graph has none, then the best `max_detections` by score."""
     boxes, scores, labels = raw.boxes, raw.scores, raw.labels
+    if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
+        raise ModelError(f"{where}: the model gave non-finite boxes or scores; check the input contract "
+                         "(model.mean / model.std / model.scale) and model.layout")
     keep = scores > 1e-4  # candidates no one would rank (YOLO's thousands of anchors); COCO keeps 100 an image
     boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
     if not layout.nms and len(scores):

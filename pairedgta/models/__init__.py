@@ -49,6 +49,7 @@ FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE, de
 FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE, detector="det_onnx")
 FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE, detector="det_python")
 DETECTOR_SOURCE = {"via": "pairedgta.detection.contract:build_detector_source", "kind": "detector", "source": True,
+                   "check": "pairedgta.detection.contract:check_contract",
                    "filled": ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels",
                               "score_threshold", "nms_iou", "max_detections")}
 for _source in ("hf", "torchvision", "export", "onnx", "python"):
@@ -149,11 +150,20 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     from pairedgta.registry import check_keys
 
     if is_source(cfg):
+        twin = FAMILIES.meta(cfg["family"]).get("detector")
+        own = family_keys(cfg["family"]) | set(RUNTIME_KEYS)
+        detector_only = sorted(k for k in cfg if k not in own and twin and k in family_keys(twin))
+        if detector_only:  # e.g. model.layout on a segmentation run: the user meant the detection task
+            raise ConfigError(f"{where} ({cfg.get('name')}): {', '.join(f'model.{k}' for k in detector_only)} "
+                              f"configure(s) a detector; run model={cfg['family']} with task=detection, or leave "
+                              f"{'it' if len(detector_only) == 1 else 'them'} out for segmentation")
         check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
-        if model_kind(cfg) == "detector":
-            from pairedgta.detection.contract import check_contract as check_detector_contract
+        check = FAMILIES.meta(cfg["family"]).get("check")  # a detector source's contract check, by its registry line
+        if check:
+            import importlib
 
-            check_detector_contract(cfg, f"{where} ({cfg.get('name')})")
+            module, attr = check.split(":")
+            getattr(importlib.import_module(module), attr)(cfg, f"{where} ({cfg.get('name')})")
         else:
             check_contract(cfg, f"{where} ({cfg.get('name')})")
         RuntimeOptions.from_config(cfg)
