@@ -285,3 +285,53 @@ def test_a_detector_source_through_the_cli_with_coco_classes(tmp_path):
     errors = [line for line in seg.stderr.splitlines() if line.startswith("error:")]
     assert seg.returncode == 2 and len(errors) == 1 and "task=detection" in errors[0], seg.stderr[-2000:]
     assert not (tmp_path / "seg" / "cache" / "generate").exists()
+
+
+# -- transformers ---------------------------------------------------------------------------------------------
+def tiny_detr_dir(folder: Path, id2label: dict[int, str]) -> Path:
+    """A random DETR with a tiny ResNet backbone (no timm, nothing downloaded) and its processor, saved."""
+    from transformers import DetrConfig, DetrForObjectDetection, DetrImageProcessor, ResNetConfig
+
+    backbone = ResNetConfig(embedding_size=8, hidden_sizes=[8, 16, 16, 16], depths=[1, 1, 1, 1],
+                            out_features=["stage4"])
+    config = DetrConfig(use_timm_backbone=False, backbone_config=backbone, use_pretrained_backbone=False, d_model=16,
+                        encoder_layers=1, decoder_layers=1, encoder_attention_heads=2, decoder_attention_heads=2,
+                        encoder_ffn_dim=32, decoder_ffn_dim=32, num_queries=12, id2label=id2label,
+                        label2id={v: k for k, v in id2label.items()})
+    torch.manual_seed(0)
+    model = DetrForObjectDetection(config).eval()
+    with torch.no_grad():  # the last class rarely wins, so the instance classes show up in a random model
+        model.class_labels_classifier.bias[len(id2label) - 1] -= 4.0
+    model.save_pretrained(folder)
+    DetrImageProcessor(size={"shortest_edge": 96, "longest_edge": 192}).save_pretrained(folder)
+    return folder
+
+
+def test_a_transformers_detector_with_its_processor_and_class_names(tmp_path):
+    from transformers import DetrForObjectDetection, DetrImageProcessor
+
+    folder = tiny_detr_dir(tmp_path / "detr", {0: "person", 1: "car", 2: "dog"})
+    det = build(family="det_hf", path=str(folder), score_threshold=0.0)
+    assert det.labels.target == (0, 2, -1) and "rider" in det.blind and det.contract.resize == 96
+    image = street(4, (96, 192))
+    (got,) = det.detect(image[None])
+    # by hand: the processor's own preprocessing and decoding of the same model
+    model, proc = DetrForObjectDetection.from_pretrained(folder).eval(), DetrImageProcessor.from_pretrained(folder)
+    with torch.no_grad():
+        out = model(**proc(images=image, return_tensors="pt"))
+    (ref,) = proc.post_process_object_detection(out, threshold=0.0, target_sizes=[(96, 192)])
+    keep = ref["labels"].numpy() != 2  # the dog is no instance class
+    want = ref["boxes"].numpy()[keep]
+    assert len(got.boxes) == keep.sum() > 0
+    order = np.argsort(-ref["scores"].numpy()[keep], kind="stable")
+    np.testing.assert_allclose(got.boxes, want[order], atol=1e-3 * 192)
+    np.testing.assert_allclose(got.scores, ref["scores"].numpy()[keep][order], atol=1e-4)
+    # a segmentation checkpoint is the other task's model: one line
+    from transformers import SegformerConfig, SegformerForSemanticSegmentation
+
+    SegformerForSemanticSegmentation(SegformerConfig(num_labels=19, hidden_sizes=[8, 8, 8, 8], depths=[1, 1, 1, 1],
+                                                     decoder_hidden_size=8, num_attention_heads=[1, 1, 1, 1])
+                                     ).save_pretrained(tmp_path / "seg")
+    with pytest.raises(ModelError, match="'segformer' model, which AutoModelForObjectDetection does not load.*"
+                                         "task=segmentation"):
+        build(family="det_hf", path=str(tmp_path / "seg"))
