@@ -30,11 +30,11 @@ class FirstChannel(torch.nn.Module):
 
 
 class Noise(torch.nn.Module):
-    """The same random scores whatever the input: no set-up changes what it predicts."""
+    """The same random scores whatever the input (and wherever in a batch): no set-up changes what it predicts."""
 
     def forward(self, x):
         g = torch.Generator().manual_seed(0)
-        return torch.randn((x.shape[0], 19, *x.shape[2:]), generator=g)
+        return torch.randn((1, 19, *x.shape[2:]), generator=g).expand(x.shape[0], -1, -1, -1)
 
 
 class Constant(torch.nn.Module):
@@ -109,11 +109,13 @@ def test_the_wrong_channel_order_is_named():
                        "model.channels=bgr it would be 1.00: check the model's input contract (docs/models.md)")
     assert "\n" not in warning
     assert seg.contract.channels == "rgb" and seg._mean.flatten().tolist() == pytest.approx([0.485, 0.456, 0.406])
-    # the evaluate stage's check: the configured row alone when it is fine, all rows when it is not
-    assert len(setup_check.run_check(seg, blue_samples())) == len(rows)
-    good = segmenter(FirstChannel(), channels="bgr")
-    assert [r.change for r in setup_check.run_check(good, blue_samples())] == ["configured"]
-    assert setup_check.diagnose("net", setup_check.check(good, blue_samples())) is None
+    assert by["model.channels=bgr"].overrides == {"channels": "bgr"}
+    assert setup_check.better_record(rows) == {"setup": "model.channels=bgr", "overrides": {"channels": "bgr"},
+                                               "clean_miou": 1.0}
+    # set up right: every alternative tried, none named
+    good = setup_check.check(segmenter(FirstChannel(), channels="bgr"), blue_samples())
+    assert len(good) == len(rows) and good[0].miou == 1.0
+    assert setup_check.diagnose("net", good) is None and setup_check.better_record(good) is None
 
 
 def test_nothing_helps_a_model_that_does_not_see_the_images():
@@ -126,8 +128,14 @@ def test_nothing_helps_a_model_that_does_not_see_the_images():
 
 def test_only_a_clearly_better_alternative_is_named():
     row = lambda change, miou: setup_check.Row(change, miou, (miou,) * 19, 4)  # noqa: E731
-    assert setup_check.diagnose("m", [row("configured", 0.12), row("model.channels=bgr", 0.5)]) is None
-    assert "domain gap" in setup_check.diagnose("m", [row("configured", 0.06), row("model.channels=bgr", 0.11)])
+    # above the line too (>= 1.25x and >= +0.05): the user's LR-ASPP, 0.17 as configured and 0.26 in BGR
+    assert "with model.channels=bgr it would be 0.26" in setup_check.diagnose(
+        "m", [row("configured", 0.17), row("model.channels=bgr", 0.26)])
+    assert setup_check.diagnose("m", [row("configured", 0.40), row("model.channels=bgr", 0.48)]) is None  # 1.2x
+    assert setup_check.diagnose("m", [row("configured", 0.12), row("model.channels=bgr", 0.16)]) is None  # +0.04
+    assert "model.channels=bgr it would be 0.11" in setup_check.diagnose(
+        "m", [row("configured", 0.06), row("model.channels=bgr", 0.11)])
+    assert "domain gap" in setup_check.diagnose("m", [row("configured", 0.06), row("model.channels=bgr", 0.10)])
     assert "domain gap" in setup_check.diagnose("m", [row("configured", 0.02), row("model.channels=bgr", 0.09)])
     assert "with model.scale=255 it would be 0.30" in setup_check.diagnose(
         "m", [row("configured", 0.05), row("model.channels=bgr", 0.2), row("model.scale=255", 0.3)])
@@ -194,7 +202,8 @@ def test_the_first_evaluation_of_a_source_model_checks_its_set_up(tmp_path, capl
 
     stored = json.loads((path / "summary.json").read_text())
     assert stored["clean_miou_check"] == 0.0 and stored["setup_warning"] == lines[0]
-    assert len(setup_check.read_table(path / "setup_check.csv")) > 1  # below the threshold: the alternatives too
+    assert stored["setup_better"] is None
+    assert len(setup_check.read_table(path / "setup_check.csv")) > 1  # every alternative
     # a cache hit re-reads the stored line
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="pairedgta.setup_check"):

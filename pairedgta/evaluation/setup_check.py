@@ -3,42 +3,50 @@ configured input contract and label space and under each likely alternative, and
 
 A researcher's model (a model source, pairedgta/models/contract.py) runs under a contract the user spells out
 (channel order, scale, mean/std) and a label space; one wrong key and every number after it measures the mistake,
-not the model. A model whose clean mIoU is below `SETUP_MIN_MIOU` is tried, on the same few images and with the one
-network already loaded (only the contract and the label map around it change), with each alternative a user would
-type as one change (`model.channels=bgr`, `model.scale=255 ...`, `model.mean=... model.std=...`,
-`model.labels=...`). An alternative that clearly does better names the likely cause; when none does, the model does
-not recognise the images at all: a domain gap, not a robustness result.
+not the model. Every source model is tried, on the same few images and with the one network already loaded (only
+the contract and the label map around it change), with each alternative a user would type as one change
+(`model.channels=bgr`, `model.scale=255 ...`, `model.mean=... model.std=...`, `model.labels=...`): the trial of
+pairedgta/evaluation/alternatives.py, whose rule says when an alternative clearly beats the configured set-up
+(>= 1.25x and >= +0.05 clean mIoU). Such an alternative is named in one line, whatever the configured mIoU; below
+`SETUP_MIN_MIOU` with none that helps, the model does not recognise the images at all: a domain gap, not a
+robustness result. A model set up right says nothing.
 
-mIoU follows the Cityscapes convention (`pairedgta.metrics.ConfusionMatrix`: classes with TP + FP + FN > 0), as the
-evaluate stage's gt_iou. The evaluate stage (first evaluation of a source model) stores the configured row, plus the
-alternatives when the configured mIoU is low, in `SETUP_CSV` and the summary keys below; the model_check stage
-(`+experiment=model_check`) writes the whole table. Torch is imported only to run the model."""
+The trial is cheap: per image one batch of the distinct contracts' inputs through the network, and the label-space
+alternatives re-map the configured output (no forward of their own). mIoU follows the Cityscapes convention
+(`pairedgta.metrics.ConfusionMatrix`: classes with TP + FP + FN > 0), as the evaluate stage's gt_iou. The evaluate
+stage (first evaluation of a source model) stores the table in `SETUP_CSV` and the summary keys below; the
+model_check stage (`+experiment=model_check`) writes it too, with its own summary. Torch is imported only to run
+the model."""
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.datasets import PairedDataset, load_image, load_label
 from pairedgta.errors import DataError, ModelError
+from pairedgta.evaluation import alternatives as alts
+from pairedgta.evaluation.alternatives import CONFIGURED, Candidate
 from pairedgta.jsonio import write_json
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, torch_threads
 
 log = logging.getLogger("pairedgta.setup_check")
 
 SETUP_MIN_MIOU = 0.10   # below it, the model is not measured but mis-set-up or out of its domain
-CLEARLY_BETTER = (2.0, 0.05)  # an alternative names the cause when it is >= 2x and >= +0.05 the configured mIoU
+CLEARLY_BETTER = (alts.RATIO, alts.MARGIN)  # the trial's rule: >= 1.25x and >= +0.05 clean mIoU
 CHECK_IMAGES = 4        # labelled clean images the check runs on (groups spread over the dataset)
-CONFIGURED = "configured"  # the `setup` of the configured row
 SETUP_CSV = "setup_check.csv"
-SUMMARY_KEYS = ("clean_miou_check", "setup_warning")  # what an evaluate entry's summary.json gains
-VERSION = "1"
+# what an evaluate entry's summary.json gains: the configured clean mIoU, the warning line, and the alternative it
+# names ({"setup": "model.channels=bgr", "overrides": {"channels": "bgr"}, "clean_miou": ...}, else null)
+SUMMARY_KEYS = ("clean_miou_check", "setup_warning", "setup_better")
+VERSION = "2"  # 2: every source model's alternatives, the 1.25x / +0.05 rule, setup_better
 VERSION_TAG = f"+setup_check@{VERSION}"  # joins the evaluate stage's version for a model source's entry only
 DOCS = "docs/models.md"
 ADVICE = ("evaluate it on GTA V frames (renderer=deepgtav) or your own paired data "
@@ -49,12 +57,12 @@ NORMALISATIONS = {"ImageNet": (IMAGENET_MEAN, IMAGENET_STD), "0.5": ((0.5,) * 3,
 
 
 @dataclass(frozen=True)
-class Setup:
-    """One row of the check: the configured set-up (`change` = CONFIGURED) or one alternative, as typed."""
+class Setup(Candidate):
+    """One row of the check: the configured set-up (`change` = CONFIGURED) or one alternative, as typed, with the
+    model keys it sets (`overrides`) and what it runs."""
 
-    change: str
-    contract: Any  # pairedgta.models.contract.Contract, or None for a model outside the contract (a zoo model)
-    labels: Any    # pairedgta.models.labels.LabelMap, or None
+    contract: Any = None  # pairedgta.models.contract.Contract, or None for a model outside the contract (a zoo model)
+    labels: Any = None    # pairedgta.models.labels.LabelMap, or None
 
 
 @dataclass(frozen=True)
@@ -64,6 +72,11 @@ class Row:
     iou: tuple[float, ...]  # per Cityscapes class; NaN where neither the truth nor the prediction has it
     n_images: int
     error: str | None = None  # the alternative's forward failed (e.g. not finite): its mIoU is NaN
+    overrides: Mapping[str, Any] = field(default_factory=dict)  # the model keys the set-up sets
+
+    @property
+    def score(self) -> float:  # what the trial compares (pairedgta/evaluation/alternatives.py)
+        return self.miou
 
 
 # -- the images ---------------------------------------------------------------------------------------------
@@ -107,25 +120,26 @@ def setups(seg: Any) -> list[Setup]:
     from pairedgta.models.contract import ContractSegmenter
 
     if not isinstance(seg, ContractSegmenter):
-        return [Setup(CONFIGURED, None, None)]
+        return [Setup(CONFIGURED)]
     c, labels = seg.contract, seg.labels
     flipped = "bgr" if c.channels == "rgb" else "rgb"
-    candidates = [Setup(CONFIGURED, c, labels), Setup(f"model.channels={flipped}", replace(c, channels=flipped), labels)]
+    candidates = [Setup(CONFIGURED, {}, c, labels),
+                  Setup(f"model.channels={flipped}", {"channels": flipped}, replace(c, channels=flipped), labels)]
     other = 255.0 if c.scale == 1 else 1.0
 
-    def normalised(scale: float, prefix: str) -> list[Setup]:
+    def normalised(scale: float, keys: dict[str, Any], prefix: str) -> list[Setup]:
         out = []
         for name, (m0, s0) in NORMALISATIONS.items():
-            mean = tuple(m * scale for m in m0)
-            std = s0 if name == "none" else tuple(s * scale for s in s0)
-            out.append(Setup(f"{prefix}{_normalisation(mean, std)}", replace(c, scale=scale, mean=mean, std=std),
-                             labels))
+            mean = tuple(float(f"{m * scale:.6g}") for m in m0)
+            std = s0 if name == "none" else tuple(float(f"{s * scale:.6g}") for s in s0)
+            out.append(Setup(f"{prefix}{_normalisation(mean, std)}", {**keys, "mean": list(mean), "std": list(std)},
+                             replace(c, scale=scale, mean=mean, std=std), labels))
         return out
 
-    candidates += normalised(c.scale, "")
-    candidates.append(Setup(f"model.scale={other:g}", replace(c, scale=other), labels))  # mean/std as they are
-    candidates += normalised(other, f"model.scale={other:g} ")
-    candidates += [Setup(f"model.labels={space}", c, alt) for space, alt in label_alternatives(seg)]
+    candidates += normalised(c.scale, {}, "")
+    candidates.append(Setup(f"model.scale={other:g}", {"scale": int(other)}, replace(c, scale=other), labels))
+    candidates += normalised(other, {"scale": int(other)}, f"model.scale={other:g} ")  # mean/std as they are, above
+    candidates += [Setup(f"model.labels={space}", {"labels": space}, c, alt) for space, alt in label_alternatives(seg)]
     out, seen = [], set()
     for s in candidates:
         effect = _effect(s.contract, s.labels)
@@ -136,19 +150,21 @@ def setups(seg: Any) -> list[Setup]:
 
 
 def label_alternatives(seg: Any) -> list[tuple[str, Any]]:
-    """Each shipped label space, other than the configured one, whose table fits the model's output channels."""
+    """Each shipped label space, other than the configured one, whose table fits the model's output channels. Read
+    quietly: a space the user never chose says nothing about its names against the checkpoint's."""
     from pairedgta.models.labels import SHIPPED, fit_outputs, resolve_labels
 
     channels, out = seg.labels.num_outputs, []
-    for space in SHIPPED:
-        if space == seg.labels.space:
-            continue
-        try:
-            alt = fit_outputs(resolve_labels(space, id2label=seg.network.id2label), channels, seg.name)
-        except Exception:  # ModelError / ConfigError: the space does not fit this model's outputs
-            continue
-        if alt.target != seg.labels.target:
-            out.append((space, alt))
+    with alts.quiet("pairedgta.models"):
+        for space in SHIPPED:
+            if space == seg.labels.space:
+                continue
+            try:
+                alt = fit_outputs(resolve_labels(space, id2label=seg.network.id2label), channels, seg.name)
+            except Exception:  # ModelError / ConfigError: the space does not fit this model's outputs
+                continue
+            if alt.target != seg.labels.target:
+                out.append((space, alt))
     return out
 
 
@@ -166,66 +182,139 @@ def variant(seg: Any, setup: Setup) -> Any:
 
 
 # -- scoring ------------------------------------------------------------------------------------------------
-def score(seg: Any, samples: Sequence[tuple[np.ndarray, np.ndarray]], change: str = CONFIGURED) -> Row:
-    """Clean mIoU and per-class IoU of `seg` over `samples`, one image per forward."""
+def _row(setup: Setup, cm: Any, labels: Any, n: int) -> Row:
+    """The row of a confusion matrix: per-class IoU, NaN (not 0, as in gt_iou.csv) for the classes the set-up's
+    label space cannot predict; the mean over the rest."""
+    iou = cm.iou().numpy().astype(float)
+    blind = [CLASS_NAMES.index(c) for c in getattr(labels, "unpredictable", ())]
+    iou[blind] = math.nan
+    miou = float(np.nanmean(iou)) if np.isfinite(iou).any() else math.nan
+    return Row(setup.change, miou, tuple(float(v) for v in iou), n, overrides=dict(setup.overrides))
+
+
+def _failed(setup: Setup, n: int, error: str) -> Row:
+    return Row(setup.change, math.nan, (math.nan,) * NUM_CLASSES, n, error, dict(setup.overrides))
+
+
+def score(seg: Any, samples: Sequence[tuple[np.ndarray, np.ndarray]], change: str | Setup = CONFIGURED) -> Row:
+    """Clean mIoU and per-class IoU of `seg` over `samples`, one image per forward (a zoo model's row, and the
+    trial's fallback when its batch fails). A failing alternative is a NaN row with its error; the configured
+    set-up's failure raises."""
     import torch
 
     from pairedgta.metrics import ConfusionMatrix
 
+    setup = change if isinstance(change, Setup) else Setup(change)
     cm = ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX)
     try:
         for image, label in samples:
             pred, _ = seg.predict(image[None])
             cm.update(torch.from_numpy(label.astype(np.int64)), pred[0])
     except ModelError as exc:
-        if change == CONFIGURED:
+        if setup.change == CONFIGURED:
             raise
-        return Row(change, math.nan, (math.nan,) * NUM_CLASSES, len(samples), str(exc))
-    iou = cm.iou().numpy().astype(float)
-    labels = getattr(seg, "labels", None)  # a model source: the classes its label space cannot predict are NaN,
-    blind = [CLASS_NAMES.index(c) for c in getattr(labels, "unpredictable", ())]  # not 0, as in gt_iou.csv
-    iou[blind] = math.nan
-    miou = float(np.nanmean(iou)) if np.isfinite(iou).any() else math.nan
-    return Row(change, miou, tuple(float(v) for v in iou), len(samples))
+        return _failed(setup, len(samples), str(exc))
+    return _row(setup, cm, getattr(seg, "labels", None), len(samples))
+
+
+def _batched(seg: Any, todo: Sequence[Setup], samples: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Row]:
+    """Every set-up of `todo` on `samples`: per image, the distinct contracts' preparations in one batch through the
+    network (chunks of model.batch_size, under model.amp as a forward is), then each set-up's label map on its
+    contract's output. The same numbers as `score` of each variant, with a forward per image and not per set-up."""
+    import torch
+
+    from pairedgta.metrics import ConfusionMatrix
+    from pairedgta.models.base import max_and_label
+
+    contracts = list(dict.fromkeys(s.contract for s in todo))
+    which = [contracts.index(s.contract) for s in todo]
+    preparers = [variant(seg, Setup(CONFIGURED, {}, c, seg.labels)) for c in contracts]
+    cms = [ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX) for _ in todo]
+    errors: list[str | None] = [None] * len(todo)
+    amp = (torch.autocast(device_type=seg.device.type, dtype=torch.bfloat16 if seg.amp == "bf16" else torch.float16)
+           if seg.amp else contextlib.nullcontext())
+    with torch.inference_mode():
+        for image, label in samples:
+            x = seg.to_device(image[None])
+            size = tuple(x.shape[-2:])
+            truth = torch.from_numpy(label.astype(np.int64))
+            with amp:
+                batch = torch.cat([p.prepare(x) for p in preparers])
+                dist = torch.cat([seg.distribution(seg.scores_prepared(chunk, size))
+                                  for chunk in batch.split(seg.batch_size)])
+                maps = [max_and_label(s.labels.apply(dist[k:k + 1]).float()) for s, k in zip(todo, which)]
+            for i, (conf, pred) in enumerate(maps):
+                if errors[i] is None and not bool(torch.isfinite(conf).all()):
+                    errors[i] = (f"{seg.name}: the model's outputs are not finite (NaN or inf); its weights are "
+                                 "broken: re-export or download them again")
+                if errors[i] is None:
+                    cms[i].update(truth, pred[0].long().cpu())
+    if errors[0] is not None:
+        raise ModelError(errors[0])
+    return [_failed(s, len(samples), e) if e else _row(s, cm, s.labels, len(samples))
+            for s, cm, e in zip(todo, cms, errors)]
+
+
+def score_setups(seg: Any, todo: Sequence[Setup], samples: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Row]:
+    """The trial's score callable: one row per set-up of `todo` (the configured one first), batched for a model
+    source; a batch that fails (an alternative the network refuses) is retried one set-up at a time, so that only
+    that alternative's row is NaN."""
+    from pairedgta.models.contract import ContractSegmenter
+
+    if isinstance(seg, ContractSegmenter) and todo and todo[0].contract is not None:
+        try:
+            return _batched(seg, todo, samples)
+        except Exception as exc:  # noqa: BLE001 - retried below, where each set-up's own error is kept
+            log.debug("setup check [%s]: batched trial failed (%s); one set-up at a time", seg.name, exc)
+    return [score(variant(seg, s), samples, s) for s in todo]
 
 
 def check(seg: Any, samples: Sequence[tuple[np.ndarray, np.ndarray]], alternatives: bool = True) -> list[Row]:
-    """The configured row, then (with `alternatives`) one per alternative set-up."""
+    """The configured row, then (with `alternatives`) one per alternative set-up: the trial's rows."""
     todo = setups(seg) if alternatives else setups(seg)[:1]
-    return [score(variant(seg, s), samples, s.change) for s in todo]
-
-
-def needs_alternatives(configured: Row) -> bool:
-    return not math.isnan(configured.miou) and configured.miou < SETUP_MIN_MIOU
-
-
-def run_check(seg: Any, samples: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Row]:
-    """The evaluate stage's check: the configured row; the alternatives only when it is below SETUP_MIN_MIOU
-    (where the diagnosis needs them), so a model set up right pays for a few forwards only."""
-    rows = check(seg, samples, alternatives=False)
-    if needs_alternatives(rows[0]) and len(setups(seg)) > 1:
-        rows += [score(variant(seg, s), samples, s.change) for s in setups(seg)[1:]]
-    return rows
+    result = alts.trial(todo, lambda candidates: score_setups(seg, candidates, samples))
+    return [o.row for o in result.outcomes]
 
 
 # -- the diagnosis ------------------------------------------------------------------------------------------
+def verdict(rows: Sequence[Row]) -> alts.Verdict:
+    """The rows (the configured first) as the trial's verdict."""
+    outcomes = [alts.Outcome(Candidate(r.change, dict(r.overrides)), r.miou, r) for r in rows]
+    return alts.Verdict(outcomes[0], tuple(outcomes[1:]))
+
+
 def best_alternative(rows: Sequence[Row]) -> Row | None:
-    scored = [r for r in rows[1:] if not math.isnan(r.miou)]
-    return max(scored, key=lambda r: r.miou) if scored else None
+    best = verdict(rows).best
+    return None if best is None else best.row
+
+
+def named(rows: Sequence[Row]) -> Row | None:
+    """The alternative the diagnosis names: the best one when it clearly beats the configured set-up (the trial's
+    rule) and, for a configured mIoU below SETUP_MIN_MIOU, reaches that line (else the line is the domain gap)."""
+    better = verdict(rows).better
+    if better is None or (rows[0].miou < SETUP_MIN_MIOU and better.score < SETUP_MIN_MIOU):
+        return None
+    return better.row
+
+
+def better_record(rows: Sequence[Row]) -> dict[str, Any] | None:
+    """The named alternative as summary.json keeps it: {"setup", "overrides", "clean_miou"}, else None."""
+    row = named(rows)
+    return None if row is None else {"setup": row.change, "overrides": dict(row.overrides), "clean_miou": row.miou}
 
 
 def diagnose(model: str, rows: Sequence[Row], where: str = "the embedded town") -> str | None:
-    """The one warning line for a configured clean mIoU below SETUP_MIN_MIOU, else None: the alternative that
-    clearly does better, or (none does) the domain gap."""
+    """The one warning line, else None (a model set up right): the alternative that clearly beats the configured
+    set-up, at any configured mIoU; below SETUP_MIN_MIOU with none that helps, the domain gap."""
     configured = rows[0]
-    if not needs_alternatives(configured):
+    if math.isnan(configured.miou):
         return None
     head = f"{model}: clean GT mIoU {configured.miou:.2f} on {where} ({configured.n_images} labelled clean images)"
-    best = best_alternative(rows)
-    ratio, margin = CLEARLY_BETTER
-    if (best is not None and best.miou >= SETUP_MIN_MIOU and best.miou >= ratio * configured.miou
-            and best.miou >= configured.miou + margin):
-        return f"{head}; with {best.change} it would be {best.miou:.2f}: check the model's input contract ({DOCS})"
+    better = named(rows)
+    if better is not None:
+        return f"{head}; with {better.change} it would be {better.miou:.2f}: check the model's input contract ({DOCS})"
+    if configured.miou >= SETUP_MIN_MIOU:
+        return None
     tried = ("no other channel order, scale, mean/std or label space does better" if len(rows) > 1 else
              "a zoo model's input is the project's own")
     return (f"{head}, and {tried}: the model does not recognise {where} (a domain gap, not a robustness result); "
@@ -283,9 +372,10 @@ def store(out: Path, model: str, seg: Any, dataset: PairedDataset, where: str,
     keys: dict[str, Any] = dict.fromkeys(SUMMARY_KEYS)
     if samples:
         with torch_threads(threads):
-            rows = run_check(seg, samples)
+            rows = check(seg, samples)
         table(rows).to_csv(out / SETUP_CSV, index=False)
-        keys = {"clean_miou_check": rows[0].miou, "setup_warning": diagnose(model, rows, where)}
+        keys = {"clean_miou_check": rows[0].miou, "setup_warning": diagnose(model, rows, where),
+                "setup_better": better_record(rows)}
     else:
         log.info("setup check [%s]: %s labels no clean (%s) image; not checked", model, dataset.name, dataset.reference)
     stored = entry.read_summary(out)
@@ -306,5 +396,6 @@ def report(path: Path) -> str | None:
     return warning
 
 
-__all__ = ["SETUP_MIN_MIOU", "CHECK_IMAGES", "SETUP_CSV", "SUMMARY_KEYS", "Setup", "Row", "clean_samples", "setups",
-           "check", "run_check", "diagnose", "place", "table", "markdown", "read_table", "store", "report"]
+__all__ = ["SETUP_MIN_MIOU", "CLEARLY_BETTER", "CHECK_IMAGES", "SETUP_CSV", "SUMMARY_KEYS", "Setup", "Row",
+           "clean_samples", "setups", "score_setups", "check", "verdict", "named", "better_record", "diagnose", "place",
+           "table", "markdown", "read_table", "store", "report"]

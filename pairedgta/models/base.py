@@ -12,7 +12,7 @@ from typing import Iterator, NamedTuple, Sequence
 import numpy as np
 
 from pairedgta.cityscapes import CLASS_NAMES, NUM_CLASSES
-from pairedgta.errors import DataError, ModelError
+from pairedgta.errors import DataError, ModelError, PairedGTAError
 
 from pairedgta.lazy import lazy_module
 from pairedgta.models.runtime import RuntimeOptions
@@ -103,6 +103,8 @@ class Segmenter(abc.ABC):
                     probs, lse = self._scores(chunk, energy)
             else:
                 probs, lse = self._scores(chunk, energy)
+        except PairedGTAError:  # a RuntimeError too, but one that names its cause (e.g. outputs vs label space)
+            raise
         except RuntimeError as exc:
             if "out of memory" in str(exc).lower():
                 raise ModelError(f"{self.name}: out of memory on {self.device}; lower model.batch_size") from None

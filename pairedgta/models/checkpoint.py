@@ -55,11 +55,32 @@ def _is_state_dict(obj: Any) -> bool:
     return isinstance(obj, Mapping) and len(obj) > 0 and all(isinstance(v, torch.Tensor) for v in obj.values())
 
 
+# A whole model in a checkpoint's place, by its bytes (pairedgta/models/sources/files.py: identify): the source that
+# loads it. torch.load would fail on it with its own internal error (a .pt2 zip has no data.pkl).
+PROGRAMS = {"pt2": ("a torch.export program", "model=export model.path={file}"),
+            "onnx": ("an ONNX model", "model=onnx model.path={file}")}
+
+
+def not_weights(path: Path, model_name: str) -> None:
+    """A torch.export program or an ONNX graph given as model.checkpoint_path: the one line naming the source that
+    loads it (checked before torch.load; only the first bytes and a zip's entry names are read)."""
+    from pairedgta.models.sources.files import identify
+
+    try:
+        kind = identify(path)
+    except OSError:
+        return  # unreadable: torch.load says why
+    if kind in PROGRAMS:
+        what, use = PROGRAMS[kind]
+        raise ModelError(f"{model_name}: model.checkpoint_path={path} is {what}: use {use.format(file=path)}")
+
+
 def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str, torch.Tensor]:
     """Read a checkpoint file into a flat state dict with the documented nesting and prefixes removed."""
     path = resolve_checkpoint_path(path)
     if not path.is_file():
         raise ModelError(f"{model_name}: checkpoint file {path} does not exist; fix model.checkpoint_path=")
+    not_weights(path, model_name)
     try:
         if path.suffix == ".safetensors":  # the zoo's own weights: a flat tensor file, no pickle at all
             from safetensors.torch import load_file

@@ -240,22 +240,26 @@ class ContractSegmenter(Segmenter):
 
     def scores(self, images: "torch.Tensor") -> "torch.Tensor":
         """The network's raw scores (logits or probabilities, as many channels as its label space) at input size."""
-        x = self.prepare(images)
+        return self.scores_prepared(self.prepare(images), tuple(images.shape[-2:]))
+
+    def scores_prepared(self, x: "torch.Tensor", size: tuple[int, int]) -> "torch.Tensor":
+        """`scores` of a batch `prepare` made (the set-up check stacks several contracts' preparations of an image)."""
         out = self._slide(x) if self.contract.inference == "slide" else self._run(x)
-        if tuple(out.shape[-2:]) != tuple(images.shape[-2:]):
-            out = F.interpolate(out.float(), size=images.shape[-2:], mode="bilinear", align_corners=False)
+        if tuple(out.shape[-2:]) != tuple(size):
+            out = F.interpolate(out.float(), size=size, mode="bilinear", align_corners=False)
         return out.float()
+
+    def distribution(self, out: "torch.Tensor") -> "torch.Tensor":
+        """Raw scores -> probabilities over the model's own classes (before the label map)."""
+        if self.contract.output == "logits":
+            return out.softmax(dim=1)
+        probs = out.clamp_min(0)
+        return probs / probs.sum(dim=1, keepdim=True).clamp_min(1e-12)
 
     def _scores(self, images: "torch.Tensor", energy: bool = False):
         out = self.scores(images)
-        if self.contract.output == "logits":
-            probs = out.softmax(dim=1)
-            lse = logsumexp_classes(out) if energy else None
-        else:
-            probs = out.clamp_min(0)
-            probs = probs / probs.sum(dim=1, keepdim=True).clamp_min(1e-12)
-            lse = None
-        return self.labels.apply(probs), lse
+        lse = logsumexp_classes(out) if energy and self.contract.output == "logits" else None
+        return self.labels.apply(self.distribution(out)), lse
 
     def _logits(self, images: "torch.Tensor") -> "torch.Tensor":  # pragma: no cover - _scores replaces it
         return self.scores(images)

@@ -140,11 +140,17 @@ def _cityscapes(id2label: Mapping[int, str] | None, where: str) -> LabelMap:
         if len(names) == NUM_CLASSES and None not in known and len(set(known)) == NUM_CLASSES:
             return LabelMap("cityscapes", tuple(names), tuple(known))  # matched by name: any channel order
         unknown = [n for n, k in zip(names, known) if k is None]
-        guess = _guess(len(names)).lstrip("; ") if len(names) != NUM_CLASSES else ""
+        if len(names) != NUM_CLASSES:  # another count: the label space to name, not which names differ
+            which, advice = "", _guess(len(names)).lstrip("; ")
+        else:
+            which = (f": {', '.join(unknown[:3])}{', ...' if len(unknown) > 3 else ''} "
+                     f"{'is no Cityscapes class' if len(unknown) == 1 else 'are no Cityscapes classes'}" if unknown
+                     else ": some names repeat")
+            advice = (f"set model.labels= to its label space ({', '.join(SHIPPED[1:])}) or to a TSV mapping its "
+                      "classes to Cityscapes")
+        # the example of the Cityscapes classes is theirs (the checkpoint's names are given as its own, first)
         raise ModelError(f"{where}: the checkpoint's {len(names)} classes ({', '.join(names[:5])}, ...) are not the 19 "
-                         f"Cityscapes classes (e.g. {', '.join(unknown[:3]) or 'duplicates'}); "
-                         + (guess or f"set model.labels= to its label space ({', '.join(SHIPPED[1:])}) or to a TSV "
-                            "mapping its classes to Cityscapes"))
+                         f"Cityscapes classes ({', '.join(CLASS_NAMES[:5])}, ...){which}; {advice}")
     return LabelMap("cityscapes", CLASS_NAMES, tuple(range(NUM_CLASSES)))
 
 
@@ -197,7 +203,8 @@ def _guess(channels: int) -> str:
     sizes = {19: "cityscapes", 66: "mapillary_vistas_v1.2", 65: "mapillary_vistas_v1.2", 150: "ade20k",
              133: "coco_panoptic"}
     if channels in sizes:
-        return f"; is it a {sizes[channels]} model? set model.labels={sizes[channels]}"
+        space = sizes[channels]
+        return f"; is it a{'n' if space[0] in 'aeiou' else ''} {space} model? set model.labels={space}"
     return "; set model.labels= to its label space or to a TSV with one row per output channel"
 
 

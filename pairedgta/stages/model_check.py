@@ -1,7 +1,9 @@
 """Model check, per model: is it set up right? Its clean ground-truth mIoU and per-class IoU on a few labelled clean
 images of the run's dataset (the embedded town the main job renders, cached with it), under the configured input
 contract and label space and under each alternative (pairedgta/evaluation/setup_check.py), printed as a table and
-kept in the cache entry as CSV and markdown, with the one-line diagnosis.
+kept in the cache entry as CSV and markdown, with the one-line diagnosis: the alternative that clearly beats the
+configured set-up (pairedgta/evaluation/alternatives.py's rule), kept in the entry's summary.json as `better` and
+in the run's summary, or the domain gap.
 
     python -m pairedgta +experiment=model_check model=onnx model.path=net.onnx
 
@@ -32,7 +34,7 @@ if TYPE_CHECKING:  # planning reads this module's spec, not the module
 
 log = logging.getLogger("pairedgta.model_check")
 STAGE = "model_check"
-VERSION = "1"
+VERSION = "2"  # 2: `better` and `rule` in summary.json (the trial of pairedgta/evaluation/alternatives.py)
 TABLE_CSV, TABLE_MD, SUMMARY = "model_check.csv", "model_check.md", "summary.json"
 
 
@@ -68,11 +70,12 @@ def compute(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: d
     warning = setup_check.diagnose(model, rows, where)
     best = setup_check.best_alternative(rows)
     (out / TABLE_MD).write_text(f"# {STAGE}: {model} on {where}\n\n{md}\n\n{warning or 'Set up right: no warning.'}\n")
+    ratio, margin = setup_check.CLEARLY_BETTER
     summary = {"model": model, "dataset": dataset.name, "where": where, "condition": dataset.reference,
                "n_images": len(samples), "clean_miou": rows[0].miou,
-               "threshold": setup_check.SETUP_MIN_MIOU,
+               "threshold": setup_check.SETUP_MIN_MIOU, "rule": {"ratio": ratio, "margin": margin},
                "best_alternative": None if best is None else {"setup": best.change, "clean_miou": best.miou},
-               "alternatives": len(rows) - 1, "warning": warning}
+               "better": setup_check.better_record(rows), "alternatives": len(rows) - 1, "warning": warning}
     write_json(out / SUMMARY, summary)
     return summary
 
@@ -96,7 +99,8 @@ class ModelCheck(Unsharded):
 
     def hash_config(self) -> dict[str, Any]:
         return {"model": model_hash_config(self.model_cfg), "images": setup_check.CHECK_IMAGES,
-                "threshold": setup_check.SETUP_MIN_MIOU, "check": setup_check.VERSION, "threads": self.ctx.run.threads}
+                "threshold": setup_check.SETUP_MIN_MIOU, "rule": list(setup_check.CLEARLY_BETTER),
+                "check": setup_check.VERSION, "threads": self.ctx.run.threads}
 
     def inputs(self) -> dict[str, str]:
         return {"dataset": self.dataset_key}
@@ -157,8 +161,8 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
             if s["warning"]:
                 log.warning("%s", s["warning"])
             elif s["clean_miou"] is not None:
-                log.info("%s [%s]: clean GT mIoU %.2f >= %.2f: set up right", STAGE, name, s["clean_miou"],
-                         setup_check.SETUP_MIN_MIOU)
+                log.info("%s [%s]: clean GT mIoU %.2f >= %.2f, and no alternative clearly beats it: set up right",
+                         STAGE, name, s["clean_miou"], setup_check.SETUP_MIN_MIOU)
             summary["evaluate"][name] = str(result.path)
             summary[STAGE][name] = {"clean_miou": s["clean_miou"], "best_alternative": s["best_alternative"],
-                                    "warning": s["warning"], "path": str(result.path)}
+                                    "better": s.get("better"), "warning": s["warning"], "path": str(result.path)}
