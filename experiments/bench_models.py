@@ -9,6 +9,7 @@ so the two can be compared graph by graph.
     python experiments/bench_models.py --graphs full --device cuda --amp fp32 bf16 --batches 8
     python experiments/bench_models.py --graphs full --models ddrnet_23 --device cuda --stage --csv out.csv
     python experiments/bench_models.py --sources [--height 256 --width 512 --batches 4 --rounds 7]
+    python experiments/bench_models.py --detector-sources   # task=detection's sources (experiments/bench_detector_sources.py)
 
 `--sources`: each model source (docs/models.md) against the same network run natively in torch (its normalisation,
 the network, upsampling and softmax written out by hand), on the same images: torchvision's LR-ASPP as
@@ -258,7 +259,15 @@ def main() -> None:
     parser.add_argument("--csv", default=None, help="append one row per measurement")
     parser.add_argument("--sources", action="store_true", help="the model sources against native torch (above)")
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--detector-sources", action="store_true",
+                        help="the detector sources against native torch (experiments/bench_detector_sources.py)")
     args = parser.parse_args()
+    if args.detector_sources:
+        import bench_detector_sources
+
+        height, width = (args.height, args.width) if {"--height", "--width"} & set(sys.argv) else (256, 512)
+        bench_detector_sources.bench(max(args.batches) if "--batches" in sys.argv else 4, height, width, args.rounds)
+        return
     if args.sources:
         height, width = (args.height, args.width) if {"--height", "--width"} & set(sys.argv) else (256, 512)
         bench_sources(max(args.batches) if "--batches" in sys.argv else 4, height, width, args.rounds)
