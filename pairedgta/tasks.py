@@ -49,7 +49,8 @@ TASKS: dict[str, Task] = {
                       {"pseudolabel": "pairedgta.stages.detection_pseudolabel:DetectionPseudolabel",
                        "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate",
                        "cityscapes_val": "pairedgta.stages.detection_cityscapes_val:DetectionCityscapesVal"},
-                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking"),
+                      ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking",
+                       "det_model_report"),
                       "pairedgta.detection.registry:METRICS", "boxes",
                       ("boxes", "boxes scored ≥ the\nmodel's threshold")),
 }

@@ -335,3 +335,38 @@ def test_a_transformers_detector_with_its_processor_and_class_names(tmp_path):
     with pytest.raises(ModelError, match="'segformer' model, which AutoModelForObjectDetection does not load.*"
                                          "task=segmentation"):
         build(family="det_hf", path=str(tmp_path / "seg"))
+
+
+@pytest.mark.slow
+def test_a_detector_placed_against_the_zoo_through_model_report(tmp_path):
+    """+experiment=model_report task=detection model=python: the page, its markdown and tables; the subject's AP rank
+    is the one its and the population's summaries give."""
+    import pandas as pd
+
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    args = base_overrides(tmp_path, store=False) + [
+        "+experiment=model_report", "task=detection", "model=python", "model.target=detector_nets:tiny_yolo",
+        "model.layout=yolov8", "model.labels=cityscapes", "report.population=[tiny_fcos,tiny_retinanet]",
+        "reference_model=tiny_fasterrcnn", "renderer=synthetic", "region=synthetic_street", "renderer.width=128",
+        "renderer.height=64", "generate.num_scenes=2", "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY]",
+        "metric.bootstrap.resamples=20", "plot.formats=[png]", "plot.dpi=40", "tracking.enabled=false", "threads=1"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    (plot,) = [p for p in (tmp_path / "cache" / "plot").iterdir() if not p.name.startswith(".")]
+    names = {p.name for p in plot.iterdir()}
+    assert {"det_model_report.png", "det_model_report.md", "det_model_report.csv", "det_model_report_tracking.csv",
+            "det_model_report_objects.csv"} <= names
+    md = (plot / "det_model_report.md").read_text()
+    assert md.startswith("# Detector report: tiny_yolo") and "tiny_fcos, tiny_retinanet" in md
+    rows = pd.read_csv(plot / "det_model_report.csv")
+    summaries = {}
+    for entry in (tmp_path / "cache" / "evaluate").iterdir():
+        if not entry.name.startswith("."):
+            s = json.loads((entry / "summary.json").read_text())
+            summaries[s["model"]] = s
+    assert set(summaries) == {"tiny_yolo", "tiny_fcos", "tiny_retinanet"}
+    ap = {m: s["gt_ap"]["Night-EXTRASUNNY"] for m, s in summaries.items()}
+    night = rows[(rows.condition == "Night-EXTRASUNNY") & (rows.measure == "gt_ap")].iloc[0]
+    assert night.subject == pytest.approx(ap["tiny_yolo"])
+    assert night["rank"] == 1 + sum(ap[m] > ap["tiny_yolo"] + 1e-12 for m in ("tiny_fcos", "tiny_retinanet"))

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 XI, GT_AP, ROBUSTNESS = "detection_xi.csv", "detection_ap.csv", "detection_robustness.csv"
 OBJECTS, OBJECTS_FOUND = "detection_objects.csv", "detection_objects_found.csv"
 FRAME_COUNTS, RHO_VALID = "detection_frame_counts.csv", "detection_rho_valid.csv"
+GROUP_COUNTS = "detection_group_counts.csv"  # per group, condition and class: what scene resamples recompute xi from
 Tables = tuple[dict[str, pd.DataFrame], dict[str, Any]]
 
 
@@ -90,7 +91,13 @@ def xi_tables(inputs: "Inputs") -> Tables:
                      "boxes": int(refs.sum()) if len(refs) else 0, "images": len(refs), "supported": bool(ok.any()),
                      "precision": prec[cond], "confident_boxes": int(total_conf), "pseudo_ap50": ap["ap50"],
                      "reason": "" if ok.any() else ap.get("reason", "no class with enough reference boxes")})
-    return {XI: pd.DataFrame(rows)}, {"xi_mean": xi_mean, "pseudo_ap50": pap, "precision": prec}
+    per_group = [{"group_id": g.group_id, "condition": cond, "class_name": name, "reference_boxes": int(c[0, k]),
+                  "found": int(c[1, k]), "confident": int(c[2, k]), "matched": int(c[3, k])}
+                 for g in inputs.groups for cond, c in g.counts.items() for k, name in enumerate(INSTANCE_CLASSES)]
+    groups = pd.DataFrame(per_group, columns=["group_id", "condition", "class_name", "reference_boxes", "found",
+                                              "confident", "matched"])
+    return {XI: pd.DataFrame(rows), GROUP_COUNTS: groups}, {"xi_mean": xi_mean, "pseudo_ap50": pap,
+                                                              "precision": prec}
 
 
 def gt_tables(inputs: "Inputs") -> Tables:
@@ -167,7 +174,7 @@ def ranking_tables(inputs: "Inputs") -> Tables:
 
 
 METRICS: tuple[DetectionMetric, ...] = (
-    DetectionMetric("detection_xi", "1", (XI,), xi_tables),
+    DetectionMetric("detection_xi", "2", (XI, GROUP_COUNTS), xi_tables),
     DetectionMetric("coco_ap", "1", (GT_AP, ROBUSTNESS), gt_tables),
     DetectionMetric("per_object", "1", (OBJECTS, OBJECTS_FOUND), object_tables),
     DetectionMetric("box_ranking", "1", (FRAME_COUNTS, RHO_VALID), ranking_tables),
@@ -186,5 +193,5 @@ def result_files() -> tuple[str, ...]:
     return tuple(f for m in METRICS for f in m.files)
 
 
-__all__ = ["FRAME_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
+__all__ = ["FRAME_COUNTS", "GROUP_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
            "result_files", "versions"]

@@ -14,24 +14,27 @@ from typing import Any, Mapping
 from pairedgta.errors import ConfigError
 
 FIGURE = "model_report"
+FIGURES = ("model_report", "det_model_report")  # segmentation's, detection's (pairedgta/figures/det_model_report.py)
 EXAMPLE = "report.population=[demo_ddrnet,demo_pidnet]"
 
 
-def zoo() -> list[str]:
-    """The offline zoo as experiment=zoo lists it (pairedgta/conf/experiment/zoo.yaml): its one list."""
+def zoo(task: str = "segmentation") -> list[str]:
+    """The offline zoo of the task: experiment=zoo's list (pairedgta/conf/experiment/zoo.yaml), or the detection
+    zoo that task=detection runs (pairedgta/conf/task/detection.yaml)."""
     import yaml
 
     from pairedgta.configs import CONFIG_DIR
 
-    return [str(m) for m in yaml.safe_load((CONFIG_DIR / "experiment" / "zoo.yaml").read_text())["models"]]
+    file = CONFIG_DIR / "task" / "detection.yaml" if task == "detection" else CONFIG_DIR / "experiment" / "zoo.yaml"
+    return [str(m) for m in yaml.safe_load(file.read_text())["models"]]
 
 
 def draws_report(run: Any) -> bool:
-    """Whether the run draws the model report (pairedgta.schema.RunConfig)."""
+    """Whether the run draws a model report (pairedgta.schema.RunConfig)."""
     from pairedgta.figures import figures_of
     from pairedgta.schema import as_dict
 
-    return FIGURE in figures_of(as_dict(run))
+    return bool(set(FIGURES) & set(figures_of(as_dict(run))))
 
 
 def subject_name(model_cfg: Mapping[str, Any]) -> str:
@@ -44,7 +47,7 @@ def subject_name(model_cfg: Mapping[str, Any]) -> str:
 def members(run: Any, subject: str, reference: str) -> tuple[list[str], list[str]]:
     """-> (the population, the listed names left out of it: the subject, the reference). One line when the subject is
     the reference model or no model is left to place it against."""
-    listed = list(run.report.population) if run.report.population is not None else zoo()
+    listed = list(run.report.population) if run.report.population is not None else zoo(str(run.task))
     where = "report.population" if run.report.population is not None else "report.population (null: the offline zoo)"
     if subject == reference:
         raise ConfigError(f"{FIGURE}: the model to report is {subject}, the reference model, whose pseudo-labels xi "
@@ -70,4 +73,4 @@ def cache_key(passes: Any, opts: Any) -> tuple[dict[str, Any], dict[str, str]]:
             "seed": boot.seed}, {}
 
 
-__all__ = ["FIGURE", "zoo", "draws_report", "subject_name", "members", "cache_key"]
+__all__ = ["FIGURE", "FIGURES", "zoo", "draws_report", "subject_name", "members", "cache_key"]

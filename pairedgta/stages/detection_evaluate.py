@@ -77,6 +77,15 @@ class DetectionEvaluateResult(StageResult):
         path = self.path / registry.FRAME_COUNTS
         return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
 
+    def box_counts(self) -> pd.DataFrame:
+        """Per group, condition and class: reference boxes, found, confident, matched (scene resamples)."""
+        path = self.path / registry.GROUP_COUNTS
+        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+
+    def objects(self) -> pd.DataFrame:
+        path = self.path / registry.OBJECTS
+        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+
     def rho(self) -> pd.DataFrame:
         return self.read(registry.RHO_VALID) if (self.path / registry.RHO_VALID).is_file() else pd.DataFrame()
 
