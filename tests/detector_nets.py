@@ -60,3 +60,52 @@ def ssdlite(num_classes: int = 91) -> torch.nn.Module:
 
 
 CITYSCAPES_CLASSES = len(INSTANCE_CLASSES)
+
+
+def _red_box(image: torch.Tensor, red: int) -> torch.Tensor | None:
+    """xyxy of the pixels that are red in channel `red` (bright there, dark in the others), or None."""
+    others = [c for c in range(3) if c != red]
+    mask = (image[red] > 0.8) & (image[others[0]] < 0.2) & (image[others[1]] < 0.2)
+    if not mask.any():
+        return None
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    return torch.stack([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]).float()
+
+
+class RedCarBGR(torch.nn.Module):
+    """A torchvision-style 'detector' trained on BGR input: a red block is a car. Fed RGB, it sees blue where the red
+    is and finds nothing; the set-up check must name model.channels=bgr."""
+
+    def forward(self, images: list[torch.Tensor]) -> list[dict[str, torch.Tensor]]:
+        out = []
+        for image in images:
+            box = _red_box(image, red=2)
+            boxes = box[None] if box is not None else torch.zeros(0, 4)
+            out.append({"boxes": boxes, "scores": torch.full((len(boxes),), 0.9),
+                        "labels": torch.full((len(boxes),), 3, dtype=torch.int64)})  # background 0: 3 is car
+        return out
+
+
+class RedCarCenter(torch.nn.Module):
+    """The same idea as a YOLOv8-style head over RGB input: one box, centre-xywh pixels, 8 class scores."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        rows = []
+        for image in x:
+            box = _red_box(image, red=0)
+            if box is None:
+                rows.append(torch.zeros(12, 1))
+                continue
+            cxcywh = torch.stack([(box[0] + box[2]) / 2, (box[1] + box[3]) / 2, box[2] - box[0], box[3] - box[1]])
+            scores = torch.zeros(8)
+            scores[2] = 0.9
+            rows.append(torch.cat([cxcywh, scores])[:, None])
+        return torch.stack(rows)
+
+
+def red_car_bgr() -> RedCarBGR:
+    return RedCarBGR()
+
+
+def red_car_center() -> RedCarCenter:
+    return RedCarCenter()

@@ -276,6 +276,10 @@ def test_a_detector_source_through_the_cli_with_coco_classes(tmp_path):
     assert rider.xi.isna().all() and rider.reason.str.contains("has no rider").all()
     summary = json.loads((entry / "summary.json").read_text())
     assert summary["model"] == "coco" and summary["score_threshold"] == 0.5
+    # the set-up check ran on the clean images (a random head: nothing does better, and AP50 ~ 0 is the domain line)
+    assert "configured" in summary["setup_tried"] and "model.channels=bgr" in summary["setup_tried"]
+    line = summary["setup_line"]
+    assert line is None or "clean GT AP50" in line and line in proc.stderr + proc.stdout
     manifest = json.loads((entry / "manifest.json").read_text())
     assert manifest["config"]["model"]["family"] == "det_onnx"
     # the same file as a segmentation model is the other task's: one line, nothing written
@@ -370,3 +374,50 @@ def test_a_detector_placed_against_the_zoo_through_model_report(tmp_path):
     night = rows[(rows.condition == "Night-EXTRASUNNY") & (rows.measure == "gt_ap")].iloc[0]
     assert night.subject == pytest.approx(ap["tiny_yolo"])
     assert night["rank"] == 1 + sum(ap[m] > ap["tiny_yolo"] + 1e-12 for m in ("tiny_fcos", "tiny_retinanet"))
+
+
+# -- the set-up check -------------------------------------------------------------------------------------------
+def red_block_dataset(tmp_path: Path, n: int = 4):
+    """n clean images with one red car each, their COCO ground truth, as the detection stages see them."""
+    from PIL import Image
+
+    from pairedgta.conditions import Condition, ConditionGrid
+    from pairedgta.datasets.base import Group, PairedDataset
+    from pairedgta.detection.boxes import coco_categories
+
+    rng = np.random.default_rng(0)
+    groups, images, annotations = [], [], []
+    for i in range(n):
+        img = np.full((64, 128, 3), 110, np.uint8)
+        x, y = int(rng.integers(5, 80)), int(rng.integers(5, 30))
+        img[y:y + 20, x:x + 30] = (240, 10, 10)
+        path = tmp_path / f"g{i}.png"
+        Image.fromarray(img).save(path)
+        groups.append(Group(f"g{i}", {"Day-EXTRASUNNY": path}, {}))
+        images.append({"id": i + 1, "width": 128, "height": 64, "file_name": path.name})
+        annotations.append({"id": i + 1, "image_id": i + 1, "category_id": 3, "bbox": [x, y, 30, 20], "area": 600,
+                            "iscrowd": 0})
+    grid = ConditionGrid((Condition(name="Day-EXTRASUNNY", time="Day", weather="EXTRASUNNY"),), "Day-EXTRASUNNY")
+    dataset = PairedDataset("red", tmp_path, "Day-EXTRASUNNY", grid.names, groups, 0, grid=grid)
+    return dataset, {"images": images, "annotations": annotations, "categories": coco_categories()}
+
+
+def test_the_set_up_check_names_what_a_detector_was_trained_with(tmp_path):
+    from pairedgta.detection import setup_check
+
+    dataset, coco = red_block_dataset(tmp_path)
+    rgb = build(family="det_python", target="detector_nets:red_car_bgr", labels="coco91")
+    found = setup_check.run(rgb, dataset, coco, "Day-EXTRASUNNY", "the test images")
+    assert found["setup_clean_ap50"] == pytest.approx(0.0)
+    assert found["setup_better"]["setup"] == "model.channels=bgr" and found["setup_better"]["clean_ap50"] == 1.0
+    assert found["setup_line"].startswith("mine: clean GT AP50 0.00 on the test images (4 labelled clean images); "
+                                          "with model.channels=bgr it would be 1.00")
+    bgr = build(family="det_python", target="detector_nets:red_car_bgr", labels="coco91", channels="bgr")
+    right = setup_check.run(bgr, dataset, coco, "Day-EXTRASUNNY", "the test images")
+    assert right["setup_clean_ap50"] == 1.0 and right["setup_better"] is None and right["setup_line"] is None
+    # a layout read with the wrong box format: the format it gives is named
+    xyxy = build(family="det_python", target="detector_nets:red_car_center", labels="cityscapes",
+                 layout={"preset": "yolov8", "box_format": "xyxy"})
+    found = setup_check.run(xyxy, dataset, coco, "Day-EXTRASUNNY", "the test images")
+    assert found["setup_better"]["setup"] == "model.layout.box_format=cxcywh"
+    assert found["setup_tried"]["configured"] < 0.5

@@ -31,7 +31,8 @@ from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
 from pairedgta.metrics import detection_xi, per_object
 from pairedgta.metrics.conventions import convention_from_config
-from pairedgta.models import shared_segmenter
+from pairedgta.detection import setup_check
+from pairedgta.models import is_source, shared_segmenter
 from pairedgta.models.runtime import torch_threads
 from pairedgta.schema import as_dict
 from pairedgta.tasks import TASKS
@@ -42,7 +43,7 @@ if TYPE_CHECKING:
     from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.evaluate")
-VERSION = "det1"
+VERSION = "det2"  # 2: a source detector's set-up check (pairedgta/detection/setup_check.py)
 SUMMARY = "summary.json"
 DETECTIONS_DIR = "detections"
 
@@ -187,7 +188,8 @@ def settings(ctx: Context, reference: str) -> dict[str, Any]:
 
 
 def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
-            conditions: list[str], s: dict[str, Any], out: Path, parts: Path) -> dict[str, Any]:
+            conditions: list[str], s: dict[str, Any], out: Path, parts: Path, where: str = "the dataset"
+            ) -> dict[str, Any]:
     done = read_parts(parts)
     missing = [g for g in dataset.groups if g.group_id not in done]
     if done:
@@ -201,10 +203,13 @@ def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model
     inputs = Inputs(str(model_cfg["name"]), labels.reference_model(), conditions, s["clean"],
                     [done[g.group_id] for g in dataset.groups if g.group_id in done], image_ids(dataset),
                     pseudo, gts, float(detector.score_threshold), s, tuple(getattr(detector, "blind", ())))
-    return write_outputs(out, inputs)
+    extra = {}
+    if is_source(model_cfg):  # a researcher's detector: is it set up as it was trained? (its line on every run)
+        extra = setup_check.run(detector, dataset, gts.get(s["clean"]), s["clean"], where)
+    return write_outputs(out, inputs, extra)
 
 
-def write_outputs(out: Path, inputs: Inputs) -> dict[str, Any]:
+def write_outputs(out: Path, inputs: Inputs, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The registered metrics' tables, the detections per condition (COCO results) and summary.json."""
     for cond in inputs.conditions:
         write_json_atomic(out / DETECTIONS_DIR / f"{cond}.json", inputs.coco_results(cond))
@@ -220,6 +225,7 @@ def write_outputs(out: Path, inputs: Inputs) -> dict[str, Any]:
             table.to_csv(tmp, index=False)
             tmp.replace(out / file)
         summary.update(values)
+    summary.update(extra or {})
     write_json_atomic(out / SUMMARY, summary)
     return {k: summary[k] for k in ("groups",)}
 
@@ -256,8 +262,10 @@ class DetectionEvaluate:
         return {"dataset": self.dataset_key, "pseudolabel": self.pseudo.key}
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
+        from pairedgta.evaluation.setup_check import place
+
         return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings, out,
-                       parts_dir(self.ctx, key))
+                       parts_dir(self.ctx, key), place(self.ctx.cfg, self.dataset_key, self.dataset.name))
 
     def shards(self) -> tuple[int, int]:
         return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
@@ -338,6 +346,8 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
                                   "shards, then plot without evaluate.shard/num_shards")
             continue
         p.evaluations.append(result)
+        if result.summary().get("setup_line"):  # computed now or read from the cached entry: said on every run
+            log.warning("%s", result.summary()["setup_line"])
         label = dataset_label(p.dataset.name, p.dataset_key)
         with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
             recorder.params({"model": model_cfg, "detection": as_dict(ctx.run.detection), "task": "detection",
