@@ -309,7 +309,8 @@ def _fake_pass(tmp_path: Path, names: list[str], reference: str):
                   "pseudo_label_retained": g.pl_retained, "pseudo_label_reference": g.pl_reference,
                   "ground_truth_retained": g.gt_retained, "ground_truth_reference": g.gt_reference,
                   "est_pixels": c.pixels, "est_conf_sum": c.conf_sum, "est_entropy_sum": c.entropy_sum,
-                  "est_conf_hist": c.conf_hist, "est_agree_clean": c.agree_clean}
+                  "est_conf_hist": c.conf_hist, "est_agree_clean": c.agree_clean,
+                  "pseudo_label_predicted": g.pl_reference}  # errors spread evenly: as many predicted as referenced
         path = tmp_path / g.model
         if g.model != reference:  # the reference's predictions are never read
             preds = [rng.integers(0, 3, (3, 4, 6 + i)) for i in range(5)]  # sizes differ between groups
@@ -340,6 +341,7 @@ def test_the_estimators_figure_writes_its_tables_and_metrics(tmp_path):
     assert "Intervals at 90%: the percentile bootstrap over scenes" in md and "BCa over scenes and models" in md
     assert "validity/xi/rpc/spearman/within_mean" in metrics and "validity/committee_agreement/gt_miou/mae/loco" in metrics
     assert "validity/atc/rpc/p_permutation/within_mean" in metrics and "validity/ac/rpc/kendall/A" in metrics
+    assert "validity/xi_f/gt_miou/spearman/within_mean" in metrics and "validity/xi_precision/rpc/spearman/A" in metrics
     assert not any(k.endswith("/p_permutation/pooled") for k in metrics)
     assert all(k.count("/") == 4 and math.isfinite(v) for k, v in metrics.items())
     # the committee agreement from the predictions files is in the cells

@@ -77,6 +77,14 @@ def xi_counts(reference: torch.Tensor, pred: torch.Tensor, num_classes: int = NU
     return _count_keyed(index, _in_range(reference, k, ignore_index), n, 2 * k).view(n, k, 2)
 
 
+def predicted_counts(reference: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
+                     ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
+    """N x K per image: the pixels predicted as class k among the reference's valid pixels (those `xi_counts`
+    counts), the denominator of xi's precision: `reference_consistency.predicted_counts` of N images at once.
+    `reference` is N x H x W or H x W (shared by the N images)."""
+    return class_counts(pred, _in_range(reference, num_classes, ignore_index), num_classes)
+
+
 def confusion(target: torch.Tensor, pred: torch.Tensor, num_classes: int = NUM_CLASSES,
               ignore_index: int = IGNORE_INDEX) -> torch.Tensor:
     """N x K x K confusion matrices (truth x prediction) of N images: `confusion_counts` of each."""
@@ -210,5 +218,5 @@ class HostCopy:
         return {k: v.numpy() for k, v in self.host.items()}
 
 
-__all__ = ["CONF_BINS", "SUM_BLOCK", "LANES", "count", "xi_counts", "confusion", "class_counts", "confidence_histogram",
+__all__ = ["CONF_BINS", "SUM_BLOCK", "LANES", "count", "xi_counts", "predicted_counts", "confusion", "class_counts", "confidence_histogram",
            "block_sums", "ordered_sum", "image_sums", "HostCopy"]

@@ -8,12 +8,12 @@ from typing import Any
 
 from pairedgta.cityscapes import NUM_CLASSES
 
-from pairedgta.evaluation import estimator_sums, tables
+from pairedgta.evaluation import estimator_sums, tables, xi_precision
 from pairedgta.evaluation.entry_files import OWN_FILES
 from pairedgta.evaluation.metric import GroupContext, Metric
 
 METRICS: list[Metric] = [tables.Xi(), tables.Agreement(), tables.RhoValid(), tables.GtIoU(), tables.Estimators(),
-                         estimator_sums.NuclearNorm(), estimator_sums.Energy()]
+                         estimator_sums.NuclearNorm(), estimator_sums.Energy(), xi_precision.XiPrecision()]
 
 # The metrics evaluate VERSION 8 was declared with. For exactly this list the stage's version stays the bare
 # VERSION, so no cached entry moved when the metrics became a registry; any other list (a metric added, removed,

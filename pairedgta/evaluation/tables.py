@@ -200,6 +200,9 @@ def write_gt_iou(out: Path, e: ModelEvaluation, summary: dict[str, Any]) -> None
     pd.DataFrame(rows).to_csv(out / GT_IOU, index=False)
 
 
+ADDED_ESTIMATORS = ("xi_precision", "xi_f")  # estimators.csv's last columns (issue 64: xi's precision and F)
+
+
 def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, Any],
                      arrays: dict[str, np.ndarray], blind: np.ndarray | None = None) -> dict[str, dict[str, float]]:
     """estimators.csv: per condition the label-free estimators of this model (pairedgta.metrics.estimators;
@@ -220,12 +223,18 @@ def write_estimators(out: Path, model: str, conditions: list[str], s: dict[str, 
         include = include & ~np.asarray(blind, bool)
     values = model_values(g, c, np.ones((1, n)), clean, include, conv["absent"], conv["min_images"], conv["min_pixels"],
                           conv.get("rpc_min_clean_miou", 0.0))
+    later = ("atc_threshold", *ADDED_ESTIMATORS)  # after the columns of evaluate VERSION 8, as they were
     rows = {cond: {"model": model, "condition": cond,
-                   **{k: float(v[0, i]) for k, v in values.items() if k != "atc_threshold"},
+                   **{k: float(v[0, i]) for k, v in values.items() if k not in later},
                    "atc_threshold": float(values["atc_threshold"][0])} for i, cond in enumerate(conditions)}
     # energy needs logits: a family whose output is already a distribution (Mask2Former) has none
     logits = {cond: bool(np.isfinite(values["energy"][0, i])) for i, cond in enumerate(conditions)}
-    pd.DataFrame([{**r, "has_logits": logits[cond]} for cond, r in rows.items()]).to_csv(out / ESTIMATORS, index=False)
+    added = {cond: {k: float(values[k][0, i]) for k in ADDED_ESTIMATORS if "pseudo_label_predicted" in arrays}
+             for i, cond in enumerate(conditions)}  # xi's precision and F where the entry counts what they need
+    for cond, r in rows.items():
+        r.update(added[cond])
+    pd.DataFrame([{**{k: v for k, v in r.items() if k not in ADDED_ESTIMATORS}, "has_logits": logits[cond], **added[cond]}
+                  for cond, r in rows.items()]).to_csv(out / ESTIMATORS, index=False)
     return {cond: {k: v for k, v in r.items() if k not in ("model", "condition")} for cond, r in rows.items()}
 
 
@@ -363,7 +372,8 @@ EST_KEYS = ("pixels", "conf_sum", "entropy_sum", "conf_hist", "agree_clean")
 class Estimators(Metric):
     """The label-free estimators' sums per image (pairedgta.metrics.estimators) and estimators.csv."""
 
-    name, version, files, summary_keys = "estimators", "9", (ESTIMATORS,), ("estimators",)  # 9: ATC over labelled pixels
+    # 10: xi_precision, xi_f columns (from xi_precision's counts); 9: ATC over labelled pixels
+    name, version, files, summary_keys = "estimators", "10", (ESTIMATORS,), ("estimators",)
 
     def update(self, ctx: GroupContext) -> dict[str, Any]:
         out = {"conf_hist": reductions.confidence_histogram(ctx.confidence), "agree_clean": ctx.same_clean.sum((1, 2)),

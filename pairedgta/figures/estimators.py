@@ -3,7 +3,8 @@
 Reads each model's per-group sums (`e.group_counts()`, evaluate's `est_*` arrays) and argmax predictions
 (`predictions.npz`, for the agreement between models), and compares label-free estimators of robustness
 (pairedgta.metrics.estimators: xi, AC, DoC, ATC, their relative versions, entropy, committee agreement,
-ALine-S and ALine-D, self-agreement, clean mIoU and clean mIoU x self-agreement) as judges of
+ALine-S and ALine-D, self-agreement, clean mIoU and clean mIoU x self-agreement, xi's precision and the F of xi and
+its precision) as judges of
 rPC and adverse GT mIoU across the models other than the reference. Writes estimators.csv (one row per
 estimator, target and scope), estimators.md (the headline tables), estimator_cells.csv (one row per model
 and condition) and a figure: each estimator against rPC, and the within-condition mean Spearman of each
@@ -40,7 +41,8 @@ NAMES = {"xi": "ξ (label-free)", "xi_rel": "relative ξ", "ac": "AC", "ac_rel":
          "nuclear_norm": "nuclear norm (Deng et al.)", "energy": "energy (mean logsumexp)",
          "committee_agreement": "committee agreement (not GDE)", "gde": "GDE (agreement with its twin)", "aline_s": "ALine-S (pixel acc.)",
          "aline_d": "ALine-D (pixel acc.)", "self_agreement": "self-agreement",
-         "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement"}
+         "clean_miou": "clean GT mIoU", "clean_miou_x_self_agreement": "clean GT mIoU × self-agreement",
+         "xi_precision": "ξ precision (label-free)", "xi_f": "ξ F (harmonic mean of ξ and its precision)"}
 TARGET_TEXT = {"rpc": "rPC", "gt_miou": "adverse GT mIoU"}
 STATS = ("spearman", "kendall", "mae", "p_permutation", "p_permutation_holm", "p_minus_xi_holm")
 
@@ -61,7 +63,7 @@ def cache_key(passes: Passes, opts: FigureOptions) -> tuple[dict[str, Any], dict
 def load(passes: Passes) -> tuple[list[GroupCounts], list[EstimatorCounts], dict[str, list[Path]]]:
     """Per model evaluated on every pass (sorted by name): its groups of every pass, and the pass's
     predictions.npz paths."""
-    full = evaluated_on_every_pass(passes, "estimators", COUNT_ARRAYS)
+    full = evaluated_on_every_pass(passes, "estimators", (*COUNT_ARRAYS, "pseudo_label_predicted"))  # xi's precision
     return ([concat_groups(GroupCounts.from_arrays(m, counts) for counts, _ in parts) for m, parts in full.items()],
             [concat_counts(EstimatorCounts.from_arrays(m, counts) for counts, _ in parts) for m, parts in full.items()],
             {m: [path for _, path in parts] for m, parts in full.items()})

@@ -17,6 +17,9 @@ panels:
       the subject within each condition, with intervals over scenes and over models, and the subject's xi rank
       against its GT rank.
 
+The markdown also gives the subject's rank by xi_F (the F of xi and its precision, evaluate's xi_precision.csv)
+beside its rank by xi: xi is a recall, which a model that paints one class everywhere keeps for that class.
+
 Statistics (pairedgta/metrics/model_report.py): ranks with ties sharing the better rank, percentiles with ties
 counted half, percentile intervals over the scenes (every model recomputed on the same draw of groups from evaluate's
 per-group counts); no interval where the resamples do not vary; n said everywhere."""
@@ -55,6 +58,19 @@ def _means(e: Evaluation) -> tuple[pd.Series, pd.Series]:
             gt.set_index("condition")["iou"].astype(float) if not gt.empty else pd.Series(dtype=float))
 
 
+def _f_means(e: Evaluation) -> pd.Series:
+    """An evaluation's mean F of xi and its precision (against the pseudo-labels) per condition; empty for an entry
+    written before xi_precision.csv."""
+    from pairedgta.evaluation.xi_precision import XI_PRECISION
+
+    path = Path(e.path) / XI_PRECISION
+    if not path.is_file():
+        return pd.Series(dtype=float)
+    t = pd.read_csv(path)
+    t = t[(t["reference_model"] != GT_SOURCE) & (t["class_name"] == "mean")]
+    return t.set_index("condition")["xi_f"].astype(float)
+
+
 def _scene_values(evals: list[Evaluation], clean: str, conditions: list[str], opts: FigureOptions,
                   ) -> tuple[dict[str, np.ndarray] | None, int | None]:
     """Every model's mean xi and GT mIoU recomputed on the same scene resamples (evaluate's per-group counts); None
@@ -62,7 +78,7 @@ def _scene_values(evals: list[Evaluation], clean: str, conditions: list[str], op
     from pairedgta.metrics import mean_mask
     from pairedgta.metrics.bootstrap import resample_weights
     from pairedgta.metrics.conventions import convention_from_config
-    from pairedgta.metrics.validity import GroupCounts, cell_measures
+    from pairedgta.metrics.validity import GroupCounts, cell_measures, precision_measures
     from pairedgta.schema import as_dict
 
     boot = opts.run.metric.bootstrap
@@ -80,14 +96,16 @@ def _scene_values(evals: list[Evaluation], clean: str, conditions: list[str], op
     n = groups[0].pl_retained.shape[0]
     w = resample_weights(n, boot.resamples, boot.seed).astype(float)
     idx = [groups[0].conditions.index(c) if c in groups[0].conditions else None for c in conditions]
-    xi, gt, clean_gt = [], [], []
+    xi, gt, clean_gt, xi_f = [], [], [], []
     for g in groups:
         m = cell_measures(g, w, clean, include, conv.absent, conv.min_images, conv.min_pixels)
+        f = precision_measures(g, w, include, conv.absent, conv.min_images, conv.min_pixels)["xi_f_mean"]
         nan = np.full(len(w), np.nan)
         xi.append(np.stack([m["xi_mean"][:, i] if i is not None else nan for i in idx], axis=1))
         gt.append(np.stack([m["gt_miou"][:, i] if i is not None else nan for i in idx], axis=1))
+        xi_f.append(np.stack([f[:, i] if i is not None else nan for i in idx], axis=1))
         clean_gt.append(m["gt_miou"][:, groups[0].conditions.index(clean)])
-    return {"xi": np.stack(xi), "gt": np.stack(gt), "gt_clean": np.stack(clean_gt)}, n
+    return {"xi": np.stack(xi), "gt": np.stack(gt), "gt_clean": np.stack(clean_gt), "xi_f": np.stack(xi_f)}, n
 
 
 def gather(p: FigurePass, opts: FigureOptions) -> Report:
@@ -112,12 +130,14 @@ def gather(p: FigurePass, opts: FigureOptions) -> Report:
     xi = np.array([[x.get(c, np.nan) for c in conditions] for x, _ in means], float).reshape(len(evals), -1)
     gt = np.array([[g.get(c, np.nan) for c in conditions] for _, g in means], float).reshape(len(evals), -1)
     gt_clean = np.array([g.get(clean, np.nan) for _, g in means], float)
+    f_means = [_f_means(e) for e in evals]
+    xi_f = np.array([[f.get(c, np.nan) for c in conditions] for f in f_means], float).reshape(len(evals), -1)
     boot = run.metric.bootstrap
     scene, n_scenes = _scene_values(evals, clean, conditions, opts)
     if n_scenes is None:
         n_scenes = len(p.dataset) if p.dataset is not None else 0
     return Report(subject, reference, population, [m for m in listed if m not in by_model], clean, conditions, xi, gt,
-                  gt_clean, int(n_scenes), scene, boot.confidence, boot.resamples, boot.seed)
+                  gt_clean, int(n_scenes), scene, boot.confidence, boot.resamples, boot.seed, xi_f)
 
 
 def _standing(r: Report, condition: str, measure: str, values: np.ndarray, scene: np.ndarray | None,
@@ -139,6 +159,10 @@ def _standings(r: Report) -> None:
     values = {"xi_mean": r.xi, "gt_miou": r.gt, "gt_miou_drop": r.gt_clean[:, None] - r.gt}
     scene = None if r.scene is None else {"xi_mean": r.scene["xi"], "gt_miou": r.scene["gt"],
                                           "gt_miou_drop": r.scene["gt_clean"][:, :, None] - r.scene["gt"]}
+    if r.xi_f is not None and np.isfinite(r.xi_f).any():  # the F of xi and its precision: its rank beside xi's
+        values["xi_f"] = r.xi_f
+        if scene is not None:
+            scene["xi_f"] = r.scene["xi_f"]
     r.rows = [_standing(r, cond, measure, v[:, c], None if scene is None else scene[measure][:, :, c],
                         higher=measure != "gt_miou_drop")
               for measure, v in values.items() for c, cond in enumerate(r.conditions)]
@@ -237,13 +261,22 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
                 f"{pct_text(clean)} {_ci(clean['percentile_ci_low'], clean['percentile_ci_high'])}; population "
                 f"{_spread(clean)} (median [min, max]).\n")
     rows = []
+    has_f = any(d["measure"] == "xi_f" for d in r.rows)
     for cond in r.conditions:
         x, g = row(r, cond, "xi_mean"), row(r, cond, "gt_miou")
-        rows.append([cond, *(cell for d in (x, g) for cell in (
+        f = [_num(row(r, cond, "xi_f")["subject"]), rank_text(row(r, cond, "xi_f"))] if has_f else []
+        rows.append([cond, *(cell for d in (x,) for cell in (
+            _num(d["subject"]), rank_text(d), pct_text(d), _ci(d["percentile_ci_low"], d["percentile_ci_high"]),
+            _spread(d))), *f, *(cell for d in (g,) for cell in (
             _num(d["subject"]), rank_text(d), pct_text(d), _ci(d["percentile_ci_low"], d["percentile_ci_high"]),
             _spread(d)))])
-    text.append("\n## Per adverse condition\n\n" + markdown_table(
+    f_note = ("ξ_F: the harmonic mean of ξ and its precision per class (of the pixels the model predicts as a class "
+              "on the pseudo-label's valid pixels, the share whose pseudo-label is that class), class-wise mean over "
+              "ξ's classes (evaluate's xi_precision.csv): ξ is a recall, which a model painting one class everywhere "
+              "keeps for that class; ξ_F sees it.\n\n") if has_f else ""
+    text.append("\n## Per adverse condition\n\n" + f_note + markdown_table(
         ["condition", "ξ", "ξ rank", "ξ percentile", "ξ percentile CI", "population ξ median [min, max]",
+         *(["ξ_F", "ξ_F rank"] if has_f else []),
          "GT mIoU", "GT mIoU rank", "GT mIoU percentile", "GT mIoU percentile CI",
          "population GT mIoU median [min, max]"], rows))
     what = ("GT mIoU lost from the clean image" if r.has_gt else "1 − ξ (no ground truth)")
@@ -260,13 +293,15 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
                     + markdown_table(["condition", "scene", "pixel agreement"], rows))
     xi_rank = {d["condition"]: d for d in r.rows if d["measure"] == "xi_mean"}
     gt_rank = {d["condition"]: d for d in r.rows if d["measure"] == "gt_miou"}
+    f_rank = {d["condition"]: d for d in r.rows if d["measure"] == "xi_f"}
+    ranked = (xi_rank, f_rank, gt_rank) if has_f else (xi_rank, gt_rank)
     rows = []
     for t in r.track:
         cond = t["condition"]
         rows.append([cond if cond != "mean" else f"mean over {t['n_conditions']} condition(s)",
                      _num(t["spearman"], "{:.2f}"), _ci(t["scene_ci_low"], t["scene_ci_high"], "{:.2f}"),
                      _ci(t["model_ci_low"], t["model_ci_high"], "{:.2f}"), str(t["n_models"]),
-                     *(rank_text(ranks[cond]) if cond in ranks else "–" for ranks in (xi_rank, gt_rank))])
+                     *(rank_text(ranks[cond]) if cond in ranks else "–" for ranks in ranked)])
     text.append(f"\n## How well ξ tracks ground truth on these scenes\n\nSpearman of mean ξ against GT mIoU across "
                 f"the "
                 f"{len(r.models)} ranked models (the population and {r.subject}) within each condition: pooled over "
@@ -274,10 +309,11 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
                 f"above) and over models (the models drawn with replacement, {r.resamples} draws, fewer than 3 "
                 f"distinct undefined); – where undefined (fewer than 3 models, a constant column) or the resamples do "
                 f"not vary. "
-                f"n: the models with both values in that condition. The last two columns: where ξ and ground truth "
-                f"place {r.subject}.\n\n" + markdown_table(
-                    ["condition", "Spearman(ξ, GT mIoU)", "scene CI", "model CI", "n models",
-                     f"{r.subject}'s ξ rank", f"{r.subject}'s GT rank"], rows))
+                f"n: the models with both values in that condition. The last columns: where ξ"
+                f"{', ξ_F (ξ with its precision)' if has_f else ''} and ground truth place {r.subject}.\n\n"
+                + markdown_table(["condition", "Spearman(ξ, GT mIoU)", "scene CI", "model CI", "n models",
+                                  f"{r.subject}'s ξ rank", *([f"{r.subject}'s ξ_F rank"] if has_f else []),
+                                  f"{r.subject}'s GT rank"], rows))
     return "".join(text)
 
 

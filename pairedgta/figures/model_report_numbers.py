@@ -23,10 +23,13 @@ class Report:
     gt: np.ndarray                     # M x C'
     gt_clean: np.ndarray               # M
     n_scenes: int
-    scene: dict[str, np.ndarray] | None  # xi, gt (M x R x C'), gt_clean (M x R) on scene resamples; None: no counts
+    scene: dict[str, np.ndarray] | None  # xi, gt, xi_f (M x R x C'), gt_clean (M x R) on scene resamples; None: no counts
     confidence: float
     resamples: int
     seed: int
+    # M x C' the F of xi and its precision (evaluate's xi_precision.csv means; NaN where an entry has none): where a
+    # model that paints one class everywhere stands once its precision counts, beside its xi rank
+    xi_f: np.ndarray | None = None
     rows: list[dict] = field(default_factory=list)      # the subject's standing per (condition, measure)
     track: list[dict] = field(default_factory=list)     # xi vs GT within each condition, and their mean
     worst: list[dict] = field(default_factory=list)     # the conditions where it loses most

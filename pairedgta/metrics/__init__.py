@@ -9,7 +9,10 @@ from pairedgta.metrics.reference_consistency import (
     ABSENT_POLICIES,
     ReferenceConsistency,
     class_mean,
+    f_from_counts,
     mean_mask,
+    precision_from_counts,
+    predicted_counts,
     reference_consistency_counts,
     xi_from_counts,
 )
@@ -17,6 +20,7 @@ from pairedgta.metrics.segmentation import ConfusionMatrix
 
 __all__ = [
     "ReferenceConsistency", "reference_consistency_counts", "xi_from_counts", "class_mean", "mean_mask",
+    "precision_from_counts", "f_from_counts", "predicted_counts",
     "ABSENT_POLICIES", "prediction_mass", "prediction_mass_from_labels", "rho_valid", "select_frames", "spearman",
     "SELECTIONS", "pixel_agreement", "aggregate_agreement", "AGREEMENT_MODES", "ratio_ci", "spearman_ci",
     "ConfusionMatrix",

@@ -5,6 +5,12 @@ robust model. Each is checked, as `pairedgta.metrics.validity` checks xi, agains
 embedded renderer: rPC = GT mIoU(adverse) / GT mIoU(clean) and the adverse GT mIoU.
 
 - `xi`: label-free mean xi against the reference model's pseudo-labels (`validity.cell_measures`).
+- `xi_precision`: xi's precision counterpart, label-free: per class, of the pixels the model predicts as c on the
+  pseudo-label's valid pixels, the share whose pseudo-label is c; the class-wise mean as evaluate's xi_precision.csv
+  (`validity.precision_measures`: over xi's mean classes that the model predicts with the same support). xi is a
+  recall, blind to a model that paints one class everywhere; this is the side that sees it.
+- `xi_f`: the harmonic mean of xi and its precision per class (2 retained / (reference + predicted)), class-wise
+  mean over xi's mean classes: a class the model never predicts scores 0, as in xi.
 - `xi_rel`, `ac_rel`, `atc_rel`: the relative versions, xi, AC and ATC under the condition divided by their
   clean value: a prediction of rPC, which divides the clean quality away as they do.
 - `ac`: average confidence, the mean max-softmax probability (Hendrycks & Gimpel, ICLR 2017).
@@ -54,11 +60,12 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pairedgta.metrics.validity import (GroupCounts, cell_measures, kendall_rows, spearman_rows,
+from pairedgta.metrics.validity import (GroupCounts, cell_measures, kendall_rows, precision_measures, spearman_rows,
                                         stack_passes)
 
 ESTIMATORS = ("xi", "xi_rel", "ac", "ac_rel", "doc", "atc", "atc_rel", "entropy", "nuclear_norm", "energy",
-              "committee_agreement", "gde", "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement")
+              "committee_agreement", "gde", "aline_s", "aline_d", "self_agreement", "clean_miou", "clean_miou_x_self_agreement",
+              "xi_precision", "xi_f")  # the last two since issue 64: appended, so the earlier rows keep their order
 # clean ground truth; none uses adverse labels
 USES_CLEAN_LABELS = frozenset({"doc", "atc", "atc_rel", "aline_s", "aline_d", "clean_miou",
                                "clean_miou_x_self_agreement"})
@@ -378,7 +385,8 @@ def model_values(g: GroupCounts, c: EstimatorCounts, weights: np.ndarray, clean:
             "entropy": entropy_score(c, w), "nuclear_norm": nuclear_norm_score(c, w), "energy": energy_score(c, w),
             "self_agreement": agreement, "clean_miou": cm["gt_miou_clean"],
             "clean_miou_x_self_agreement": cm["gt_miou_clean"] * agreement, "rpc": cm["rpc"], "gt_miou": cm["gt_miou"],
-            "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold}
+            "gt_miou_clean": cm["gt_miou_clean"], "atc_threshold": threshold,
+            **{k.removesuffix("_mean"): v for k, v in precision_measures(g, w, include, absent, min_images, min_pixels).items()}}
 
 
 def relative(values: np.ndarray, clean: int) -> np.ndarray:

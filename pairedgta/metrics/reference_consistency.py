@@ -5,7 +5,12 @@ Two conventions for a class without reference pixels (`absent`), because the pap
 strict reading of its equation differ there:
   "nan"   undefined (0/0), left out of the class-wise mean: the project's strict convention;
   "zero"  the authors' code, which divides by max(reference pixels, 1): the class scores 0 and the
-          class-wise mean (over a fixed class list) includes that 0. Table 1 is computed this way."""
+          class-wise mean (over a fixed class list) includes that 0. Table 1 is computed this way.
+
+xi is a recall: a model that paints one class everywhere keeps every reference pixel of that class (xi_c = 1).
+Its precision counterpart (`precision_from_counts`) is, per class c, the share of the valid reference pixels
+(the same mask xi counts: not void, visible) that the model predicts as c whose reference is c, and the F-like
+combination (`f_from_counts`) their harmonic mean; both from per-class counts, as xi is."""
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -37,6 +42,23 @@ def xi_from_counts(retained, reference, absent: str = "nan") -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = ret / np.maximum(ref, 1.0)  # the authors' clamp; identical to ret/ref wherever ref > 0
     return np.where(ref > 0, ratio, 0.0 if absent == "zero" else np.nan)
+
+
+def precision_from_counts(retained, predicted, absent: str = "nan") -> np.ndarray:
+    """xi's precision counterpart, retained / predicted elementwise: of the valid reference pixels the model predicts
+    as class c, the share whose reference is c. A class the model never predicts on valid pixels (predicted 0) is
+    undefined: NaN, or 0 under absent="zero", as xi treats a class without reference pixels."""
+    return xi_from_counts(retained, predicted, absent)
+
+
+def f_from_counts(retained, reference, predicted, absent: str = "nan") -> np.ndarray:
+    """The harmonic mean of xi and its precision per class, from the counts: 2 retained / (reference + predicted)
+    (the Dice of class c on the valid reference pixels). It equals 2 xi p / (xi + p) wherever both are defined and
+    positive, and is 0 where nothing of the class is retained, also where the precision is undefined (a class never
+    predicted: xi 0); undefined (NaN, or 0 under absent="zero") only where neither side has the class."""
+    ret = np.asarray(_np(retained), dtype=float)
+    both = np.asarray(_np(reference), dtype=float) + np.asarray(_np(predicted), dtype=float)
+    return xi_from_counts(2.0 * ret, both, absent)
 
 
 def mean_mask(num_classes: int, class_names: Iterable[str] | None = None, exclude: Iterable[str] = ()) -> np.ndarray:
@@ -76,6 +98,19 @@ def reference_consistency_counts(
     ref_v = ref[valid]
     counts = np.bincount(ref_v * 2 + (pred[valid] == ref_v), minlength=2 * num_classes).reshape(num_classes, 2)
     return torch.from_numpy(counts[:, 1].copy()), torch.from_numpy(counts.sum(axis=1))
+
+
+def predicted_counts(reference_labels, predicted_labels, num_classes: int, ignore_index: int = 255) -> np.ndarray:
+    """Per class, the pixels predicted as that class among the valid reference pixels (those xi counts: void
+    reference pixels excluded): the denominator of `precision_from_counts`, beside `reference_consistency_counts`."""
+    ref = _np(reference_labels).astype(np.int64, copy=False).reshape(-1)
+    pred = _np(predicted_labels).astype(np.int64, copy=False).reshape(-1)
+    if ref.shape != pred.shape:
+        raise ValueError(f"reference and prediction differ in size: {ref.shape} vs {pred.shape}")
+    valid = (ref >= 0) & (ref < num_classes) & (ref != ignore_index)
+    pred_v = pred[valid]
+    pred_v = pred_v[(pred_v >= 0) & (pred_v < num_classes)]
+    return np.bincount(pred_v, minlength=num_classes)[:num_classes]
 
 
 class ReferenceConsistency:

@@ -38,12 +38,16 @@ class GroupCounts:
     gt_reference: np.ndarray  # G x C x K
     cm: np.ndarray            # G x C x K x K (truth, prediction)
     group_ids: tuple[str, ...] = ()  # which groups, in order: the pairing across models is checked on them
+    # G x C x K pixels predicted as each class on the pseudo-label's valid pixels (xi's precision); None where the
+    # entry predates it (evaluate's `pseudo_label_predicted`, pairedgta/evaluation/xi_precision.py)
+    pl_predicted: np.ndarray | None = None
 
     @classmethod
     def from_arrays(cls, model: str, a: Mapping[str, np.ndarray]) -> "GroupCounts":
         ids = tuple(str(g) for g in a["group_id"]) if "group_id" in a else ()
         return cls(model, tuple(str(c) for c in a["conditions"]), a["pseudo_label_retained"], a["pseudo_label_reference"],
-                   a["ground_truth_retained"], a["ground_truth_reference"], a["cm"], ids)
+                   a["ground_truth_retained"], a["ground_truth_reference"], a["cm"], ids,
+                   a["pseudo_label_predicted"] if "pseudo_label_predicted" in a else None)
 
 
 def stack_passes(parts: list, fields: tuple[str, ...]) -> tuple[list[np.ndarray], tuple[str, ...]]:
@@ -59,7 +63,9 @@ def concat_groups(parts: Iterable[GroupCounts]) -> GroupCounts:
     """Groups of several datasets (passes) of one model, stacked."""
     parts = list(parts)
     arrays, ids = stack_passes(parts, ("pl_retained", "pl_reference", "gt_retained", "gt_reference", "cm"))
-    return GroupCounts(parts[0].model, parts[0].conditions, *arrays, ids)
+    predicted = (stack_passes(parts, ("pl_predicted",))[0][0] if all(p.pl_predicted is not None for p in parts)
+                 else None)  # only where every pass has it
+    return GroupCounts(parts[0].model, parts[0].conditions, *arrays, ids, predicted)
 
 
 def mean_xi(retained: np.ndarray, reference: np.ndarray, include: np.ndarray, absent: str) -> np.ndarray:
@@ -111,6 +117,27 @@ def cell_measures(g: GroupCounts, weights: np.ndarray, clean: str, include: np.n
         rpc = out["gt_miou"] / out["gt_miou_clean"]
     out["rpc"] = np.where(out["gt_miou_clean"] >= rpc_floor, rpc, np.nan) if rpc_floor > 0 else rpc
     return out
+
+
+def precision_measures(g: GroupCounts, weights: np.ndarray, include: np.ndarray, absent: str,
+                       min_images: int = 0, min_pixels: int = 0) -> dict[str, np.ndarray]:
+    """xi's precision and F class-wise means per (resample, condition) for group weights R x G, as evaluate's
+    xi_precision.csv computes them (pairedgta/evaluation/xi_precision.py): the F over xi's mean classes (`include`
+    and the pseudo-label's support), the precision over those of them whose predicted pixels have the same support
+    (judged on the data and kept fixed across resamples, as xi's), a class never predicted in a resample skipped.
+    NaN where the counts have no predicted pixels (an entry written before them)."""
+    w = np.asarray(weights, float)
+    if g.pl_predicted is None:
+        nan = np.full((len(w), len(g.conditions)), np.nan)
+        return {"xi_precision_mean": nan, "xi_f_mean": nan.copy()}
+    retained = np.einsum("rg,gck->rck", w, g.pl_retained)
+    reference = np.einsum("rg,gck->rck", w, g.pl_reference)
+    predicted = np.einsum("rg,gck->rck", w, g.pl_predicted)
+    inc_xi = np.asarray(include, bool) & supported(g.pl_reference, min_images, min_pixels)   # C x K
+    inc_p = inc_xi & supported(g.pl_predicted, min_images, min_pixels)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return {"xi_precision_mean": mean_xi(retained, predicted, inc_p, absent),
+                "xi_f_mean": mean_xi(2.0 * retained, reference + predicted, inc_xi, absent)}
 
 
 def defined_models(values: np.ndarray) -> np.ndarray:
@@ -225,5 +252,5 @@ def validity(models: list[GroupCounts], clean: str, include: np.ndarray, absent:
     return cells, corr
 
 
-__all__ = ["GroupCounts", "concat_groups", "stack_passes", "cell_measures", "validity", "spearman_rows", "kendall_rows", "miou",
+__all__ = ["GroupCounts", "concat_groups", "stack_passes", "cell_measures", "precision_measures", "validity", "spearman_rows", "kendall_rows", "miou",
            "mean_xi", "supported", "defined_models", "MEASURES", "TARGETS"]
