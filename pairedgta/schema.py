@@ -301,6 +301,7 @@ class DetectionConfig:
     min_area: int = key(100, ok=lambda v: v >= 0, use="use a number of visible pixels >= 0 (Cityscapes: 100)")
     min_boxes: int = key(5, ok=lambda v: v >= 1, use="use a number of reference boxes >= 1")
     max_detections: int = key(100, ok=lambda v: v >= 1, use="use a number of boxes per image >= 1 (COCO: 100)")
+    estimators: bool = key(False)  # also BoS and the pre-NMS consistency per image (two more forwards an image)
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ TASKS: dict[str, Task] = {
                        "evaluate": "pairedgta.stages.detection_evaluate:DetectionEvaluate",
                        "cityscapes_val": "pairedgta.stages.detection_cityscapes_val:DetectionCityscapesVal"},
                       ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking",
-                       "det_model_report"),
+                       "det_model_report", "det_estimators"),
                       "pairedgta.detection.registry:METRICS", "boxes",
                       ("boxes", "boxes scored ≥ the\nmodel's threshold")),
 }

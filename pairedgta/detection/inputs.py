@@ -3,7 +3,7 @@ group's results (what a shard job stores) and the metrics' inputs (pairedgta/det
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,11 +38,14 @@ class GroupResult:
     counts: dict[str, np.ndarray]  # condition -> 4 x C (detection_xi.image_counts)
     objects: list[dict[str, Any]]
     sizes: dict[str, tuple[int, int]]  # condition -> (height, width)
+    estimators: dict[str, dict[str, float]] = field(default_factory=dict)  # condition -> bos, pcr (detection.estimators)
 
     def to_json(self) -> dict[str, Any]:
         return {"group_id": self.group_id, "detections": {c: detections_json(d) for c, d in self.detections.items()},
                 "counts": {c: v.tolist() for c, v in self.counts.items()}, "objects": self.objects,
-                "sizes": {c: list(s) for c, s in self.sizes.items()}}
+                "sizes": {c: list(s) for c, s in self.sizes.items()},
+                "estimators": {c: {k: None if math.isnan(v) else v for k, v in e.items()}
+                               for c, e in self.estimators.items()}}
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "GroupResult":
@@ -50,7 +53,9 @@ class GroupResult:
                            {c: np.asarray(v, np.int64) for c, v in d["counts"].items()},
                            [{**o, "transmittance": math.nan if o["transmittance"] is None else o["transmittance"],
                              "luma": math.nan if o["luma"] is None else o["luma"]} for o in d["objects"]],
-                           {c: (int(s[0]), int(s[1])) for c, s in d["sizes"].items()})
+                           {c: (int(s[0]), int(s[1])) for c, s in d["sizes"].items()},
+                           {c: {k: math.nan if v is None else float(v) for k, v in e.items()}
+                            for c, e in (d.get("estimators") or {}).items()})
 
 
 @dataclass

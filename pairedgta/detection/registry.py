@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 XI, GT_AP, ROBUSTNESS = "detection_xi.csv", "detection_ap.csv", "detection_robustness.csv"
 OBJECTS, OBJECTS_FOUND = "detection_objects.csv", "detection_objects_found.csv"
 FRAME_COUNTS, RHO_VALID = "detection_frame_counts.csv", "detection_rho_valid.csv"
+ESTIMATORS = "detection_estimators.csv"  # per group and condition: BoS, pre-NMS consistency (detection.estimators)
 GROUP_COUNTS = "detection_group_counts.csv"  # per group, condition and class: what scene resamples recompute xi from
 Tables = tuple[dict[str, pd.DataFrame], dict[str, Any]]
 
@@ -173,11 +174,25 @@ def ranking_tables(inputs: "Inputs") -> Tables:
             {"rho_valid_headline": summary})
 
 
+def estimator_tables(inputs: "Inputs") -> Tables:
+    """BoS and the pre-NMS consistency per group and condition, where detection.estimators computed them
+    (pairedgta/metrics/box_stability.py); their means per condition in the summary."""
+    rows = [{"model": inputs.model, "group_id": g.group_id, "condition": c, **e}
+            for g in inputs.groups for c, e in g.estimators.items()]
+    if not rows:
+        return {}, {}
+    t = pd.DataFrame(rows, columns=["model", "group_id", "condition", "bos", "pcr"])
+    means = {k: {c: (float(v) if np.isfinite(v) else None) for c, v in t.groupby("condition", sort=False)[k].mean().items()}
+             for k in ("bos", "pcr")}
+    return {ESTIMATORS: t}, {"bos": means["bos"], "pcr": means["pcr"]}
+
+
 METRICS: tuple[DetectionMetric, ...] = (
     DetectionMetric("detection_xi", "2", (XI, GROUP_COUNTS), xi_tables),
     DetectionMetric("coco_ap", "1", (GT_AP, ROBUSTNESS), gt_tables),
     DetectionMetric("per_object", "1", (OBJECTS, OBJECTS_FOUND), object_tables),
     DetectionMetric("box_ranking", "1", (FRAME_COUNTS, RHO_VALID), ranking_tables),
+    DetectionMetric("estimators", "1", (ESTIMATORS,), estimator_tables),
 )
 
 
@@ -193,5 +208,5 @@ def result_files() -> tuple[str, ...]:
     return tuple(f for m in METRICS for f in m.files)
 
 
-__all__ = ["FRAME_COUNTS", "GROUP_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
+__all__ = ["ESTIMATORS", "FRAME_COUNTS", "GROUP_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",
            "result_files", "versions"]

@@ -83,6 +83,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec("det_robustness", "pairedgta.figures.det_robustness:draw", needs="evaluate"),
     FigureSpec("det_objects", "pairedgta.figures.det_objects:draw", needs="evaluate"),
     FigureSpec("det_qualitative", "pairedgta.figures.det_qualitative:draw", needs="evaluate"),
+    FigureSpec("det_estimators", "pairedgta.figures.det_estimators:draw", needs="evaluate"),
     FigureSpec("det_model_report", "pairedgta.figures.det_model_report:draw", needs="evaluate",
                key="pairedgta.figures.report_population:cache_key"),
     FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw", source="plot.frame_counts_csv",

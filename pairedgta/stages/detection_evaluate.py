@@ -122,12 +122,17 @@ class DetectionEvaluateResult(StageResult):
 
 
 def _detect_group(detector: Any, group: Any, conditions: list[str], pseudo: Detections, gt: dict[str, Any],
-                  threshold: float, iou: float) -> GroupResult:
+                  threshold: float, iou: float, estimators: bool = False) -> GroupResult:
     images = load_group_images(group, conditions)
     present = [c for c in conditions if c in images]
     found = detector.detect(np.stack([images[c] for c in present])) if present else []
-    dets, counts, objects, sizes = {}, {}, [], {}
+    dets, counts, objects, sizes, extra = {}, {}, [], {}, {}
     for c, d in zip(present, found):
+        if estimators:  # BoS and the pre-NMS consistency: two more forwards of this image (the validity study)
+            from pairedgta.metrics.box_stability import image_estimators
+
+            seed = zlib_seed(group.group_id, c)
+            extra[c] = image_estimators(detector, images[c], d, threshold, seed)
         dets[c] = d
         sizes[c] = images[c].shape[:2]
         counts[c] = detection_xi.image_counts(pseudo.boxes, pseudo.labels, d.boxes, d.scores, d.labels, threshold,
@@ -136,7 +141,14 @@ def _detect_group(detector: Any, group: Any, conditions: list[str], pseudo: Dete
         if boxes:
             objects += per_object.object_rows(group.group_id, c, boxes, per_object.luma_in_boxes(images[c], boxes),
                                               d.boxes, d.scores, d.labels, threshold, iou, INSTANCE_CLASSES)
-    return GroupResult(group.group_id, dets, counts, objects, sizes)
+    return GroupResult(group.group_id, dets, counts, objects, sizes, extra)
+
+
+def zlib_seed(group_id: str, condition: str) -> int:
+    """A dropout seed per image that does not depend on the run's order (or on PYTHONHASHSEED)."""
+    import zlib
+
+    return zlib.crc32(f"{group_id}/{condition}".encode())
 
 
 def detect_groups(ctx: Context, model_cfg: dict[str, Any], conditions: list[str], groups: list[Any],
@@ -151,7 +163,7 @@ def detect_groups(ctx: Context, model_cfg: dict[str, Any], conditions: list[str]
     with torch_threads(ctx.run.threads):
         for g in tqdm(groups, desc=f"evaluate [{detector.name}]", unit="group"):
             out.append(_detect_group(detector, g, conditions, pseudo.get(g.group_id, Detections.empty()), gt,
-                                     detector.score_threshold, det.iou))
+                                     detector.score_threshold, det.iou, det.estimators))
     return out
 
 
