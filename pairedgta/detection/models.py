@@ -142,7 +142,9 @@ class Detector:
 
     def raw(self, images: np.ndarray) -> list[dict[str, Any]]:
         """torchvision's output dicts for a batch of uint8 HxWx3 images (no threshold beyond the head's own)."""
-        x = torch.from_numpy(np.ascontiguousarray(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
+        arr = np.ascontiguousarray(images)
+        x = torch.from_numpy(arr if arr.flags.writeable else arr.copy()).to(self.device)
+        x = x.permute(0, 3, 1, 2).float().div_(255.0)
         with torch.inference_mode():
             return self.module(list(x))
 
