@@ -23,7 +23,7 @@ import numpy as np
 
 from pairedgta.detection import label_spaces, layouts
 from pairedgta.detection.boxes import INSTANCE_CLASSES
-from pairedgta.detection.models import KIND, Detections
+from pairedgta.detection.models import KIND, Detections, image_batch
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module
 from pairedgta.models.runtime import RuntimeOptions
@@ -210,12 +210,7 @@ class ContractDetector:
         return layouts.Raw(boxes, raw.scores, raw.labels)
 
     def detect(self, images: np.ndarray) -> list[Detections]:
-        images = np.asarray(images)
-        if images.ndim == 3:
-            images = images[None]
-        if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
-            raise ValueError(f"detector {self.name}: expected uint8 images N x H x W x 3, got {images.dtype} "
-                             f"{images.shape}")
+        images = image_batch(images, self.name)
         out: list[Detections] = []
         for i in range(0, len(images), self.runtime.batch_size):
             chunk = np.ascontiguousarray(images[i:i + self.runtime.batch_size])

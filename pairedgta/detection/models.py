@@ -126,6 +126,16 @@ def fasterrcnn(name: str | None, num_classes: int, min_size: int, max_size: int,
                       representation_size=256 if fpn_channels >= 64 else 128)
 
 
+def image_batch(images: Any, name: str) -> np.ndarray:
+    """N x H x W x 3 uint8 (one image gets its batch axis); anything else is a ValueError naming the detector."""
+    images = np.asarray(images)
+    if images.ndim == 3:
+        images = images[None]
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"detector {name}: expected uint8 images N x H x W x 3, got {images.dtype} {images.shape}")
+    return images
+
+
 class Detector:
     """A detector under the project's contract; `detect` runs batches of `runtime.batch_size` in eval mode."""
 
@@ -149,12 +159,7 @@ class Detector:
             return self.module(list(x))
 
     def detect(self, images: np.ndarray) -> list[Detections]:
-        images = np.asarray(images)
-        if images.ndim == 3:
-            images = images[None]
-        if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
-            raise ValueError(f"detector {self.name}: expected uint8 images N x H x W x 3, got {images.dtype} "
-                             f"{images.shape}")
+        images = image_batch(images, self.name)
         out: list[Detections] = []
         for i in range(0, len(images), self.runtime.batch_size):
             for d in self.raw(images[i:i + self.runtime.batch_size]):

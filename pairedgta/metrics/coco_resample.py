@@ -36,15 +36,9 @@ class PerImage:
 def match(ground_truth: dict[str, Any], detections: Sequence[dict[str, Any]], max_detections: int = 100,
           iou_thrs: Sequence[float] | None = None, categories: Sequence[int] | None = None) -> PerImage:
     """pycocotools' per-image matching of `detections` against `ground_truth` (COCO dicts)."""
-    from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 
-    def coco(dataset: dict[str, Any]) -> Any:
-        c = COCO()
-        c.dataset = dataset
-        with contextlib.redirect_stdout(io.StringIO()):
-            c.createIndex()
-        return c
+    from pairedgta.metrics.coco_ap import _coco as coco
 
     image_ids = [im["id"] for im in ground_truth["images"]]
     dets = [dict(d, id=i + 1, area=float(d["bbox"][2] * d["bbox"][3]), iscrowd=0)

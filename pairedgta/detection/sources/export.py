@@ -7,11 +7,10 @@ to do that. The file is identified by its zip entries first (pairedgta/models/so
 one line naming the source that reads it, and is never unpickled."""
 from __future__ import annotations
 
-import logging
 from typing import Any
 
 from pairedgta.detection.contract import DetectorNetwork
-from pairedgta.errors import ModelError, reason
+from pairedgta.errors import ModelError
 
 
 def _module(graph: Any, names: list[str] | None):
@@ -33,26 +32,10 @@ def _module(graph: Any, names: list[str] | None):
 
 
 def load(name: str, device: str, /, *, path: str | None = None) -> DetectorNetwork:
-    import torch
-
-    from pairedgta.models.sources.export import _training_ops
-    from pairedgta.models.sources.files import identify, model_file, wrong_format
+    from pairedgta.models.sources.export import _training_ops, load_program
 
     where = f"model ({name})"
-    file = model_file(path, where, "export", "<file.pt2 from torch.export.save>")
-    kind = identify(file)
-    if kind != "pt2":
-        raise wrong_format(file, kind, where, "a torch.export program (a .pt2 zip from torch.export.save)")
-    quiet = logging.getLogger("torch.export")
-    level = quiet.level
-    quiet.setLevel(logging.CRITICAL)
-    try:
-        program = torch.export.load(str(file))
-    except Exception as exc:
-        raise ModelError(f"{where}: torch {torch.__version__} cannot load the program {file} ({reason(exc)[:300]}); "
-                         "save it again with torch.export.save from this torch version") from None
-    finally:
-        quiet.setLevel(level)
+    program, file = load_program(path, where)
     if len(program.graph_signature.user_inputs) != 1:
         raise ModelError(f"{where}: the program {file} takes {len(program.graph_signature.user_inputs)} inputs; "
                          "export it with one image batch: torch.export.export(model, (x,))")

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from pairedgta.detection.contract import DetectorNetwork
-from pairedgta.errors import ModelError, reason
+from pairedgta.errors import ModelError
 
 
 def _module(session: Any, input_name: str, output_names: list[str], single: bool, batch: int | None):
@@ -42,34 +42,10 @@ def _module(session: Any, input_name: str, output_names: list[str], single: bool
 
 
 def load(name: str, device: str, /, *, path: str | None = None) -> DetectorNetwork:
-    from pairedgta.models.sources.files import identify, model_file, wrong_format
-    from pairedgta.models.sources.onnx import check_external_data, providers
+    from pairedgta.models.sources.onnx import open_session
 
     where = f"model ({name})"
-    file = model_file(path, where, "onnx", "<file.onnx>")
-    kind = identify(file)
-    if kind not in (None, "onnx"):
-        raise wrong_format(file, kind, where, "an ONNX model")
-    import onnx
-    import onnxruntime as ort
-    import torch
-
-    try:
-        proto = onnx.load(str(file), load_external_data=False)
-    except Exception as exc:
-        raise wrong_format(file, None, where, f"an ONNX model ({reason(exc)[:200]})") from None
-    if not proto.graph.node or not proto.graph.output:
-        raise wrong_format(file, None, where, "an ONNX model (no graph in it)")
-    check_external_data(proto, file, where)
-    del proto
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = torch.get_num_threads()
-    options.log_severity_level = 3
-    try:
-        session = ort.InferenceSession(str(file), sess_options=options, providers=providers(device, where))
-    except Exception as exc:
-        raise ModelError(f"{where}: onnxruntime {ort.__version__} cannot load {file} ({reason(exc)[:300]}); "
-                         "export it again with a standard opset (torch.onnx.export)") from None
+    session, file = open_session(path, device, where)
     inputs = session.get_inputs()
     if len(inputs) != 1:
         raise ModelError(f"{where}: {file} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); export "

@@ -8,26 +8,11 @@ Naming `model=python` is the user's choice to run that code: it is imported and 
 from __future__ import annotations
 
 from pairedgta.detection.contract import DetectorNetwork
-from pairedgta.errors import ModelError, reason
 
 
 def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict | None = None,
          checkpoint_path: str | None = None) -> DetectorNetwork:
-    import torch
+    from pairedgta.models.sources.python import build_module
 
-    from pairedgta.models.sources.python import import_target
-
-    where = f"model ({name})"
-    factory = import_target(target, where)
-    try:
-        module = factory(**dict(kwargs or {}))
-    except Exception as exc:
-        raise ModelError(f"{where}: {target}(**model.kwargs) failed ({reason(exc)[:200]}); check model.kwargs") from None
-    if not isinstance(module, torch.nn.Module):
-        raise ModelError(f"{where}: {target} returned {type(module).__name__}, not a torch.nn.Module")
-    if checkpoint_path:
-        from pairedgta.models.checkpoint import load_checkpoint_strict
-
-        load_checkpoint_strict(module, checkpoint_path, model_name=name)
-    return DetectorNetwork(module, declared={"layout": "torchvision"}, takes_list=None,
-                           executes=f"the user's code {target} (model=python)")
+    return DetectorNetwork(build_module(name, target, kwargs, checkpoint_path), declared={"layout": "torchvision"},
+                           takes_list=None, executes=f"the user's code {target} (model=python)")

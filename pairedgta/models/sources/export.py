@@ -80,10 +80,9 @@ class ExportedNetwork(torch.nn.Module):
         return in_batches(self.graph, x, self.batch, self.where)
 
 
-def load(name: str, device: str, /, *, path: str | None = None) -> Network:
-    """Check the file is a .pt2 archive, load it, read its input's shape and check its mode; `device` is applied by
-    the segmenter (`.to(device)`)."""
-    where = f"model ({name})"
+def load_program(path: Any, where: str) -> tuple[Any, Any]:
+    """The checked .pt2's program (identified by its zip entries before torch sees it); shared with the detector
+    source."""
     file = model_file(path, where, "export", "<file.pt2 from torch.export.save>")
     kind = identify(file)
     if kind != "pt2":
@@ -92,13 +91,20 @@ def load(name: str, device: str, /, *, path: str | None = None) -> Network:
     level = quiet.level
     quiet.setLevel(logging.CRITICAL)
     try:
-        program = torch.export.load(str(file))
+        return torch.export.load(str(file)), file
     except Exception as exc:
         raise ModelError(f"{where}: torch {torch.__version__} cannot load the program {file} ({reason(exc)[:300]}); "
                          "save it again with torch.export.save from this torch version (a program of a CPU model "
                          "loads on any machine)") from None
     finally:
         quiet.setLevel(level)
+
+
+def load(name: str, device: str, /, *, path: str | None = None) -> Network:
+    """Check the file is a .pt2 archive, load it, read its input's shape and check its mode; `device` is applied by
+    the segmenter (`.to(device)`)."""
+    where = f"model ({name})"
+    program, file = load_program(path, where)
     inputs = list(program.graph_signature.user_inputs)
     if len(inputs) != 1:
         raise ModelError(f"{where}: the program {file} takes {len(inputs)} inputs ({', '.join(map(str, inputs))}); "

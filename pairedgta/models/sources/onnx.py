@@ -123,9 +123,9 @@ class OnnxNetwork(torch.nn.Module):
         return torch.from_dlpack(binding.get_outputs()[0])
 
 
-def load(name: str, device: str, /, *, path: str | None = None) -> Network:
-    """Check the format and the external data, make the session with explicit providers, check its one input."""
-    where = f"model ({name})"
+def open_session(path: Any, device: str, where: str) -> tuple[Any, Path]:
+    """The checked file's onnxruntime session (format, external data, explicit providers); shared with the
+    detector source."""
     file = model_file(path, where, "onnx", "<file.onnx>")
     kind = identify(file)
     if kind not in (None, "onnx"):
@@ -155,6 +155,13 @@ def load(name: str, device: str, /, *, path: str | None = None) -> Network:
     if len(chosen) > 1 and "CUDAExecutionProvider" not in session.get_providers():
         log.warning("%s: onnxruntime's CUDA provider did not start (CUDA or cuDNN libraries missing?): the ONNX model "
                     "runs on the CPU", where)
+    return session, file
+
+
+def load(name: str, device: str, /, *, path: str | None = None) -> Network:
+    """Check the format and the external data, make the session with explicit providers, check its one input."""
+    where = f"model ({name})"
+    session, file = open_session(path, device, where)
     inputs = session.get_inputs()
     if len(inputs) != 1:
         raise ModelError(f"{where}: {file} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); export "

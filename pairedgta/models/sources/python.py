@@ -30,8 +30,8 @@ def import_target(target: Any, where: str) -> Any:
     return factory
 
 
-def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict | None = None,
-         checkpoint_path: str | None = None) -> Network:
+def build_module(name: str, target: str | None, kwargs: dict | None, checkpoint_path: str | None) -> Any:
+    """The factory's module with its weights (as data); shared with the detector source."""
     import torch
 
     where = f"model ({name})"
@@ -46,4 +46,10 @@ def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict |
         from pairedgta.models.checkpoint import load_checkpoint_strict
 
         load_checkpoint_strict(module, checkpoint_path, model_name=name)
-    return Network(module, executes=f"the user's code {target} (model=python)")
+    return module
+
+
+def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict | None = None,
+         checkpoint_path: str | None = None) -> Network:
+    return Network(build_module(name, target, kwargs, checkpoint_path),
+                   executes=f"the user's code {target} (model=python)")
