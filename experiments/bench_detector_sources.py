@@ -107,7 +107,7 @@ def variants(root: Path, images: np.ndarray, batch: int) -> list[tuple[str, str,
                                                           checkpoint_path=str(root / "ssd.safetensors"))),
             ("ssdlite", "python", ssd_native, _build(batch, family="det_python", target="detector_nets:ssdlite",
                                                      checkpoint_path=str(root / "ssd.safetensors"), labels="coco91"))]
-    from test_detector_sources import tiny_detr_dir
+    from detector_nets import tiny_detr_dir
     from transformers import DetrForObjectDetection, DetrImageProcessor
 
     folder = tiny_detr_dir(root / "detr", {0: "person", 1: "car", 2: "dog"})
@@ -130,7 +130,7 @@ def variants(root: Path, images: np.ndarray, batch: int) -> list[tuple[str, str,
 
 
 def bench(batch: int = 4, height: int = 256, width: int = 512, rounds: int = 7) -> None:
-    from test_detector_sources import street
+    from detector_nets import street
 
     images = np.stack([street(i, (height, width)) for i in range(batch)])
     x = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0

@@ -3,6 +3,9 @@ model.target=detector_nets:<fn>` (the tests directory is on sys.path under pytes
 to the other formats (ONNX, torch.export)."""
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import torch
 
 from pairedgta.detection.boxes import INSTANCE_CLASSES
@@ -109,3 +112,37 @@ def red_car_bgr() -> RedCarBGR:
 
 def red_car_center() -> RedCarCenter:
     return RedCarCenter()
+
+
+def street(seed: int = 0, size=(256, 512)) -> np.ndarray:
+    """A street-like test image: sky, road, and a few car- and person-shaped blocks."""
+    rng = np.random.default_rng(seed)
+    h, w = size
+    img = np.zeros((h, w, 3), np.uint8)
+    img[: h // 2] = (135, 170, 210)
+    img[h // 2:] = (90, 90, 95)
+    for _ in range(6):
+        x, y = int(rng.integers(0, w - 60)), int(rng.integers(h // 2 - 20, h - 40))
+        img[y:y + 30, x:x + 55] = rng.integers(20, 230, 3)
+        px = int(rng.integers(0, w - 12))
+        img[h // 2 - 10:h // 2 + 30, px:px + 10] = (200, 160, 120)
+    return img
+
+
+def tiny_detr_dir(folder: Path, id2label: dict[int, str]) -> Path:
+    """A random DETR with a tiny ResNet backbone (no timm, nothing downloaded) and its processor, saved."""
+    from transformers import DetrConfig, DetrForObjectDetection, DetrImageProcessor, ResNetConfig
+
+    backbone = ResNetConfig(embedding_size=8, hidden_sizes=[8, 16, 16, 16], depths=[1, 1, 1, 1],
+                            out_features=["stage4"])
+    config = DetrConfig(use_timm_backbone=False, backbone_config=backbone, use_pretrained_backbone=False, d_model=16,
+                        encoder_layers=1, decoder_layers=1, encoder_attention_heads=2, decoder_attention_heads=2,
+                        encoder_ffn_dim=32, decoder_ffn_dim=32, num_queries=12, id2label=id2label,
+                        label2id={v: k for k, v in id2label.items()})
+    torch.manual_seed(0)
+    model = DetrForObjectDetection(config).eval()
+    with torch.no_grad():  # the last class rarely wins, so the instance classes show up in a random model
+        model.class_labels_classifier.bias[len(id2label) - 1] -= 4.0
+    model.save_pretrained(folder)
+    DetrImageProcessor(size={"shortest_edge": 96, "longest_edge": 192}).save_pretrained(folder)
+    return folder

@@ -14,7 +14,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from detector_nets import ssdlite, tiny_yolo, zoo_fcos
+from detector_nets import ssdlite, street, tiny_detr_dir, tiny_yolo, zoo_fcos
 from pairedgta.detection import label_spaces, layouts
 from pairedgta.detection.boxes import INSTANCE_CLASSES
 from pairedgta.errors import ConfigError, ModelError
@@ -27,21 +27,6 @@ ZOO = "pkg://models/weights/demo_det_reference/model.safetensors"
 
 def build(**cfg):
     return build_segmenter(with_defaults({"name": "mine", **cfg}))
-
-
-def street(seed: int = 0, size=(256, 512)) -> np.ndarray:
-    """A street-like test image: sky, road, and a few car- and person-shaped blocks."""
-    rng = np.random.default_rng(seed)
-    h, w = size
-    img = np.zeros((h, w, 3), np.uint8)
-    img[: h // 2] = (135, 170, 210)
-    img[h // 2:] = (90, 90, 95)
-    for _ in range(6):
-        x, y = int(rng.integers(0, w - 60)), int(rng.integers(h // 2 - 20, h - 40))
-        img[y:y + 30, x:x + 55] = rng.integers(20, 230, 3)
-        px = int(rng.integers(0, w - 12))
-        img[h // 2 - 10:h // 2 + 30, px:px + 10] = (200, 160, 120)
-    return img
 
 
 # -- layouts ----------------------------------------------------------------------------------------------------
@@ -292,25 +277,6 @@ def test_a_detector_source_through_the_cli_with_coco_classes(tmp_path):
 
 
 # -- transformers ---------------------------------------------------------------------------------------------
-def tiny_detr_dir(folder: Path, id2label: dict[int, str]) -> Path:
-    """A random DETR with a tiny ResNet backbone (no timm, nothing downloaded) and its processor, saved."""
-    from transformers import DetrConfig, DetrForObjectDetection, DetrImageProcessor, ResNetConfig
-
-    backbone = ResNetConfig(embedding_size=8, hidden_sizes=[8, 16, 16, 16], depths=[1, 1, 1, 1],
-                            out_features=["stage4"])
-    config = DetrConfig(use_timm_backbone=False, backbone_config=backbone, use_pretrained_backbone=False, d_model=16,
-                        encoder_layers=1, decoder_layers=1, encoder_attention_heads=2, decoder_attention_heads=2,
-                        encoder_ffn_dim=32, decoder_ffn_dim=32, num_queries=12, id2label=id2label,
-                        label2id={v: k for k, v in id2label.items()})
-    torch.manual_seed(0)
-    model = DetrForObjectDetection(config).eval()
-    with torch.no_grad():  # the last class rarely wins, so the instance classes show up in a random model
-        model.class_labels_classifier.bias[len(id2label) - 1] -= 4.0
-    model.save_pretrained(folder)
-    DetrImageProcessor(size={"shortest_edge": 96, "longest_edge": 192}).save_pretrained(folder)
-    return folder
-
-
 def test_a_transformers_detector_with_its_processor_and_class_names(tmp_path):
     from transformers import DetrForObjectDetection, DetrImageProcessor
 
