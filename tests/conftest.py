@@ -72,7 +72,7 @@ SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "
               "test_journal.py", "test_write_faults.py", "test_store_lock.py", "test_cli.py", "test_demo_model.py", "test_night_light.py", "test_tracking.py",
               "test_python_versions.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
               "test_same_numbers_across_formats.py", "test_source_onnx.py", "test_source_export.py", "test_model_report.py",
-              "test_source_python_torchvision.py",
+              "test_source_python_torchvision.py", "test_detection.py", "test_detector_sources.py",
               "test_experiments.py", "test_pipeline.py", "test_cityscapes_val.py", "test_ladders.py",
               "test_paper_table.py", "test_render_blender.py")
 
