@@ -130,6 +130,7 @@ def prepare(detectors: Sequence[Detector], ground_truth: dict[str, dict[str, Any
     xi_found, xi_refs = [], []
     ap, pseudo, thresholds = [], [], np.full(m_count, np.nan)
     c0 = conds.index(clean)
+    n_classes = max((r.shape[1] for d in detectors for r in d.refs.values()), default=1)
     for j, d in enumerate(detectors):
         ap.append([coco_resample.match(ground_truth[c], d.detections.get(c, []), max_detections)
                    if c in ground_truth else None for c in conds])
@@ -149,8 +150,8 @@ def prepare(detectors: Sequence[Detector], ground_truth: dict[str, dict[str, Any
                 mm, na, nb = _matches(per_image[j][c0][i], (boxes, scores, labels), d.threshold, d.threshold, iou)
                 sums["self_m"][j, ci, i], sums["self_clean"][j, ci, i], sums["self_adv"][j, ci, i] = mm, na, nb
             sup = d.supported.get(c, np.zeros(d.refs[c].shape[1], bool)) if c in d.refs else None
-            found.append(np.where(sup[None], d.found[c], 0) if sup is not None else np.zeros((n, 1)))
-            refs.append(np.where(sup[None], d.refs[c], 0) if sup is not None else np.zeros((n, 1)))
+            found.append(np.where(sup[None], d.found[c], 0) if sup is not None else np.zeros((n, n_classes)))
+            refs.append(np.where(sup[None], d.refs[c], 0) if sup is not None else np.zeros((n, n_classes)))
             if c in d.matched:
                 sums["matched"][j, ci], sums["confident"][j, ci] = d.matched[c], d.confident[c]
             for key in ("bos", "pcr"):
