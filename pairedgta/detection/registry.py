@@ -192,7 +192,7 @@ METRICS: tuple[DetectionMetric, ...] = (
     DetectionMetric("coco_ap", "1", (GT_AP, ROBUSTNESS), gt_tables),
     DetectionMetric("per_object", "1", (OBJECTS, OBJECTS_FOUND), object_tables),
     DetectionMetric("box_ranking", "1", (FRAME_COUNTS, RHO_VALID), ranking_tables),
-    DetectionMetric("estimators", "1", (ESTIMATORS,), estimator_tables),
+    DetectionMetric("estimators", "2", (ESTIMATORS,), estimator_tables),
 )
 
 

@@ -115,9 +115,11 @@ def markdown(stats: pd.DataFrame, cells: pd.DataFrame, missing: list[str]) -> st
         rows.append(cols)
     header = ["estimator"] + [f"{TARGET_LABELS[t]}: {h}" for t in ds.TARGETS for h in (
         "within mean", "scene+detector CI", "− detection ξ [CI]", "p Holm of − ξ", "perm. p Holm", "LOIO MAE")]
-    n_models = int(mean["n_models"].iloc[0]) if len(mean) else 0
+    n_models = ", ".join(f"{int(mean[mean['target'] == t]['n_models'].iloc[0])} for {TARGET_LABELS[t]}"
+                         for t in ds.TARGETS if (mean["target"] == t).any())
     text = ("# Is detection ξ the best label-free judge?\n\n"
-            f"Within-condition Spearman across the {n_models} ranked detectors (the reference is not ranked), mean over "
+            f"Within-condition Spearman across the ranked detectors ({n_models}: those whose target is defined in every "
+            "condition; the reference is not ranked), mean over "
             f"{int(mean['n_conditions'].iloc[0]) if len(mean) else 0} adverse conditions, on "
             f"{int(mean['n_groups'].iloc[0]) if len(mean) else 0} scenes. CI: BCa over scenes and detectors drawn "
             "together; − ξ: the paired difference to detection ξ, Holm over the estimators; perm. p: the joint null "

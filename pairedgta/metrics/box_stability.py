@@ -2,11 +2,11 @@
 (docs/detection.md "Is detection xi the best label-free judge?"; the study: pairedgta/metrics/detection_study.py).
 
 - BoS, box stability (ICLR 2024, arXiv 2403.13803): the detector is run again with dropout (p = 0.15) on its
-  backbone's features; the two sets of confident boxes are matched one to one (Hungarian, cost -IoU, same class);
+  backbone's features; the two sets of boxes (scored >= 0.05, the ones COCO AP scores) are matched one to one (Hungarian, cost -IoU, same class);
   per image, the sum of the matched IoUs over the smaller set's size (NaN when neither has a box, 0 when only one
   has). A detector that knows what it sees keeps its boxes when its features are perturbed.
 - Pre-NMS consistency (PCR-style; ICCV 2025, arXiv 2508.12082 uses pre-NMS candidates and their confidences): the
-  detector is run again without suppression; per final confident box, the score-weighted mean IoU of the
+  detector is run again without suppression; per final box (>= 0.05), the score-weighted mean IoU of the
   candidates of its class that collapse into it (IoU >= the suppression threshold); per image the mean over its
   boxes (NaN without one). Candidates that agree on where an object is make tight clusters.
 
@@ -122,8 +122,11 @@ def no_suppression(detector: Any) -> Iterator[float | None]:
             setattr(obj, attr, value)
 
 
-def image_estimators(detector: Any, image: np.ndarray, final: Any, threshold: float, seed: int) -> dict[str, float]:
-    """BoS and the pre-NMS consistency of one image (`final`: its Detections as evaluated)."""
+def image_estimators(detector: Any, image: np.ndarray, final: Any, threshold: float = CANDIDATE_FLOOR,
+                     seed: int = 0) -> dict[str, float]:
+    """BoS and the pre-NMS consistency of one image (`final`: its Detections as evaluated), over its boxes scored
+    >= `threshold`: by default the ones COCO AP scores (>= 0.05, at most 100), so that a detector whose operating
+    threshold leaves an image empty still has a value."""
     confident = final.above(threshold)
     out = {"bos": math.nan, "pcr": math.nan}
     with feature_dropout(detector, seed=seed) as ok:

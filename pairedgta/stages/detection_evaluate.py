@@ -132,7 +132,7 @@ def _detect_group(detector: Any, group: Any, conditions: list[str], pseudo: Dete
             from pairedgta.metrics.box_stability import image_estimators
 
             seed = zlib_seed(group.group_id, c)
-            extra[c] = image_estimators(detector, images[c], d, threshold, seed)
+            extra[c] = image_estimators(detector, images[c], d, seed=seed)
         dets[c] = d
         sizes[c] = images[c].shape[:2]
         counts[c] = detection_xi.image_counts(pseudo.boxes, pseudo.labels, d.boxes, d.scores, d.labels, threshold,
