@@ -155,3 +155,46 @@ def test_the_study_on_a_constructed_case():
     assert len(cells) == 5 * 3 and {c["condition"] for c in cells} == set(study.conditions[1:])
     assert not any(r["estimator"] in ds.NEEDS_FORWARDS for r in stats)  # not computed here: not reported
     assert mean["det_xi", "ap"]["n_models"] == 5
+
+
+def test_the_figure_reads_bos_and_pcr_by_the_written_group_ids(tmp_path):
+    """Group ids are written as "00000"; read back as numbers they matched no group and every BoS was NaN."""
+    import json
+
+    import pandas as pd
+
+    from pairedgta.detection import registry
+    from pairedgta.figures.det_estimators import detector
+    from pairedgta.stages.detection_evaluate import DETECTIONS_DIR, SUMMARY, DetectionEvaluateResult
+
+    e = DetectionEvaluateResult("evaluate", "k", tmp_path, False, {"model_config": {"name": "m"}})
+    groups, conditions = ["00000", "00001", "00010"], ["Day-EXTRASUNNY", "Night-RAIN"]
+    (tmp_path / SUMMARY).write_text(json.dumps({"score_threshold": 0.5}))
+    (tmp_path / DETECTIONS_DIR).mkdir()
+    for c in conditions:
+        (tmp_path / DETECTIONS_DIR / f"{c}.json").write_text("[]")
+    rows = [{"group_id": g, "condition": c, "class_name": "car", "found": 1, "reference_boxes": 2, "matched": 1,
+             "confident": 1} for g in groups for c in conditions]
+    pd.DataFrame(rows).to_csv(tmp_path / registry.GROUP_COUNTS, index=False)
+    est = [{"model": "m", "group_id": g, "condition": c, "bos": 0.5 + 0.1 * i, "pcr": 0.9 - 0.1 * i}
+           for i, g in enumerate(groups) for c in conditions]
+    pd.DataFrame(est).to_csv(tmp_path / registry.ESTIMATORS, index=False)
+    d = detector(e, groups[::-1], conditions, min_boxes=1, min_images=1)
+    for c in conditions:
+        assert d.bos[c] == pytest.approx([0.7, 0.6, 0.5]) and d.pcr[c] == pytest.approx([0.7, 0.8, 0.9])
+        assert d.found[c][:, 2].tolist() == [1, 1, 1]
+
+
+def test_f_of_a_detector_that_finds_nothing_is_zero():
+    """xi 0 with no confident box (precision undefined) or with only false ones: F 0, not NaN (0/0)."""
+    from pairedgta.metrics import detection_study as ds
+
+    study, _, _ = constructed()
+    for key in ("xi_found", "matched"):
+        study.sums[key][0] = 0
+    study.sums["confident"][0] = 0
+    study.sums["confident"][1] = np.where(study.sums["xi_found"][1].sum(-1) > 0, study.sums["confident"][1], 3)
+    v = ds.values(study, np.ones((1, study.n)))
+    assert np.all(v["det_xi"][0] == 0) and np.all(np.isnan(v["det_precision"][0]))
+    assert np.all(v["det_xi_f"][0] == 0)
+    assert np.all(np.isfinite(v["det_xi_f"][1:]))

@@ -49,9 +49,7 @@ def detector(e: Any, groups: list[str], conditions: list[str], min_boxes: int, m
 
     s = e.summary()
     counts = e.box_counts()
-    est = e.read("detection_estimators.csv") if (e.path / "detection_estimators.csv").is_file() else pd.DataFrame()
-    if not est.empty:
-        est["group_id"] = est["group_id"].astype(str)
+    est = e.estimators()  # group ids as written ("00000"), not read back as numbers
     d = ds.Detector(e.model, float(s["score_threshold"]), {c: e.detections(c) for c in conditions}, {}, {}, {}, {}, {})
     for c in conditions:
         sub = counts[counts["condition"] == c]

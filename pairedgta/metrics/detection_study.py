@@ -7,7 +7,7 @@ per-group counts and, with detection.estimators, two more forwards an image):
 
   det_xi             mean detection xi against the reference's confident clean boxes (label-free)
   det_precision      the share of its confident boxes that match a reference box (xi's precision side)
-  det_xi_f           the harmonic mean of the two
+  det_xi_f           the harmonic mean of the two (0 where nothing is found: a recall of 0)
   pseudo_ap50        AP50 of its detections with the reference's clean boxes as ground truth
   relative_det_xi    det_xi under the condition / on the clean image
   ac                 average confidence: the mean score of its boxes scored >= 0.05 (Hendrycks & Gimpel's AC)
@@ -202,8 +202,9 @@ def values(s: Study, weights: np.ndarray) -> dict[str, np.ndarray]:
             if per_class.size else np.full((len(s.models), r, len(s.conditions)), np.nan)
     out["det_xi"] = xi
     out["det_precision"] = _ratio(wsum(s.sums["matched"]), wsum(s.sums["confident"]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out["det_xi_f"] = 2 * xi * out["det_precision"] / (xi + out["det_precision"])
+    with np.errstate(invalid="ignore", divide="ignore"):  # nothing found: F 0, whatever the precision (none: NaN)
+        f = 2 * xi * out["det_precision"] / (xi + out["det_precision"])
+        out["det_xi_f"] = np.where(xi == 0, 0.0, f)
     out["relative_det_xi"] = _ratio(xi, xi[:, :, c0:c0 + 1])
     out["ac"] = _ratio(wsum(s.sums["ac_sum"]), wsum(s.sums["ac_n"]))
     out["relative_ac"] = _ratio(out["ac"], out["ac"][:, :, c0:c0 + 1])

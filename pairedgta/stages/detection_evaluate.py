@@ -83,6 +83,11 @@ class DetectionEvaluateResult(StageResult):
         path = self.path / registry.GROUP_COUNTS
         return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
 
+    def estimators(self) -> pd.DataFrame:
+        """Per group and condition: BoS, pre-NMS consistency (with detection.estimators); empty without them."""
+        path = self.path / registry.ESTIMATORS
+        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+
     def objects(self) -> pd.DataFrame:
         path = self.path / registry.OBJECTS
         return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
