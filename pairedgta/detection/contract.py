@@ -86,24 +86,10 @@ def _number(value: Any, key: str, where: str, low: float, high: float, example: 
 
 def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = None,
                   where: str = "model") -> DetectionContract:
-    from pairedgta.models.contract import _pair, _triple
+    from pairedgta.models.contract import _triple, image_keys, picker
 
-    declared = declared or {}
-
-    def pick(key: str) -> Any:
-        value = cfg.get(key)
-        return value if value is not None else declared.get(key, DEFAULTS[key])
-
-    scale = pick("scale")
-    if scale not in (1, 255, 1.0, 255.0) or isinstance(scale, bool):
-        raise ConfigError(f"{where}: scale={scale!r} must be 1 (input in 0-1) or 255 (input in 0-255)")
-    channels = str(pick("channels")).lower()
-    if channels not in ("rgb", "bgr"):
-        raise ConfigError(f"{where}: channels={channels!r} must be rgb or bgr")
-    resize = pick("resize")
-    if resize is not None:
-        resize = int(resize) if isinstance(resize, int) and not isinstance(resize, bool) and resize > 0 \
-            else _pair(resize, "resize", where)
+    pick = picker(cfg, declared, DEFAULTS)
+    scale, channels, resize = image_keys(pick, where)
     letterbox = pick("letterbox")
     if not isinstance(letterbox, bool):
         raise ConfigError(f"{where}: letterbox={letterbox!r} must be true or false")
@@ -113,7 +99,7 @@ def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = N
     if isinstance(max_det, bool) or not isinstance(max_det, int) or max_det < 1:
         raise ConfigError(f"{where}: max_detections={max_det!r} must be a whole number >= 1, e.g. 100")
     mean, std = (_triple(pick(k), k, where) for k in ("mean", "std"))
-    return DetectionContract(mean, std, float(scale), channels, resize, letterbox, layout,
+    return DetectionContract(mean, std, scale, channels, resize, letterbox, layout,
                              _number(pick("score_threshold"), "score_threshold", where, 0.0, 1.0, "0.5"),
                              _number(pick("nms_iou"), "nms_iou", where, 0.0, 1.0, "0.5"), max_det)
 

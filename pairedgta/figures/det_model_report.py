@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_tab
 from pairedgta.figures.inputs import FigurePass, Passes
 from pairedgta.figures.model_report import _ci, _num, _spread, _standings, _worst
 from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
-from pairedgta.figures.report_population import members, subject_name
+from pairedgta.figures.report_population import evaluations
 from pairedgta.metrics.model_report import tracking
 
 log = logging.getLogger("pairedgta.plot")
@@ -78,26 +79,15 @@ def _scene_xi(evals: list[Any], conditions: list[str], opts: FigureOptions) -> t
             refs, found = refs.reindex(groups).fillna(0).to_numpy(), found.reindex(groups).fillna(0).to_numpy()
             with np.errstate(invalid="ignore", divide="ignore"):
                 ratio = (w @ found) / (w @ refs)  # R x K; a draw without a class's boxes: NaN, left out of the mean
-            with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
-                __import__("warnings").simplefilter("ignore", RuntimeWarning)
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
                 out[m, :, c] = np.nanmean(ratio, axis=1)
     return out, len(groups)
 
 
 def gather(p: FigurePass, opts: FigureOptions) -> Report:
     run = opts.run
-    subject = subject_name(run.model)
-    reference = p.pseudo.reference_model() if p.pseudo is not None else str(run.reference_model or subject)
-    listed, _ = members(run, subject, reference)
-    by_model = {e.model: e for e in p.evaluations}
-    if subject not in by_model:
-        raise ConfigError(f"plot.figures: {FIGURE} has no evaluation of the detector to report, {subject}, on dataset "
-                          f"{p.label}; run it with stages=[evaluate,plot]")
-    population = [m for m in listed if m in by_model]
-    if not population:
-        raise ConfigError(f"plot.figures: {FIGURE} found no evaluation of report.population ({', '.join(listed)}) on "
-                          f"dataset {p.label}; run it with stages=[evaluate,plot]")
-    evals = [by_model[m] for m in [subject, *population]]
+    subject, reference, listed, population, evals = evaluations(p, opts, FIGURE, "detector")
     clean = p.grid.reference
     means = [_means(e) for e in evals]
     present = set().union(*(set(x.index) for x, _ in means))
@@ -111,8 +101,8 @@ def gather(p: FigurePass, opts: FigureOptions) -> Report:
         nan = np.full_like(scene_xi, np.nan)
         scene = {"xi": scene_xi, "gt": nan, "gt_clean": nan[:, :, 0]}
     boot = run.metric.bootstrap
-    return Report(subject, reference, population, [m for m in listed if m not in by_model], clean, conditions, xi, ap,
-                  ap_clean, int(n or (len(p.dataset) if p.dataset is not None else 0)), scene, boot.confidence,
+    missing = [m for m in listed if m not in population]
+    return Report(subject, reference, population, missing, clean, conditions, xi, ap, ap_clean, int(n or (len(p.dataset) if p.dataset is not None else 0)), scene, boot.confidence,
                   boot.resamples, boot.seed)
 
 

@@ -40,7 +40,7 @@ from pairedgta.figures.common import markdown_table
 from pairedgta.figures.inputs import Evaluation, FigurePass, Passes
 from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
 from pairedgta.figures.qualitative import AGREEMENT_TOL, clean_condition
-from pairedgta.figures.report_population import cache_key, members, subject_name
+from pairedgta.figures.report_population import cache_key, evaluations
 from pairedgta.metrics.model_report import standing, standing_interval, tracking
 
 log = logging.getLogger("pairedgta.plot")
@@ -111,18 +111,7 @@ def _scene_values(evals: list[Evaluation], clean: str, conditions: list[str], op
 def gather(p: FigurePass, opts: FigureOptions) -> Report:
     """The subject's and its population's values on pass `p`."""
     run = opts.run
-    subject = subject_name(run.model)
-    reference = p.pseudo.reference_model() if p.pseudo is not None else str(run.reference_model or subject)
-    listed, _ = members(run, subject, reference)
-    by_model = {e.model: e for e in p.evaluations}
-    if subject not in by_model:
-        raise ConfigError(f"plot.figures: model_report has no evaluation of the model to report, {subject}, on dataset "
-                          f"{p.label}; run it with stages=[evaluate,plot]")
-    population = [m for m in listed if m in by_model]
-    if not population:
-        raise ConfigError(f"plot.figures: model_report found no evaluation of report.population ({', '.join(listed)}) "
-                          f"on dataset {p.label}; run it with stages=[evaluate,plot]")
-    evals = [by_model[m] for m in [subject, *population]]
+    subject, reference, listed, population, evals = evaluations(p, opts, "model_report", "model")
     clean = clean_condition(p)
     means = [_means(e) for e in evals]
     present = set().union(*(set(x.index) for x, _ in means))
@@ -136,8 +125,8 @@ def gather(p: FigurePass, opts: FigureOptions) -> Report:
     scene, n_scenes = _scene_values(evals, clean, conditions, opts)
     if n_scenes is None:
         n_scenes = len(p.dataset) if p.dataset is not None else 0
-    return Report(subject, reference, population, [m for m in listed if m not in by_model], clean, conditions, xi, gt,
-                  gt_clean, int(n_scenes), scene, boot.confidence, boot.resamples, boot.seed, xi_f)
+    missing = [m for m in listed if m not in population]
+    return Report(subject, reference, population, missing, clean, conditions, xi, gt, gt_clean, int(n_scenes), scene, boot.confidence, boot.resamples, boot.seed, xi_f)
 
 
 def _standing(r: Report, condition: str, measure: str, values: np.ndarray, scene: np.ndarray | None,

@@ -60,6 +60,24 @@ def members(run: Any, subject: str, reference: str) -> tuple[list[str], list[str
     return kept, [n for n in listed if n in (subject, reference)]
 
 
+def evaluations(p: Any, opts: Any, figure: str, what: str) -> tuple[str, str, list[str], list[str], list[Any]]:
+    """-> (subject, reference, listed population, evaluated population, [subject's, population's evaluations]) on
+    pass `p`; one line when the subject or the whole population has no evaluation there."""
+    run = opts.run
+    subject = subject_name(run.model)
+    reference = p.pseudo.reference_model() if p.pseudo is not None else str(run.reference_model or subject)
+    listed, _ = members(run, subject, reference)
+    by_model = {e.model: e for e in p.evaluations}
+    if subject not in by_model:
+        raise ConfigError(f"plot.figures: {figure} has no evaluation of the {what} to report, {subject}, on dataset "
+                          f"{p.label}; run it with stages=[evaluate,plot]")
+    population = [m for m in listed if m in by_model]
+    if not population:
+        raise ConfigError(f"plot.figures: {figure} found no evaluation of report.population ({', '.join(listed)}) on "
+                          f"dataset {p.label}; run it with stages=[evaluate,plot]")
+    return subject, reference, listed, population, [by_model[m] for m in [subject, *population]]
+
+
 def cache_key(passes: Any, opts: Any) -> tuple[dict[str, Any], dict[str, str]]:
     """What the figure reads beyond the evaluations (the plot stage's key): who the subject is and whom it is placed
     against (the same evaluations can hold another subject's report), the report's sizes and the bootstrap."""

@@ -93,14 +93,18 @@ def _triple(value: Any, key: str, where: str) -> tuple[float, float, float]:
     return float(value[0]), float(value[1]), float(value[2])
 
 
-def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = None, where: str = "model") -> Contract:
-    """The effective contract: the config's key, else what the file declares, else DEFAULTS; each checked."""
+def picker(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None, defaults: Mapping[str, Any]) -> Any:
+    """key -> the config's value, else what the file declares, else the default (segmenters' and detectors')."""
     declared = declared or {}
 
     def pick(key: str) -> Any:
         value = cfg.get(key)
-        return value if value is not None else declared.get(key, DEFAULTS[key])
+        return value if value is not None else declared.get(key, defaults[key])
+    return pick
 
+
+def image_keys(pick: Any, where: str) -> tuple[float, str, int | tuple[int, int] | None]:
+    """(scale, channels, resize), checked: the input keys every source shares, segmenter or detector."""
     scale = pick("scale")
     if scale not in (1, 255, 1.0, 255.0) or isinstance(scale, bool):
         raise ConfigError(f"{where}: scale={scale!r} must be 1 (input in 0-1) or 255 (input in 0-255)")
@@ -115,6 +119,13 @@ def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = N
             resize = int(resize)
         else:
             resize = _pair(resize, "resize", where)
+    return float(scale), channels, resize
+
+
+def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = None, where: str = "model") -> Contract:
+    """The effective contract: the config's key, else what the file declares, else DEFAULTS; each checked."""
+    pick = picker(cfg, declared, DEFAULTS)
+    scale, channels, resize = image_keys(pick, where)
     pad = pick("pad_multiple")
     if isinstance(pad, bool) or not isinstance(pad, int) or pad < 1:
         raise ConfigError(f"{where}: pad_multiple={pad!r} must be a whole number >= 1, e.g. pad_multiple=32")
@@ -129,7 +140,7 @@ def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = N
     output = str(pick("output"))
     if output not in ("logits", "probabilities"):
         raise ConfigError(f"{where}: output={output!r} must be logits or probabilities")
-    return Contract(_triple(pick("mean"), "mean", where), _triple(pick("std"), "std", where), float(scale), channels,
+    return Contract(_triple(pick("mean"), "mean", where), _triple(pick("std"), "std", where), scale, channels,
                     resize, pad, inference, crop, stride, output)
 
 
