@@ -36,7 +36,7 @@ from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_tab
 from pairedgta.figures.inputs import FigurePass, Passes
 from pairedgta.figures.model_report import _ci, _num, _spread, _standings, _worst
 from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
-from pairedgta.figures.report_population import evaluations
+from pairedgta.figures.report_population import cache_key, evaluations
 from pairedgta.metrics.model_report import tracking
 
 log = logging.getLogger("pairedgta.plot")
@@ -311,4 +311,4 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
     return files, metrics
 
 
-__all__ = ["FIGURE", "draw", "gather", "markdown", "objects_table"]
+__all__ = ["FIGURE", "cache_key", "draw", "gather", "markdown", "objects_table"]  # cache_key: the FigureSpec's key
