@@ -102,8 +102,9 @@ def gather(p: FigurePass, opts: FigureOptions) -> Report:
         scene = {"xi": scene_xi, "gt": nan, "gt_clean": nan[:, :, 0]}
     boot = run.metric.bootstrap
     missing = [m for m in listed if m not in population]
-    return Report(subject, reference, population, missing, clean, conditions, xi, ap, ap_clean, int(n or (len(p.dataset) if p.dataset is not None else 0)), scene, boot.confidence,
-                  boot.resamples, boot.seed)
+    n_scenes = int(n or (len(p.dataset) if p.dataset is not None else 0))
+    return Report(subject, reference, population, missing, clean, conditions, xi, ap, ap_clean, n_scenes, scene,
+                  boot.confidence, boot.resamples, boot.seed)
 
 
 def objects_table(evals: list[Any], subject: str) -> pd.DataFrame:

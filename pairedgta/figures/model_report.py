@@ -126,7 +126,8 @@ def gather(p: FigurePass, opts: FigureOptions) -> Report:
     if n_scenes is None:
         n_scenes = len(p.dataset) if p.dataset is not None else 0
     missing = [m for m in listed if m not in population]
-    return Report(subject, reference, population, missing, clean, conditions, xi, gt, gt_clean, int(n_scenes), scene, boot.confidence, boot.resamples, boot.seed, xi_f)
+    return Report(subject, reference, population, missing, clean, conditions, xi, gt, gt_clean, int(n_scenes), scene,
+                  boot.confidence, boot.resamples, boot.seed, xi_f)
 
 
 def _standing(r: Report, condition: str, measure: str, values: np.ndarray, scene: np.ndarray | None,
