@@ -2,8 +2,8 @@
 (docs/detection.md "Is detection xi the best label-free judge?"; the study: pairedgta/metrics/detection_study.py).
 
 - BoS, box stability (ICLR 2024, arXiv 2403.13803): the detector is run again with dropout (p = 0.15) on its
-  backbone's features; the two sets of boxes (scored >= 0.05, the ones COCO AP scores) are matched one to one (Hungarian, cost -IoU, same class);
-  per image, the sum of the matched IoUs over the smaller set's size (NaN when neither has a box, 0 when only one
+  backbone's features; the two sets of boxes (scored >= 0.05, the ones COCO AP scores) are matched one to one
+  (Hungarian, cost -IoU, same class); per image, the sum of the matched IoUs over the smaller set's size (NaN when neither has a box, 0 when only one
   has). A detector that knows what it sees keeps its boxes when its features are perturbed.
 - Pre-NMS consistency (PCR-style; ICCV 2025, arXiv 2508.12082 uses pre-NMS candidates and their confidences): the
   detector is run again without suppression; per final box (>= 0.05), the score-weighted mean IoU of the
