@@ -49,7 +49,7 @@ def measure(groups: int, width: int, height: int, model: str, zoo: bool, repeats
     from pairedgta.configs import CONFIG_DIR
     from pairedgta.datasets import load_group_images, open_dataset
     from pairedgta.models.runtime import reuse_freed_memory
-    from pairedgta.stages import detection_evaluate
+    from pairedgta.stages import evaluate as evaluate_stage
 
     reuse_freed_memory()
     torch.set_num_threads(threads)
@@ -64,9 +64,9 @@ def measure(groups: int, width: int, height: int, model: str, zoo: bool, repeats
         images = [list(load_group_images(g, ds.conditions).values()) for g in ds.groups]
         n = sum(len(g) for g in images)
         model_cfg = models.with_defaults({**models.model_config(model), **(c["model_overrides"].get(model) or {})})
-        detector = models.build_segmenter(model_cfg)
-        build = models.build_segmenter
-        models.build_segmenter = lambda cfg, device=None, **kw: detector  # the stage runs the detector just timed
+        detector = models.build_model(model_cfg)
+        build = models.build_model
+        models.build_model = lambda cfg, device=None, **kw: detector  # the stage runs the detector just timed
 
         import numpy as np
 
@@ -77,7 +77,7 @@ def measure(groups: int, width: int, height: int, model: str, zoo: bool, repeats
             return time.perf_counter() - start
 
         stage_times: list[float] = []
-        original = detection_evaluate.DetectionEvaluate.build
+        original = evaluate_stage.Evaluate.build
 
         def timed(self: Any, out: Path, key: str) -> dict[str, Any]:
             start = time.perf_counter()
@@ -86,7 +86,7 @@ def measure(groups: int, width: int, height: int, model: str, zoo: bool, repeats
             finally:
                 stage_times.append(time.perf_counter() - start)
 
-        detection_evaluate.DetectionEvaluate.build = timed  # type: ignore[method-assign]
+        evaluate_stage.Evaluate.build = timed  # type: ignore[method-assign]
         runs = []
         try:
             bare()  # warm-up
@@ -99,8 +99,8 @@ def measure(groups: int, width: int, height: int, model: str, zoo: bool, repeats
                              "ratio": forward / stage_times[-1]})
                 before = after
         finally:
-            detection_evaluate.DetectionEvaluate.build = original  # type: ignore[method-assign]
-            models.build_segmenter = build
+            evaluate_stage.Evaluate.build = original  # type: ignore[method-assign]
+            models.build_model = build
     median = sorted(runs, key=lambda r: r["ratio"])[len(runs) // 2]
     return {**median, "ratios": [round(r["ratio"], 3) for r in runs], "images": n, "groups": groups,
             "width": width, "height": height, "model": model, "threads": threads,

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from pairedgta.models import build_segmenter, with_defaults  # noqa: E402
+from pairedgta.models import build_model, with_defaults  # noqa: E402
 
 ZOO = "pkg://models/weights/demo_det_reference/model.safetensors"
 
@@ -45,7 +45,7 @@ def _onnx(module: Any, path: Path, example: Any, names: list[str], axes: dict) -
 
 
 def _build(batch: int, **cfg: Any) -> Any:
-    return build_segmenter(with_defaults({"name": cfg.get("family", "m"), "batch_size": batch, **cfg}))
+    return build_model(with_defaults({"name": cfg.get("family", "m"), "batch_size": batch, **cfg}))
 
 
 def variants(root: Path, images: np.ndarray, batch: int) -> list[tuple[str, str, Callable, Any]]:

@@ -112,7 +112,7 @@ def overrides(root: Path, cache: Path, model: str, workers: int | str, batch: in
 def _timers(device_type: str) -> Iterator[dict[str, Any]]:
     """Times the forward (only inside evaluate's count_groups: the pseudolabel stage runs forwards of its own),
     count_groups and the writing of the tables; undone on exit."""
-    import pairedgta.stages.evaluate as ev
+    import pairedgta.evaluation.work as ev
     import torch
 
     from pairedgta.evaluation import counting, entry
@@ -283,7 +283,7 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     from pairedgta.conditions import build_condition_grid
     from pairedgta.configs import CONFIG_DIR
     from pairedgta.datasets import load_image, open_dataset
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
     from pairedgta.models.runtime import reuse_freed_memory
 
     reuse_freed_memory()  # as app.run does before the stages: the bare forward under the same allocator
@@ -297,7 +297,7 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     ds = open_dataset(c["dataset"], build_condition_grid(c["conditions"]))
     clean = c["conditions"]["reference"]
     images = [[load_image(g.images[k]) for k in sorted(g.images, key=lambda k: (k != clean, k))] for g in ds.groups]
-    seg = build_segmenter(c["model"], device=device)
+    seg = build_model(c["model"], device=device)
     ready_workers_server(workers)
     if cuda:
         torch.cuda.reset_peak_memory_stats()
@@ -310,9 +310,9 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
     torch.set_num_threads(threads)
     import pairedgta.models as models
 
-    build = models.build_segmenter  # the stages get the model just timed (built once: the paper's take seconds)
+    build = models.build_model  # the stages get the model just timed (built once: the paper's take seconds)
     built = {c["model"]["name"]: seg}
-    models.build_segmenter = lambda cfg, device=None, **kw: built.get(cfg.get("name")) or build(cfg, device=device, **kw)
+    models.build_model = lambda cfg, device=None, **kw: built.get(cfg.get("name")) or build(cfg, device=device, **kw)
     # the stage `repeats` times (evaluate forced after the first), a bare forward after each: every stage run is
     # compared with the bare forwards just before and after it, so a machine that speeds up or slows down within
     # the run moves both sides of that ratio together; the median run is reported, with the spread of the ratios
@@ -335,7 +335,7 @@ def measure(root: Path, cache: Path, model: str, workers: int | str, batch: int,
             t["ratio"] = columns({**t, "images": out["images"]})["ratio"]
             runs.append(t)
     finally:
-        models.build_segmenter = build
+        models.build_model = build
     built.clear()
     torch.set_num_threads(threads)
     ratios = [t["ratio"] for t in runs]

@@ -37,7 +37,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a checkout without the package installed
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # paper_graphs.py beside it, however this file is loaded
 
-from pairedgta.models import build_segmenter, model_config  # noqa: E402
+from pairedgta.models import build_model, model_config  # noqa: E402
 from paper_graphs import PAPER, hydra_value  # noqa: E402
 
 TINY = {"deeplabv3plus": "tiny_deeplabv3plus", "pidnet": "tiny_pidnet", "ddrnet": "tiny_ddrnet",
@@ -147,7 +147,7 @@ def _source_variants(root: Path, batch: int, height: int, width: int) -> list[tu
         return str(root / name)
 
     def build(name: str, cfg: dict[str, Any]) -> Any:
-        seg = build_segmenter({"name": name, **cfg})
+        seg = build_model({"name": name, **cfg})
         seg.batch_size = batch
         return seg
 
@@ -285,7 +285,7 @@ def main() -> None:
     stage_root = None
     for kind, name, options in graphs(args.graphs, args.families, args.models):
         fam = family(name)
-        seg = build_segmenter(name, device=str(device), **options)
+        seg = build_model(name, device=str(device), **options)
         for amp in args.amp:
             for batch in args.batches:
                 row = {**base, "kind": "forward", "model": name, "family": fam, "graph": kind,

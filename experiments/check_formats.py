@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # model.target=check_formats:<factory>
 
-from pairedgta.models import build_segmenter, model_config  # noqa: E402
+from pairedgta.models import build_model, model_config  # noqa: E402
 from pairedgta.models.hf_common import PACKAGE_DIR  # noqa: E402
 
 SEGFORMER = PACKAGE_DIR / "models" / "weights" / "demo_segformer"
@@ -64,9 +64,9 @@ class Logits(torch.nn.Module):
 def formats(tmp: Path) -> dict[str, dict[str, dict]]:
     """zoo member -> format -> model config."""
     example = torch.rand(2, 3, 256, 512)
-    seg_zoo = build_segmenter("demo_segformer")
+    seg_zoo = build_model("demo_segformer")
     seg_logits = Logits(seg_zoo.module).eval()
-    ddr_zoo = build_segmenter("demo_ddrnet")
+    ddr_zoo = build_model("demo_ddrnet")
     ddr = ddr_zoo.module.eval()
     from safetensors.torch import save_file
 
@@ -124,11 +124,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for zoo, variants in formats(tmp).items():
-            reference = build_segmenter(zoo)
+            reference = build_model(zoo)
             want = reference.predict_proba(images)
             want_labels = want.argmax(1)
             for fmt, cfg in variants.items():
-                seg = build_segmenter({"name": f"{zoo}_{fmt}", **cfg})
+                seg = build_model({"name": f"{zoo}_{fmt}", **cfg})
                 got = seg.predict_proba(images)
                 rows.append({"model": zoo, "format": fmt, "images": len(images),
                              "label agreement": float((got.argmax(1) == want_labels).double().mean()),

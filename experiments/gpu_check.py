@@ -121,9 +121,9 @@ def export_onnx(path: Path) -> None:
 
     import torch
 
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    module = build_segmenter("demo_ddrnet").module.eval()
+    module = build_model("demo_ddrnet").module.eval()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(module, (torch.rand(2, 3, 256, 512),), str(path), dynamo=False, input_names=["image"],
@@ -315,10 +315,10 @@ def step_sources(rep: Report, be: Any, bundle: Path, root: Path, device: str, tm
     from transformers import Mask2FormerImageProcessor
 
     from bench_models import PAPER
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
     name = "tiny_mask2former" if tiny else "mask2former_swin_s"
-    zoo = build_segmenter(name, device="cpu", **({} if tiny else dict(PAPER[name])))
+    zoo = build_model(name, device="cpu", **({} if tiny else dict(PAPER[name])))
     folder = tmp / "hf-mask2former"
     zoo.module.save_pretrained(folder)  # the random-init graph with Cityscapes' id2label, as save_pretrained writes it
     Mask2FormerImageProcessor(do_resize=False, size_divisor=32, ignore_index=255).save_pretrained(folder)
@@ -460,13 +460,13 @@ def main() -> None:
                 args.tiny)
         rep.write_md()
     if "forward" in args.steps:
-        from pairedgta.models import build_segmenter
+        from pairedgta.models import build_model
 
         for name in PAPER:
             if not wanted(name) or skip("forward", name):
                 continue
             try:
-                seg = build_segmenter(model(name), device=args.device, **options(name))
+                seg = build_model(model(name), device=args.device, **options(name))
             except Exception as exc:  # noqa: BLE001
                 rep.add("forward", model=name, note=failed(exc))
                 continue

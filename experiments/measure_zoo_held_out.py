@@ -38,7 +38,7 @@ def compose(overrides: list[str]) -> dict:
 
 
 def main() -> None:
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
     from pairedgta.testing.cli import compose_cfg
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -56,7 +56,7 @@ def main() -> None:
     render_s = time.perf_counter() - t0
     rows = []
     for name in models:
-        seg = build_segmenter(name)
+        seg = build_model(name)
         cm = ConfusionMatrix(NUM_CLASSES)
         for i in range(0, len(images), 4):
             pred, _ = seg.predict(np.stack(images[i:i + 4]))

@@ -46,12 +46,12 @@ def run(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict[str, A
 def preflight(models: planning.RunModels, device: str) -> None:
     """A researcher's model (a model source) is loaded and probed before any stage writes: a missing file, a file of
     another format, a wrong output is its one line now, not after the scenes are rendered. Loaded once: the stages
-    reuse it (pairedgta/models: shared_segmenter)."""
-    from pairedgta.models import is_source, shared_segmenter
+    reuse it (pairedgta/models: shared_model)."""
+    from pairedgta.models import is_source, shared_model
 
     for cfg in [*models.evaluated, models.reference]:
         if is_source(cfg):
-            shared_segmenter(cfg, device=device)
+            shared_model(cfg, device=device)
 
 
 def _log_invocation(tracker: Recorder, container: dict[str, Any]) -> None:

@@ -9,6 +9,7 @@ import json
 import math
 from pathlib import Path
 
+from pairedgta import tasks
 from pairedgta.evaluation.entry import SUMMARY
 
 REFERENCE_TAG = " (reference)"
@@ -26,8 +27,7 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
         summary = Path(path) / SUMMARY
         if summary.is_file():
             data = json.loads(summary.read_text())
-            if data.get("task") == "detection":
-                title = "mean detection xi"
+            title = tasks.of_entry(data).title  # the task whose evaluate work wrote it
             teacher = str(data.get("reference_model"))
             teachers.add(teacher)
             if str(data.get("model", name.rsplit("/", 1)[-1])) == teacher:

@@ -308,7 +308,7 @@ class DetectionConfig:
 class RunConfig:
     """The composed config of one run (or of one pass of a run with `variants`)."""
     name: str = key("default")
-    task: str = key("segmentation", choices=tasks.NAMES)
+    task: str = key(tasks.DEFAULT, choices=tasks.NAMES)
     models: Optional[list[str]] = key(["demo_segformer", "demo_segformer_noaug", "demo_ddrnet", "demo_pidnet"])
     reference_model: Optional[str] = key("demo_segformer")  # null: the `model` group's
     model_overrides: dict[str, Any] = key({})

@@ -36,11 +36,48 @@ def test_evaluation_imports_no_stage(path):
     assert not {m for m in imports(path) if m.startswith("pairedgta.stages")}, path
 
 
+@pytest.mark.parametrize("path", sorted((PKG / "detection").rglob("*.py")), ids=lambda p: p.name)
+def test_detection_imports_no_stage(path):
+    """pairedgta/detection holds the detection task's work below the stages, as evaluation/ holds segmentation's."""
+    assert not {m for m in imports(path) if m.startswith("pairedgta.stages")}, path
+
+
+def test_every_task_work_sits_below_the_stages():
+    """Each task's work for a stage (pairedgta/tasks.py `Task.work`) imports no stage: the stages call it."""
+    import importlib
+
+    from pairedgta import tasks
+
+    for task in tasks.TASKS.values():
+        for stage, target in task.work.items():
+            module = importlib.import_module(target.split(":")[0])
+            assert not {m for m in imports(Path(module.__file__)) if m.startswith("pairedgta.stages")}, (task.name, stage)
+
+
+def test_no_stage_module_per_task():
+    """One module per stage, whatever the task: no stages/<task>_*.py."""
+    from pairedgta import stage_registry, tasks
+
+    modules = {p.stem for p in (PKG / "stages").glob("*.py")}
+    assert not {m for m in modules for t in tasks.NAMES if m.startswith(f"{t}_")}, modules
+    assert {s.module.rsplit(".", 1)[-1] for s in stage_registry.STAGES} <= modules
+
+
+def test_only_the_task_declarations_name_a_task():
+    """No code outside pairedgta/tasks.py names a task (the string "detection", "segmentation") or branches on one;
+    the other modules ask the run's task (`tasks.get(run.task)`) for its work, figures, zoo and words."""
+    from pairedgta import tasks
+
+    offenders = [path.relative_to(PKG).as_posix() for path in sorted(PKG.rglob("*.py"))
+                 if path.name != "tasks.py" and string_literals(path) & set(tasks.NAMES)]
+    assert not offenders, offenders
+
+
 # output files and the only module that may name them
 OWNED = {
     "xi.csv": "evaluation/tables.py", "rho_valid.csv": "evaluation/tables.py", "frame_counts.csv": "evaluation/tables.py",
     "pixel_agreement.csv": "evaluation/tables.py", "gt_iou.csv": "evaluation/tables.py",
-    "histogram.csv": "stages/pseudolabel.py", "quality.csv": "stages/pseudolabel.py",
+    "histogram.csv": "evaluation/pseudolabel.py", "quality.csv": "evaluation/pseudolabel.py",
     "timings.csv": "stages/generate.py", "validation.csv": "stages/generate.py",
 }
 

@@ -74,11 +74,11 @@ class _Fake:
 @pytest.mark.slow
 def test_a_measurement_on_a_fake_segmenter_adds_up(tmp_path, monkeypatch):
     import pairedgta.models as models
-    import pairedgta.stages.evaluate as ev
-    import pairedgta.stages.pseudolabel as pl
+    import pairedgta.evaluation.work as ev
+    import pairedgta.evaluation.pseudolabel as pl
 
     b = bench()
-    for module, name in ((models, "build_segmenter"), (ev, "shared_segmenter"), (pl, "shared_segmenter")):
+    for module, name in ((models, "build_model"), (ev, "shared_model"), (pl, "shared_model")):
         monkeypatch.setattr(module, name, _Fake.build)  # the bare forward's model, and the stages'
     b.make_release_dataset(tmp_path / "ds", 3, 64, 32)
     r = b.measure(tmp_path / "ds", tmp_path / "cache", "tiny_ddrnet", 0, 2, "-", repeats=3)

@@ -13,7 +13,7 @@ from PIL import Image
 
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ConfigError
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.testing.cli import mlflow_store, run_cli
 
 # (city, seq, frame, which ground-truth files exist)
@@ -41,7 +41,7 @@ def frame_id(city, seq, frame):
 def write_tree(root: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     """Random images; labels = the tiny model's prediction with some pixels changed and some void, so
     every IoU is somewhere between 0 and 1. Returns (image, train ids) per frame in sorted order."""
-    model = build_segmenter("tiny_segformer")
+    model = build_model("tiny_segformer")
     rng = np.random.default_rng(0)
     truth = []
     for city, seq, frame, gt in FRAMES:
@@ -107,7 +107,7 @@ def bad_runs(tree, tmp_path_factory):
 
 
 def independent_iou(truth: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, float]:
-    model = build_segmenter("tiny_segformer")
+    model = build_model("tiny_segformer")
     conf = np.zeros((19, 19), dtype=np.int64)
     for image, gt in truth:
         pred = model.predict(image[None])[0][0].numpy()
@@ -184,7 +184,7 @@ def test_bad_input_is_a_one_line_error(bad_runs, case):
 
 def test_scale_options_and_preprocessing_warning(tree):
     from pairedgta.datasets.cityscapes import open_cityscapes
-    from pairedgta.stages.cityscapes_val import preprocessing_warning
+    from pairedgta.evaluation.cityscapes_val import preprocessing_warning
 
     root, truth = tree
     ds = open_cityscapes(root=str(root), split="val", max_images=2, scale=0.5)

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from pairedgta.metrics import ReferenceConsistency, prediction_mass, rho_valid
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.testing.cli import mlflow_store, run_cli
 from pairedgta.testing.datasets import write_release
 
@@ -45,7 +45,7 @@ def test_smoke_experiment_end_to_end(tmp_path):
     # recompute the numbers independently from the cached dataset, pseudo-labels and the model
     gen = next(p for p in (cache / "generate").iterdir() if not p.name.startswith("."))
     pseudo = next(p for p in (cache / "pseudolabel").iterdir() if not p.name.startswith("."))
-    model = build_segmenter("tiny_mask2former")
+    model = build_model("tiny_mask2former")
     xi_night = ReferenceConsistency(19, 255)
     clean_mass, adv_mass = [], []
     for scene in sorted((gen / "scenes").iterdir()):
@@ -352,7 +352,7 @@ def test_corrupt_hf_weights_from_the_cli_are_one_line(tmp_path):
     from pairedgta.testing.cli import fast_overrides
 
     weights = tmp_path / "weights"
-    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    build_model("tiny_segformer").module.save_pretrained(weights)
     st = weights / "model.safetensors"
     st.write_bytes(st.read_bytes()[: st.stat().st_size // 2])  # truncated download
     args = [o for o in fast_overrides(tmp_path) if not o.startswith("model=")] + [

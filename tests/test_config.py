@@ -115,7 +115,7 @@ def test_model_keys_are_exactly_what_the_families_read():
 
 def test_unknown_keys_are_rejected_the_same_way_everywhere():
     from pairedgta.datasets import open_dataset
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
     from pairedgta.render import build_renderer
     from pairedgta.scene.sampling import build_region
 
@@ -124,7 +124,7 @@ def test_unknown_keys_are_rejected_the_same_way_everywhere():
         (lambda: build_region({"type": "rectangle", "name": "r", "x_range": [0, 1], "y_range": [0, 1], "hight": 2}),
          "region: unknown key(s) hight"),
         (lambda: open_dataset({"kind": "paired_gta", "root": "/x", "spilt": "val"}), "dataset: unknown key(s) spilt"),
-        (lambda: build_segmenter("tiny_segformer", widht=3), "model (tiny_segformer): unknown key(s) widht"),
+        (lambda: build_model("tiny_segformer", widht=3), "model (tiny_segformer): unknown key(s) widht"),
     ]
     for make, message in cases:
         with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):

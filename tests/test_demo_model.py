@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from pairedgta.conditions import build_condition_grid
 from pairedgta.metrics import ConfusionMatrix, ReferenceConsistency
-from pairedgta.models import build_segmenter, model_config
+from pairedgta.models import build_model, model_config
 from pairedgta.render import build_renderer
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.descriptor import SceneDescriptor
@@ -38,7 +38,7 @@ TAU = 0.6  # the main job's pseudo-label confidence
 @functools.cache
 def zoo_model(name: str):
     """One build per member and module: the loading test builds it, the held-out tests reuse it."""
-    return build_segmenter(name)
+    return build_model(name)
 
 
 def card(name: str) -> dict:

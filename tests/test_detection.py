@@ -299,13 +299,13 @@ def test_cityscapes_box_ap_check_through_the_cli(tmp_path):
     from PIL import Image
 
     from pairedgta.detection.real_boxes import read_cityscapes_boxes
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
     from pairedgta.testing.cli import run_cli
 
     rng = np.random.default_rng(0)
     img_dir, gt_dir = tmp_path / "cs" / "leftImg8bit" / "val" / "ulm", tmp_path / "cs" / "gtFine" / "val" / "ulm"
     img_dir.mkdir(parents=True), gt_dir.mkdir(parents=True)
-    detector = build_segmenter("tiny_fcos")
+    detector = build_model("tiny_fcos")
     images, gts, results = [], [], []
     for k in range(2):
         fid = f"ulm_000000_00000{k}"
@@ -357,14 +357,14 @@ def test_a_checkpoint_of_other_classes_is_one_line(tmp_path):
 
     from pairedgta.detection.models import fcos
     from pairedgta.errors import ModelError
-    from pairedgta.models import build_segmenter, model_config
+    from pairedgta.models import build_model, model_config
 
     cfg = model_config("tiny_fcos")
     coco = fcos("coco", 91, 128, 256, width=cfg["width"], fpn_channels=cfg["fpn_channels"])
     path = tmp_path / "coco_fcos.safetensors"
     save_file({k: v.contiguous() for k, v in coco.state_dict().items()}, str(path))
     with pytest.raises(ModelError) as err:
-        build_segmenter({**cfg, "random_init": False, "checkpoint_path": str(path)})
+        build_model({**cfg, "random_init": False, "checkpoint_path": str(path)})
     message = str(err.value)
     assert "\n" not in message and "predicts 91 classes" in message and "background + person, rider, car" in message
 

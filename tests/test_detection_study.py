@@ -86,9 +86,9 @@ def test_box_stability_and_cluster_consistency_by_hand():
 
 def test_dropout_and_suppression_hooks_on_a_zoo_detector():
     from pairedgta.metrics.box_stability import feature_dropout, image_estimators, no_suppression
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    det = build_segmenter("tiny_fcos")
+    det = build_model("tiny_fcos")
     image = np.random.default_rng(0).integers(0, 255, (64, 128, 3), dtype=np.uint8)
     (plain,) = det.detect(image[None])
     with feature_dropout(det, seed=1) as ok:
@@ -165,7 +165,7 @@ def test_the_figure_reads_bos_and_pcr_by_the_written_group_ids(tmp_path):
 
     from pairedgta.detection import registry
     from pairedgta.figures.det_estimators import detector
-    from pairedgta.stages.detection_evaluate import DETECTIONS_DIR, SUMMARY, DetectionEvaluateResult
+    from pairedgta.detection.evaluate import DETECTIONS_DIR, SUMMARY, DetectionEvaluateResult
 
     e = DetectionEvaluateResult("evaluate", "k", tmp_path, False, {"model_config": {"name": "m"}})
     groups, conditions = ["00000", "00001", "00010"], ["Day-EXTRASUNNY", "Night-RAIN"]

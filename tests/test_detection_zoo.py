@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from safetensors import safe_open
 
-from pairedgta.models import build_segmenter, model_config, model_kind
+from pairedgta.models import build_model, model_config, model_kind
 from pairedgta.testing.cli import compose_cfg
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
@@ -31,7 +31,7 @@ def test_every_member_is_float16_carded_loaded_and_run_by_the_task():
             assert {str(f.get_tensor(k).dtype) for k in f.keys()} <= {"torch.float16", "torch.int64"}, name
         card = json.loads((folder / "model_card.json").read_text())
         assert card and (folder / "README.md").read_text().strip(), name
-        detector = build_segmenter(name)
+        detector = build_model(name)
         (d,) = detector.detect(image)
         assert d.boxes.shape[1:] == (4,) and len(d.scores) == len(d.labels) <= 100, name
         assert 0.0 < detector.score_threshold < 1.0

@@ -19,14 +19,14 @@ from pairedgta.detection import label_spaces, layouts
 from pairedgta.detection.boxes import INSTANCE_CLASSES
 from pairedgta.errors import ConfigError, ModelError
 from pairedgta.metrics import detection_xi
-from pairedgta.models import build_segmenter, with_defaults
+from pairedgta.models import build_model, with_defaults
 from pairedgta.models.checkpoint import load_checkpoint_strict, resolve_checkpoint_path
 
 ZOO = "pkg://models/weights/demo_det_reference/model.safetensors"
 
 
 def build(**cfg):
-    return build_segmenter(with_defaults({"name": "mine", **cfg}))
+    return build_model(with_defaults({"name": "mine", **cfg}))
 
 
 # -- layouts ----------------------------------------------------------------------------------------------------
@@ -147,7 +147,7 @@ def _same(a, b, size, threshold: float = 0.3) -> None:
 def test_one_detector_in_every_format_gives_the_same_boxes_and_xi(tmp_path):
     images = np.stack([street(0), street(1)])
     size = images.shape[1:3]
-    reference = build_segmenter("demo_det_reference").detect(images)
+    reference = build_model("demo_det_reference").detect(images)
     # a trained torchvision-style detector: as the user's factory with its weights, and as torchvision's ONNX export
     fcos = zoo_fcos()
     load_checkpoint_strict(fcos, resolve_checkpoint_path(ZOO))

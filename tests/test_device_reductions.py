@@ -169,9 +169,9 @@ def test_group_counts_equal_the_former_host_path_exactly(own, visible, use_pl, b
 def test_a_real_segmenter_on_the_device_path_equals_the_former_host_path(name):
     """The model's own path: uint8 to the device, the forward in the same batches, max and entropy per chunk,
     reductions there; against old predict_proba (float32 on the host, all chunks concatenated) + numpy."""
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    seg = build_segmenter(name, batch_size=2)
+    seg = build_model(name, batch_size=2)
     rng = np.random.default_rng(0)
     item = make_item(rng, 64, 128, CONDS, own=(CLEAN,), visible=True)
     s = settings(tau=0.2)
@@ -235,9 +235,9 @@ def test_confidence_histogram_bins_like_the_host_path_and_survives_nan():
 
 def test_a_nan_model_is_reported_once_at_the_end_of_the_stage_not_per_batch():
     from pairedgta.errors import ModelError
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    seg = build_segmenter("tiny_ddrnet")
+    seg = build_model("tiny_ddrnet")
     with torch.no_grad():
         next(seg.module.parameters()).fill_(float("nan"))
     x = np.zeros((2, 64, 128, 3), np.uint8)

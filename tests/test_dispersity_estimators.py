@@ -55,9 +55,9 @@ def test_energy_is_the_pooled_mean_logsumexp_and_nan_without_logits():
 def test_gram_and_energy_come_from_the_same_forward_by_hand(name):
     """The Gram of each image's probabilities and the logsumexp of its logits, against float64 by hand; the
     labels and confidences are those of the plain prediction, bit for bit."""
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    seg = build_segmenter(name, batch_size=2)
+    seg = build_model(name, batch_size=2)
     x = np.random.default_rng(1).integers(0, 256, (3, 32, 64, 3), dtype=np.uint8)
     maps = seg.predict_maps(x, energy=True, gram=True)
     plain = seg.predict_maps(x)

@@ -19,7 +19,7 @@ from pairedgta.datasets.acdc import REFERENCE, open_acdc
 from pairedgta.testing.acdc import write_standin
 from pairedgta.errors import ConfigError, DataError
 from pairedgta.metrics import prediction_mass, rho_valid
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.testing.cli import compose_cfg, fast_overrides, mlflow_store, run_cli
 
 TINY = ["models=[tiny_segformer,tiny_mask2former]", "reference_model=tiny_segformer"]
@@ -165,7 +165,7 @@ def test_pseudo_label_distribution(work):
     void = 1 - sum((l != IGNORE_INDEX).sum() for l in labels.values()) / sum(l.size for l in labels.values())
     assert metrics["pseudo_label/generated/void_share"] == pytest.approx(void)
     from pairedgta.figures.distribution import example_group
-    from pairedgta.stages.pseudolabel import PseudoLabels
+    from pairedgta.evaluation.pseudolabel import PseudoLabels
 
     assert example_group(PseudoLabels("pseudolabel", pseudo.name, pseudo, hit=True), None) == best
 
@@ -220,7 +220,7 @@ def test_night_vs_acdc(work, acdc_root):
 
     # phi and rho_valid on ACDC recomputed from the images with the metric functions
     ds = open_acdc(condition="night", splits=["train", "val"], root=acdc_root)
-    model = build_segmenter("tiny_segformer")
+    model = build_model("tiny_segformer")
     clean, adverse = {"person": [], "car": []}, {"person": [], "car": []}
     inter, union = np.zeros(19), np.zeros(19)
     for g in ds.groups:

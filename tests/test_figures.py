@@ -89,7 +89,7 @@ def test_disagreement_overlay_uses_the_legend_colours():
 @pytest.mark.slow
 def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progress(tmp_path, monkeypatch, capsys):
     built: list[str] = []
-    build = models.build_segmenter
+    build = models.build_model
 
     segmenters = {}
 
@@ -98,7 +98,7 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
         segmenters[built[-1]] = build(model, device=device, **kw)
         return segmenters[built[-1]]
 
-    monkeypatch.setattr(models, "build_segmenter", counting)
+    monkeypatch.setattr(models, "build_model", counting)
     grids = {}
     save = qualitative.save
     shown: dict[tuple[str, str], np.ndarray] = {}  # (group, condition) -> the image the grid loaded
@@ -155,7 +155,7 @@ def test_a_run_loads_each_model_once_explains_its_colours_and_shows_plot_progres
     # outside a run every call builds a fresh model (nothing is kept between runs)
     built.clear()
     cfg = models.model_config("tiny_segformer")
-    assert models.shared_segmenter(cfg) is not models.shared_segmenter(cfg)
+    assert models.shared_model(cfg) is not models.shared_model(cfg)
     assert built == ["tiny_segformer", "tiny_segformer"]
 
 
@@ -217,10 +217,10 @@ def test_the_stage_results_provide_what_figures_read():
     from dataclasses import fields
 
     from pairedgta.figures import inputs
-    from pairedgta.stages.evaluate import EvaluateResult
+    from pairedgta.evaluation.work import EvaluateResult
     from pairedgta.stages.generate import GeneratedData
     from pairedgta.stages.planning import PassResult
-    from pairedgta.stages.pseudolabel import PseudoLabels
+    from pairedgta.evaluation.pseudolabel import PseudoLabels
 
     for protocol, cls in ((inputs.FigurePass, PassResult), (inputs.Evaluation, EvaluateResult),
                           (inputs.PseudoLabels, PseudoLabels), (inputs.GeneratedData, GeneratedData)):

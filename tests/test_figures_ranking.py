@@ -48,7 +48,7 @@ def test_one_headline_condition_for_the_ranking_figure_and_the_logged_rho(tmp_pa
     import json
 
     from pairedgta.conditions import HEADLINE, headline_condition
-    from pairedgta.stages.evaluate import EvaluateResult
+    from pairedgta.evaluation.work import EvaluateResult
 
     conds, ref = ["Day-EXTRASUNNY", "Day-RAIN", "Night-EXTRASUNNY"], "Day-EXTRASUNNY"
     rain = "Day-RAIN"  # plot.ranking.condition

@@ -67,7 +67,7 @@ def test_the_stage_version_is_derived_from_the_registered_metrics():
 def test_a_toy_metric_in_two_touches(tmp_path, monkeypatch):
     """Registered with one line, the toy metric is reduced on the device, written, listed, read back, and
     moves the stage's key; every other file of the entry stays byte for byte what it was."""
-    from pairedgta.stages.evaluate import EvaluateResult
+    from pairedgta.evaluation.work import EvaluateResult
 
     before = _entry(tmp_path)
     monkeypatch.setattr(registry, "METRICS", [*registry.METRICS, ToyRoad()])  # touch 2 of 2

@@ -108,7 +108,7 @@ def test_an_evaluation_gives_back_a_buildable_model_config(tmp_path):
     """Local weights enter the hash as a content fingerprint; the config read back must still build."""
     from pairedgta.models import check_model_config, model_config
     from pairedgta.stages.common import model_hash_config
-    from pairedgta.stages.evaluate import EvaluateResult
+    from pairedgta.evaluation.work import EvaluateResult
 
     hashed = model_hash_config(model_config("demo_segformer"))
     assert "weights_sha256" in hashed

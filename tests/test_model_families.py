@@ -161,7 +161,7 @@ def test_a_toy_family_declares_its_architecture_and_one_registry_line(toy, tmp_p
 
 
 def test_the_model_functions_take_a_registered_family(toy, monkeypatch):
-    from pairedgta.models import build_segmenter, check_model_config, family_keys
+    from pairedgta.models import build_model, check_model_config, family_keys
 
     registry, _ = toy
     monkeypatch.setitem(FAMILIES._targets, "toy", registry._targets["toy"])
@@ -170,7 +170,7 @@ def test_the_model_functions_take_a_registered_family(toy, monkeypatch):
     assert filled["pad_multiple"] == 4 and filled["init_seed"] is None and "width" not in filled  # hashed as declared
     assert {"width", "depth", "batch_size"} <= family_keys("toy")
     check_model_config({"name": "t", "family": "toy", "width": 2})
-    seg = build_segmenter({"name": "t", "family": "toy", "random_init": True, "width": 2}, batch_size=2)
+    seg = build_model({"name": "t", "family": "toy", "random_init": True, "width": 2}, batch_size=2)
     assert seg.module[0].out_channels == 2 and seg.batch_size == 2
 
 

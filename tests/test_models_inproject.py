@@ -18,7 +18,7 @@ import yaml
 from pairedgta.cityscapes import NUM_CLASSES
 from pairedgta.errors import ModelError
 from pairedgta.configs import CONFIG_DIR
-from pairedgta.models import build_segmenter, model_config
+from pairedgta.models import build_model, model_config
 from pairedgta.models import ddrnet, deeplabv3plus, pidnet
 from pairedgta.models.checkpoint import build_network
 
@@ -222,7 +222,7 @@ def test_full_model_loads_released_layout(family, official_keys, tmp_path, caplo
     torch.save(official_layout(family, weights), path)
 
     with caplog.at_level(logging.INFO, logger="pairedgta.models.checkpoint"):
-        seg = build_segmenter(full, checkpoint_path=str(path), device="cpu")
+        seg = build_model(full, checkpoint_path=str(path), device="cpu")
     state = seg.module.state_dict()
     assert set(state) == {k for k in official_keys[family] if not k.startswith(arch.TRAINING_ONLY_PREFIXES)}
     for key in (PROBE[family], next(k for k in state if k.endswith("running_var"))):
@@ -260,8 +260,8 @@ def test_checkpoint_layouts_load_strictly(family, layout, tmp_path):
     path = tmp_path / f"{layout}.pth"
     torch.save(LAYOUTS[layout](weights), path)
 
-    fresh = build_segmenter(tiny).module.state_dict()
-    loaded = build_segmenter(tiny, checkpoint_path=str(path)).module.state_dict()
+    fresh = build_model(tiny).module.state_dict()
+    loaded = build_model(tiny, checkpoint_path=str(path)).module.state_dict()
     assert not torch.equal(fresh[PROBE[family]], weights[PROBE[family]])
     for key, value in loaded.items():
         assert torch.equal(value, weights[key]), key
@@ -277,7 +277,7 @@ def test_wrong_checkpoint_fails_with_key_list(family, tmp_path):
     assert len(no_block) < len(weights)
     torch.save(no_block, tmp_path / "no_block.pt")
     with pytest.raises(ModelError) as err:
-        build_segmenter(tiny, checkpoint_path=str(tmp_path / "no_block.pt"))
+        build_model(tiny, checkpoint_path=str(tmp_path / "no_block.pt"))
     message = str(err.value)
     assert "\n" not in message and "no_block.pt" in message
     assert f"{len(weights) - len(no_block)} missing" in message and block in message
@@ -287,7 +287,7 @@ def test_wrong_checkpoint_fails_with_key_list(family, tmp_path):
     bad_shape["extra_head.weight"] = torch.zeros(3)
     torch.save({"state_dict": bad_shape}, tmp_path / "bad_shape.pt")
     with pytest.raises(ModelError) as err:
-        build_segmenter(tiny, checkpoint_path=str(tmp_path / "bad_shape.pt"))
+        build_model(tiny, checkpoint_path=str(tmp_path / "bad_shape.pt"))
     message = str(err.value)
     assert "\n" not in message
     assert "1 shape mismatches" in message and reshaped in message and str(NUM_CLASSES - 1) in message
@@ -297,19 +297,19 @@ def test_wrong_checkpoint_fails_with_key_list(family, tmp_path):
 def test_missing_or_corrupt_file_is_one_line_model_error(tmp_path):
     missing = tmp_path / "nope.pth"
     with pytest.raises(ModelError, match="nope.pth") as err:
-        build_segmenter("tiny_pidnet", checkpoint_path=str(missing))
+        build_model("tiny_pidnet", checkpoint_path=str(missing))
     assert "\n" not in str(err.value)
 
     corrupt = tmp_path / "corrupt.pth"
     corrupt.write_bytes(b"\x80\x02 definitely not a checkpoint" * 10)
     with pytest.raises(ModelError, match="corrupt.pth") as err:
-        build_segmenter("tiny_ddrnet", checkpoint_path=str(corrupt))
+        build_model("tiny_ddrnet", checkpoint_path=str(corrupt))
     assert "\n" not in str(err.value)
 
     empty = tmp_path / "empty.pth"
     torch.save({"epoch": 1}, empty)
     with pytest.raises(ModelError, match="empty.pth.*no state dict") as err:
-        build_segmenter("tiny_deeplabv3plus", checkpoint_path=str(empty))
+        build_model("tiny_deeplabv3plus", checkpoint_path=str(empty))
     assert "\n" not in str(err.value)
 
 
@@ -323,7 +323,7 @@ def test_missing_or_corrupt_file_is_one_line_model_error(tmp_path):
 )
 def test_full_model_without_checkpoint_says_what_to_download(name, file):
     with pytest.raises(ModelError) as err:
-        build_segmenter(name)
+        build_model(name)
     message = str(err.value)
     assert "\n" not in message
     assert file in message and "github.com/" in message and "model.checkpoint_path=" in message
@@ -336,7 +336,7 @@ def test_full_model_without_checkpoint_says_what_to_download(name, file):
 @pytest.mark.parametrize("size", [(64, 128), (70, 130)])
 @pytest.mark.parametrize("family", FAMILIES)
 def test_tiny_forward_shapes_and_probabilities(family, size):
-    seg = build_segmenter(FAMILIES[family][2], batch_size=2)  # 3 images -> two chunks
+    seg = build_model(FAMILIES[family][2], batch_size=2)  # 3 images -> two chunks
     images = torch.rand(3, 3, *size)
     probs = seg.predict_proba(images)
     assert probs.shape == (3, NUM_CLASSES, *size)
@@ -351,7 +351,7 @@ def test_tiny_forward_shapes_and_probabilities(family, size):
 def test_normalisation_and_padding_happen_inside(family, size):
     """predict_proba on [0,1] RGB == softmax of the net on ImageNet-normalised, zero-padded input, cropped."""
     cfg = model_config(FAMILIES[family][2])
-    seg = build_segmenter(cfg["name"])
+    seg = build_model(cfg["name"])
     images = torch.rand(2, 3, *size)
     mean = torch.tensor(cfg["mean"]).view(1, 3, 1, 1)
     std = torch.tensor(cfg["std"]).view(1, 3, 1, 1)
@@ -370,11 +370,11 @@ def test_normalisation_and_padding_happen_inside(family, size):
 def test_tiny_models_are_seeded_and_leave_global_rng_alone(family):
     tiny = FAMILIES[family][2]
     rng = torch.get_rng_state()
-    a = build_segmenter(tiny).module.state_dict()
-    b = build_segmenter(tiny).module.state_dict()
+    a = build_model(tiny).module.state_dict()
+    b = build_model(tiny).module.state_dict()
     assert torch.equal(torch.get_rng_state(), rng)
     assert all(torch.equal(a[k], b[k]) for k in a)
-    c = build_segmenter(tiny, init_seed=1).module.state_dict()
+    c = build_model(tiny, init_seed=1).module.state_dict()
     assert not torch.equal(a[PROBE[family]], c[PROBE[family]])
 
 
@@ -401,9 +401,9 @@ def test_a_model_with_nan_weights_stops_naming_the_model():
     import torch
 
     from pairedgta.errors import ModelError
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    seg = build_segmenter("tiny_ddrnet")
+    seg = build_model("tiny_ddrnet")
     with torch.no_grad():
         next(seg.module.parameters()).fill_(float("nan"))
     with pytest.raises(ModelError, match="tiny_ddrnet: the model's outputs are not finite"):

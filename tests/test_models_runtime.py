@@ -13,7 +13,7 @@ import yaml
 from pairedgta.cache import canonical_json
 from pairedgta.configs import CONFIG_DIR
 from pairedgta.errors import ConfigError
-from pairedgta.models import (FAMILIES, IN_PROJECT_OPTIONS, RuntimeOptions, available_models, build_segmenter,
+from pairedgta.models import (FAMILIES, IN_PROJECT_OPTIONS, RuntimeOptions, available_models, build_model,
                               check_model_config, model_config, with_defaults)
 from pairedgta.models.runtime import MODEL_KEYS, runtime_defaults
 from pairedgta.stages.common import model_hash_config
@@ -154,21 +154,21 @@ def test_a_bad_input_option_of_an_in_project_family_is_one_line_before_anything_
     with pytest.raises(ConfigError, match=r"^model \(demo_pidnet\): " + message):
         check_model_config(model_config("demo_pidnet", **{key: value}))
     with pytest.raises(ConfigError, match=r"^model \(tiny_pidnet\): " + message):
-        build_segmenter("tiny_pidnet", **{key: value})
+        build_model("tiny_pidnet", **{key: value})
 
 
 def test_the_family_receives_the_parsed_runtime_options():
     assert RuntimeOptions() == RuntimeOptions.from_config({})
     assert tuple(MODEL_KEYS) == ("batch_size", "amp", "channels_last", "compile")
     assert model_config("mask2former_swin_s")["batch_size"] == 1  # a YAML value that differs from the default
-    seg = build_segmenter("tiny_pidnet")
+    seg = build_model("tiny_pidnet")
     assert (seg.batch_size, seg.amp, seg.channels_last, str(seg.device)) == (4, None, False, "cpu")
-    seg = build_segmenter("tiny_segformer", batch_size=3, amp="bf16")
+    seg = build_model("tiny_segformer", batch_size=3, amp="bf16")
     assert seg.batch_size == 3 and seg.amp is None  # autocast is CUDA only
     with pytest.raises(ConfigError, match=r"^model \(tiny_ddrnet\): unknown key\(s\) runtime"):
         check_model_config(model_config("tiny_ddrnet", runtime={}))
     with pytest.raises(ConfigError, match=r"^model.batch_size=-2 must be"):
-        build_segmenter("tiny_ddrnet", batch_size=-2)
+        build_model("tiny_ddrnet", batch_size=-2)
 
 
 def test_speed_only_options_stay_out_of_the_stage_hash_and_amp_does_not():

@@ -139,15 +139,15 @@ def test_two_jobs_on_one_hash_first_rename_wins(tmp_path):
 
 @pytest.mark.slow
 def test_replacing_local_weights_behind_the_same_path_is_not_a_hit(tmp_path):
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
     weights = tmp_path / "weights"
-    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    build_model("tiny_segformer").module.save_pretrained(weights)
     base = fast_overrides(tmp_path) + ["models=null", "model=segformer_b0", f"model.path={weights}",
                                        "stages=[generate,pseudolabel,evaluate]"]
     first = hits(run(compose_cfg(base)))
     assert not first[("evaluate", "[segformer_b0]")]
     assert hits(run(compose_cfg(base)))[("evaluate", "[segformer_b0]")]
-    build_segmenter("tiny_segformer", init_seed=1).module.save_pretrained(weights)  # same path, new weights
+    build_model("tiny_segformer", init_seed=1).module.save_pretrained(weights)  # same path, new weights
     again = hits(run(compose_cfg(base)))
     assert not again[("evaluate", "[segformer_b0]")] and again[("pseudolabel", "[tiny_segformer]")]

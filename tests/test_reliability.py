@@ -344,14 +344,14 @@ def test_every_json_written_is_strict(tmp_path):
 
 
 def test_corrupt_safetensors_and_pickled_weights_are_one_line_model_errors(tmp_path):
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
     weights = tmp_path / "weights"
-    build_segmenter("tiny_segformer").module.save_pretrained(weights)
+    build_model("tiny_segformer").module.save_pretrained(weights)
     st = weights / "model.safetensors"
     st.write_bytes(b"\xff" * 64 + st.read_bytes()[64:])  # header length and JSON destroyed
     with pytest.raises(ModelError) as info:
-        build_segmenter("segformer_b0", path=str(weights))
+        build_model("segformer_b0", path=str(weights))
     msg = str(info.value)
     assert "\n" not in msg and f"model.path={weights}" in msg and "Error" in msg
 
@@ -365,7 +365,7 @@ def test_corrupt_safetensors_and_pickled_weights_are_one_line_model_errors(tmp_p
 
     torch.save({"segformer.encoder.x": Exploit()}, weights / "pytorch_model.bin")
     with pytest.raises(ModelError) as info:
-        build_segmenter("segformer_b0", path=str(weights))
+        build_model("segformer_b0", path=str(weights))
     msg = str(info.value)
     assert "\n" not in msg and f"model.path={weights}" in msg
     assert not marker.exists()
@@ -596,10 +596,10 @@ def test_execution_only_keys_stay_out_of_the_dataset_hash():
 
 @pytest.mark.slow
 def test_evaluate_is_identical_at_1_and_2_torch_threads(tmp_path, monkeypatch):
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
     # precondition: this model's float reductions do depend on the thread count
-    model = build_segmenter("demo_segformer")
+    model = build_model("demo_segformer")
     x = np.random.default_rng(0).integers(0, 255, size=(3, 32, 64, 3), dtype=np.uint8)
     probs = {}
     for n in (1, 2):

@@ -18,7 +18,7 @@ from PIL import Image
 from safetensors.torch import save_file
 
 import source_nets
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.testing.cli import fast_overrides, run_cli
 
 SIZE = ["renderer.width=128", "renderer.height=64"]
@@ -108,7 +108,7 @@ def test_every_format_gives_the_same_labels(formats, images, network):
     variants = formats[network]
     labels = {}
     for fmt, cfg in variants.items():
-        seg = build_segmenter({"name": f"{network}_{fmt}", **cfg})
+        seg = build_model({"name": f"{network}_{fmt}", **cfg})
         labels[fmt] = seg.predict(images)[0].numpy()
     torch_labels = labels.pop("python")
     for fmt, got in labels.items():

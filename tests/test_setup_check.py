@@ -19,7 +19,7 @@ import torch
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ModelError
 from pairedgta.evaluation import alternatives, setup_check
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.models.contract import ContractSegmenter, Network, make_contract
 from pairedgta.models.labels import resolve_labels
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
@@ -158,7 +158,7 @@ def test_the_reported_case_an_onnx_export_under_the_rgb_default(tmp_path, batch)
     axes = {"x": {2: "h", 3: "w"} if batch else {0: "b", 2: "h", 3: "w"}}
     torch.onnx.export(BgrColourNet(), (torch.rand(1, 3, 16, 32),), str(path), input_names=["x"], dynamic_axes=axes,
                       dynamo=False)
-    seg = build_segmenter({"name": "bgr", "family": "onnx", "path": str(path)})
+    seg = build_model({"name": "bgr", "family": "onnx", "path": str(path)})
     rows = setup_check.check(seg, street())
     assert setup_check.better_record(rows) == {"setup": "model.channels=bgr", "overrides": {"channels": "bgr"},
                                                "clean_miou": 1.0}
@@ -200,7 +200,7 @@ def test_a_150_class_checkpoint_is_shown_the_cityscapes_names():
 
 def test_19_outputs_under_ade20k_name_the_label_space_not_the_image_size():
     with pytest.raises(ModelError) as info:
-        build_segmenter({"name": "net", "family": "python", "target": "test_setup_check:colour_net",
+        build_model({"name": "net", "family": "python", "target": "test_setup_check:colour_net",
                          "labels": "ade20k"})
     text = str(info.value)
     assert "the model outputs 19 channels, but model.labels=ade20k has 150 classes" in text
@@ -223,7 +223,7 @@ def test_a_pt2_checkpoint_names_model_export(program):
     for cfg in ({"family": "python", "target": "test_setup_check:colour_net"},
                 {"family": "torchvision", "arch": "lraspp_mobilenet_v3_large"}):
         with pytest.raises(ModelError) as info:
-            build_segmenter({"name": "n", "checkpoint_path": str(program), **cfg})
+            build_model({"name": "n", "checkpoint_path": str(program), **cfg})
         assert str(info.value) == f"n: {expect}"
     with pytest.raises(ModelError) as info:  # the in-project families' loader: the same reader
         load_checkpoint_strict(torch.nn.Conv2d(3, 19, 1), program, model_name="demo")

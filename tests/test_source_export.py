@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 
 from pairedgta.errors import ModelError
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD
 
 TESTS = str(Path(__file__).parent)
@@ -64,7 +64,7 @@ def net(tmp_path, monkeypatch):
 
 
 def eager(weights: Path, **contract) -> object:
-    return build_segmenter({"name": "n", "family": "python", "target": "test_source_export:tiny_net",
+    return build_model({"name": "n", "family": "python", "target": "test_source_export:tiny_net",
                             "checkpoint_path": str(weights), **contract})
 
 
@@ -74,12 +74,12 @@ def save_program(module: torch.nn.Module, path: Path, example: torch.Tensor, dyn
 
 
 def from_export(path: Path, **extra):
-    return build_segmenter({"name": "n", "family": "export", "path": str(path), **extra})
+    return build_model({"name": "n", "family": "export", "path": str(path), **extra})
 
 
 def one_line_error(cfg: dict) -> str:
     with pytest.raises(ModelError) as info:
-        build_segmenter(cfg)
+        build_model(cfg)
     text = str(info.value)
     assert "\n" not in text
     return text

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from pairedgta.cityscapes import CLASS_NAMES
 from pairedgta.errors import ModelError
-from pairedgta.models import build_segmenter, model_config
+from pairedgta.models import build_model, model_config
 from pairedgta.models.labels import TABLES, read_table, resolve_labels
 from pairedgta.models.sources.hf import ONEFORMER_TASK, processor_contract
 
@@ -25,7 +25,7 @@ CITYSCAPES = {"id2label": dict(enumerate(CLASS_NAMES)), "label2id": {n: i for i,
 
 
 def hf(path, **keys):
-    return build_segmenter({"name": "x", "family": "hf", "path": str(path), **keys})
+    return build_model({"name": "x", "family": "hf", "path": str(path), **keys})
 
 
 def one_line(exc) -> str:
@@ -48,7 +48,7 @@ def segformer_dir(tmp_path_factory):
     from transformers import SegformerImageProcessor
 
     folder = tmp_path_factory.mktemp("segformer")
-    build_segmenter("tiny_segformer").module.save_pretrained(folder)
+    build_model("tiny_segformer").module.save_pretrained(folder)
     processor = SegformerImageProcessor(do_resize=False, image_mean=[0.5, 0.4, 0.3], image_std=[0.25, 0.2, 0.3])
     processor.save_pretrained(folder)
     return folder
@@ -59,7 +59,7 @@ def mask2former_dir(tmp_path_factory):
     from transformers import Mask2FormerImageProcessor
 
     folder = tmp_path_factory.mktemp("mask2former")
-    build_segmenter("tiny_mask2former").module.save_pretrained(folder)
+    build_model("tiny_mask2former").module.save_pretrained(folder)
     Mask2FormerImageProcessor(do_resize=False, size_divisor=32).save_pretrained(folder)
     return folder
 
@@ -70,7 +70,7 @@ def test_semantic_source_gives_the_segformer_familys_numbers(segformer_dir):
     probs = seg.predict_proba(x)
     assert probs.shape == (2, 19, 45, 83)
     torch.testing.assert_close(probs.sum(1), torch.ones(2, 45, 83), atol=1e-5, rtol=0)
-    family = build_segmenter("segformer_b5", path=str(segformer_dir))
+    family = build_model("segformer_b5", path=str(segformer_dir))
     torch.testing.assert_close(probs, family.predict_proba(x), atol=1e-5, rtol=0)
     # the processor's mean/std, the checkpoint's class names, and what loading ran
     assert seg.contract.mean == (0.5, 0.4, 0.3) and seg.contract.std == (0.25, 0.2, 0.3)
@@ -86,7 +86,7 @@ def test_universal_source_gives_the_mask2former_familys_numbers(mask2former_dir)
     probs = seg.predict_proba(x)
     assert probs.shape == (2, 19, 45, 83)
     torch.testing.assert_close(probs.sum(1), torch.ones(2, 45, 83), atol=1e-5, rtol=0)
-    family = build_segmenter("mask2former_swin_s", path=str(mask2former_dir))
+    family = build_model("mask2former_swin_s", path=str(mask2former_dir))
     torch.testing.assert_close(probs, family.predict_proba(x), atol=1e-5, rtol=0)
 
 
@@ -284,7 +284,7 @@ def test_bad_folders_are_one_line(segformer_dir, tmp_path):
     ]
     for keys, text in cases:
         with pytest.raises(ModelError) as exc:
-            build_segmenter({"name": "x", "family": "hf", **keys})
+            build_model({"name": "x", "family": "hf", **keys})
         assert text in one_line(exc), (keys, str(exc.value))
 
 

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 
 from pairedgta.errors import ConfigError, ModelError
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD
 
 import onnx  # noqa: E402  (the onnx extra, in dev)
@@ -67,12 +67,12 @@ def net(tmp_path, monkeypatch):
 
 
 def from_onnx(path: Path, **extra):
-    return build_segmenter({"name": "n", "family": "onnx", "path": str(path), **extra})
+    return build_model({"name": "n", "family": "onnx", "path": str(path), **extra})
 
 
 def one_line_error(cfg: dict, error: type = ModelError) -> str:
     with pytest.raises(error) as info:
-        build_segmenter(cfg)
+        build_model(cfg)
     text = str(info.value)
     assert "\n" not in text
     return text
@@ -91,7 +91,7 @@ def test_a_dynamic_export_agrees_with_torch(net):
     assert seg.network.executes == "onnxruntime graph, no Python code"
     assert seg.network.module.session.get_providers() == ["CPUExecutionProvider"]
     assert seg.network.module.session.get_session_options().intra_op_num_threads == torch.get_num_threads()
-    reference = build_segmenter({"name": "n", "family": "python", "target": "test_source_onnx:tiny_net",
+    reference = build_model({"name": "n", "family": "python", "target": "test_source_onnx:tiny_net",
                                  "checkpoint_path": str(weights)})
     for shape in [(3, 3, 70, 130), (1, 3, 63, 101)]:
         images = torch.rand(shape, generator=torch.Generator().manual_seed(shape[2]))

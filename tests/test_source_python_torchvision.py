@@ -11,7 +11,7 @@ import torch
 from safetensors.torch import save_file
 
 from pairedgta.errors import ConfigError, ModelError
-from pairedgta.models import build_segmenter, with_defaults
+from pairedgta.models import build_model, with_defaults
 from pairedgta.stages.common import model_hash_config
 from source_nets import tiny_net
 
@@ -28,14 +28,14 @@ def python_cfg(**keys):
 def test_python_factory_with_weights_matches_the_network(tmp_path):
     net = tiny_net(seed=3).eval()
     ckpt = save(net, tmp_path / "w.safetensors")
-    seg = build_segmenter(python_cfg(checkpoint_path=ckpt, mean=[0, 0, 0], std=[1, 1, 1]))
+    seg = build_model(python_cfg(checkpoint_path=ckpt, mean=[0, 0, 0], std=[1, 1, 1]))
     x = torch.rand(2, 3, 32, 48)
     with torch.no_grad():
         expect = torch.nn.functional.interpolate(net(x), size=(32, 48), mode="bilinear", align_corners=False).softmax(1)
     torch.testing.assert_close(seg.predict_proba(x), expect)
     # a dict output (out / aux), torch.load weights with DataParallel prefixes: the same numbers
     torch.save({"state_dict": {f"module.{k}": v for k, v in net.state_dict().items()}}, tmp_path / "w.pth")
-    seg2 = build_segmenter(python_cfg(target="source_nets:dict_net", checkpoint_path=str(tmp_path / "w.pth"),
+    seg2 = build_model(python_cfg(target="source_nets:dict_net", checkpoint_path=str(tmp_path / "w.pth"),
                                       mean=[0, 0, 0], std=[1, 1, 1]))
     torch.testing.assert_close(seg2.predict_proba(x), expect)
 
@@ -52,11 +52,11 @@ def test_python_source_errors_are_one_line(tmp_path):
     ]
     for cfg, error, text in cases:
         with pytest.raises(error, match=text) as exc:
-            build_segmenter(cfg)
+            build_model(cfg)
         assert "\n" not in str(exc.value), str(exc.value)
     wrong = save(tiny_net(width=4), tmp_path / "narrow.safetensors")
     with pytest.raises(ModelError, match="shape mismatches") as exc:
-        build_segmenter(python_cfg(checkpoint_path=wrong))
+        build_model(python_cfg(checkpoint_path=wrong))
     assert "\n" not in str(exc.value)
 
 
@@ -72,7 +72,7 @@ def test_a_pickle_checkpoint_executes_nothing(tmp_path):
     for cfg in (python_cfg(checkpoint_path=str(bad)),
                 {"name": "tv", "family": "torchvision", "arch": "lraspp_mobilenet_v3_large", "checkpoint_path": str(bad)}):
         with pytest.raises(ModelError, match="cannot read checkpoint") as exc:
-            build_segmenter(cfg)
+            build_model(cfg)
         assert "\n" not in str(exc.value)
         assert not marker.exists()
 
@@ -88,7 +88,7 @@ def lraspp(tmp_path_factory):
 
 def test_torchvision_builder_matches_the_network(lraspp):
     net, ckpt = lraspp
-    seg = build_segmenter({"name": "tv", "family": "torchvision", "arch": "lraspp_mobilenet_v3_large",
+    seg = build_model({"name": "tv", "family": "torchvision", "arch": "lraspp_mobilenet_v3_large",
                            "checkpoint_path": ckpt})
     x = torch.rand(1, 3, 64, 96)
     mean, std = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
@@ -108,7 +108,7 @@ def test_torchvision_errors(lraspp, tmp_path):
                              ({**base, "arch": "lraspp_mobilenet_v3_large", "labels": "ade20k"}, ModelError,
                               "outputs 19 channels")]:
         with pytest.raises(error, match=text) as exc:
-            build_segmenter(cfg)
+            build_model(cfg)
         assert "\n" not in str(exc.value)
 
 

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from pairedgta.errors import ModelError
-from pairedgta.models import build_segmenter
+from pairedgta.models import build_model
 
 import segmentation_models_pytorch as smp  # noqa: E402  (the smp extra, in dev)
 MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
@@ -28,7 +28,7 @@ def tiny(arch="Unet", seed=0, **kwargs):
 
 
 def smp_seg(path, **keys):
-    return build_segmenter({"name": "x", "family": "smp", "path": str(path), **keys})
+    return build_model({"name": "x", "family": "smp", "path": str(path), **keys})
 
 
 def by_hand(model, x, multiple):
@@ -105,7 +105,7 @@ def test_bad_folders_are_one_line(unet_dir, tmp_path):
     ]
     for path, text in cases:
         with pytest.raises(ModelError) as exc:
-            build_segmenter({"name": "x", "family": "smp", "path": path})
+            build_model({"name": "x", "family": "smp", "path": path})
         msg = str(exc.value)
         assert "\n" not in msg and text in msg, (path, msg)
     (tmp_path / "empty" / "config.json").write_text(json.dumps({"_model_class": "Unet"}))

@@ -104,7 +104,7 @@ def test_a_check_stage_runs_alone_by_its_scope(monkeypatch):
 @pytest.mark.slow
 def test_a_toy_stage_runs_through_the_cached_graph(toy, tmp_path):
     from pairedgta.app import run
-    from pairedgta.stages.pseudolabel import PseudoLabels
+    from pairedgta.evaluation.pseudolabel import PseudoLabels
     from pairedgta.testing.cli import compose_cfg, fast_overrides
 
     args = fast_overrides(tmp_path) + ["stages=[generate,pseudolabel,toy]"]

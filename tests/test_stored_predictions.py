@@ -47,13 +47,13 @@ def test_the_qualitative_grid_shows_evaluates_maps_without_predicting(tmp_path, 
     first = run_cli(over, tmp_path)
     assert first.returncode == 0, first.stderr
     built: list[str] = []
-    build = models.build_segmenter
+    build = models.build_model
 
     def counting(model, device=None, **kw):
         built.append(dict(model)["name"])
         return build(model, device=device, **kw)
 
-    monkeypatch.setattr(models, "build_segmenter", counting)
+    monkeypatch.setattr(models, "build_model", counting)
     r = run_cli(over + ["force=[plot]"], tmp_path)
     assert r.returncode == 0, r.stderr
     assert built == []  # every map shown came from the evaluate entries

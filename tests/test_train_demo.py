@@ -207,9 +207,9 @@ def test_a_tiny_run_from_the_cli_writes_a_loadable_model_and_resumes(tmp_path):
     assert [h["step"] for h in card["history"]] == [2, 3, 4, 5]
     assert card["render_seconds"] == pytest.approx(render_s)  # read from the cache: still the rendering cost
 
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
-    model = build_segmenter("demo_segformer", path=str(out))
+    model = build_model("demo_segformer", path=str(out))
     probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
     assert probs.shape[-2:] == (64, 128) and probs.shape[-3] == 19
     # shipped in float16 (the package stays small), computed in float32
@@ -294,17 +294,17 @@ def test_a_tiny_ddrnet_run_from_the_cli_ships_strict_safetensors_weights(tmp_pat
     assert night and day and np.mean(load_image(night[0])) < 0.5 * np.mean(load_image(day[0]))
 
     from pairedgta.errors import ModelError
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
 
     weights = out / "model.safetensors"
-    model = build_segmenter("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
+    model = build_model("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
     probs = model.predict_proba(np.zeros((1, 64, 128, 3), dtype=np.uint8))
     assert probs.shape == (1, 19, 64, 128)
     with pytest.raises(ModelError, match="does not fit the architecture"):  # the shipped widths: strict refusal
-        build_segmenter("demo_ddrnet", checkpoint_path=str(weights))
+        build_model("demo_ddrnet", checkpoint_path=str(weights))
     weights.write_bytes(b"not a safetensors file")
     with pytest.raises(ModelError, match="cannot read checkpoint .*safetensors"):
-        build_segmenter("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
+        build_model("demo_ddrnet", checkpoint_path=str(weights), planes=4, spp_planes=4, head_planes=8)
 
 
 def _data_cfg(**data):

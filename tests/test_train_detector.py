@@ -43,7 +43,7 @@ def synthetic_batch():
 def test_two_steps_fp16_weights_load_in_build_detector_and_resume(tmp_path):
     from safetensors import safe_open
 
-    from pairedgta.models import build_segmenter
+    from pairedgta.models import build_model
     torch.set_num_threads(2)
     images, targets = synthetic_batch()
     module = tiny()
@@ -59,7 +59,7 @@ def test_two_steps_fp16_weights_load_in_build_detector_and_resume(tmp_path):
     tdd.seg.save_half(module.state_dict(), weights, {"family": "fcos", "model": "tiny_fcos"})
     with safe_open(str(weights), framework="pt") as f:
         assert {f.get_tensor(k).dtype for k in f.keys()} <= {torch.float16, torch.int64}
-    det = build_segmenter({"name": "tiny_fcos", "family": "fcos", "checkpoint_path": str(weights), **ARCH})
+    det = build_model({"name": "tiny_fcos", "family": "fcos", "checkpoint_path": str(weights), **ARCH})
     assert det.kind == "detector"
     for k, v in module.state_dict().items():
         assert torch.allclose(det.module.state_dict()[k].float(), v.float().half().float()), k

@@ -117,7 +117,7 @@ def test_a_model_that_predicts_every_class_writes_what_it_always_did(tmp_path):
 
 
 def test_the_report_line_and_the_label_space_of_a_config(tmp_path):
-    from pairedgta.stages.evaluate import label_tags
+    from pairedgta.evaluation.work import label_tags
 
     folder = tmp_path / "e"
     folder.mkdir()

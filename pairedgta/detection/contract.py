@@ -26,18 +26,18 @@ from pairedgta.detection.boxes import INSTANCE_CLASSES
 from pairedgta.detection.models import KIND, Detections, image_batch
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module
+from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS
 from pairedgta.models.runtime import RuntimeOptions
 
 torch = lazy_module("torch")
 F = lazy_module("torch.nn.functional")
 log = logging.getLogger("pairedgta.detection")
 
-# the keys every detector source has (model.<key>=); null: what the file declares, else DEFAULTS
-CONTRACT_OPTIONS = ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels", "score_threshold",
-                    "nms_iou", "max_detections")
+# the keys every detector source has (model.<key>=, pairedgta.models.contract.DETECTOR_OPTIONS); null: what the file
+# declares, else DEFAULTS
 DEFAULTS: dict[str, Any] = {"mean": [0.0, 0.0, 0.0], "std": [1.0, 1.0, 1.0], "scale": 1, "channels": "rgb",
                             "resize": None, "letterbox": False, "layout": None, "labels": None,
-                            "score_threshold": 0.5, "nms_iou": 0.5, "max_detections": 100}
+                            "score_threshold": DEFAULT_SCORE_THRESHOLD, "nms_iou": 0.5, "max_detections": 100}
 PROBE_SIZE = (256, 512)
 LETTERBOX_FILL = 114 / 255  # the grey YOLO pads with
 
@@ -100,7 +100,7 @@ def make_contract(cfg: Mapping[str, Any], declared: Mapping[str, Any] | None = N
         raise ConfigError(f"{where}: max_detections={max_det!r} must be a whole number >= 1, e.g. 100")
     mean, std = (_triple(pick(k), k, where) for k in ("mean", "std"))
     return DetectionContract(mean, std, scale, channels, resize, letterbox, layout,
-                             _number(pick("score_threshold"), "score_threshold", where, 0.0, 1.0, "0.5"),
+                             _number(pick("score_threshold"), "score_threshold", where, 0.0, 1.0, str(DEFAULT_SCORE_THRESHOLD)),
                              _number(pick("nms_iou"), "nms_iou", where, 0.0, 1.0, "0.5"), max_det)
 
 
@@ -291,5 +291,5 @@ def build_detector_source(loader: Callable[..., DetectorNetwork], /, *, name: st
     return det
 
 
-__all__ = ["CONTRACT_OPTIONS", "ContractDetector", "DEFAULTS", "DetectionContract", "DetectorNetwork",
+__all__ = ["DETECTOR_OPTIONS", "ContractDetector", "DEFAULTS", "DetectionContract", "DetectorNetwork",
            "build_detector_source", "check_contract", "make_contract"]

@@ -11,12 +11,13 @@ twice as large, at the forward's cost and not the renderer's (docs/detection.md 
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.lazy import lazy_module
+from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD
 from pairedgta.models.runtime import RuntimeOptions
 
 torch = lazy_module("torch")
@@ -175,8 +176,28 @@ class Detector:
         return f"Detector({self.name}, {type(self.module).__name__}, threshold {self.score_threshold})"
 
 
+def check_options(cfg: Mapping[str, Any], where: str) -> None:
+    """A zoo detector's own keys, checked with the run's config before any stage computes (a wrong threshold found
+    only at evaluate would come after minutes of rendering and pseudo-labelling)."""
+    from pairedgta.errors import ConfigError
+
+    threshold = cfg.get("score_threshold", DEFAULT_SCORE_THRESHOLD)
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 <= threshold <= 1.0:
+        raise ConfigError(f"{where}: score_threshold={threshold!r} must be in [0, 1], e.g. "
+                          f"model.score_threshold={DEFAULT_SCORE_THRESHOLD}")
+    for key, example in (("min_size", 512), ("max_size", 1024)):
+        value = cfg.get(key, example)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 32:
+            raise ConfigError(f"{where}: {key}={value!r} must be a whole number of pixels >= 32, e.g. "
+                              f"model.{key}={example}")
+    if cfg.get("max_size", 1024) < cfg.get("min_size", 512):
+        raise ConfigError(f"{where}: max_size={cfg.get('max_size')} is below min_size={cfg.get('min_size')}; set "
+                          "model.max_size >= model.min_size")
+
+
 def build_detector(network: Callable[..., Any], /, *, name: str, family: str, checkpoint_path: str | None = None,
-                   random_init: bool = False, init_seed: int = 0, score_threshold: float = 0.5, min_size: int = 512,
+                   random_init: bool = False, init_seed: int = 0, score_threshold: float = DEFAULT_SCORE_THRESHOLD,
+                   min_size: int = 512,
                    max_size: int = 1024, runtime: RuntimeOptions, **arch: Any) -> Detector:
     """The one builder of the detector families: seeds, constructs, loads the weights strictly (safetensors,
     weights only), wraps. `score_threshold` is the model's operating point (a box at or above it counts as found)."""
@@ -184,8 +205,7 @@ def build_detector(network: Callable[..., Any], /, *, name: str, family: str, ch
     from pairedgta.models.checkpoint import load_checkpoint_strict
 
     name = str(name or family)
-    if not 0.0 <= float(score_threshold) <= 1.0:
-        raise ConfigError(f"model ({name}): score_threshold={score_threshold!r} must be in [0, 1], e.g. 0.5")
+    check_options({"score_threshold": score_threshold, "min_size": min_size, "max_size": max_size}, f"model ({name})")
     if not checkpoint_path and not random_init:
         raise ModelError(f"model '{name}' has no weights: set model.checkpoint_path=<file.safetensors> "
                          "(or model.random_init=true for an untrained network)")

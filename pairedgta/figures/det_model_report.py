@@ -34,7 +34,7 @@ from pairedgta.errors import ConfigError
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, markdown_table, model_display, paper_style, save
 from pairedgta.figures.inputs import FigurePass, Passes
-from pairedgta.figures.model_report import _ci, _num, _spread, _standings, _worst
+from pairedgta.figures.model_report import ci_text, num_text, spread_text, standings, worst_conditions
 from pairedgta.figures.model_report_numbers import Report, pct_text, rank_text, row
 from pairedgta.figures.report_population import cache_key, evaluations
 from pairedgta.metrics.model_report import tracking
@@ -139,7 +139,7 @@ def _cases(r: Report, p: FigurePass, subject: Any, k: int) -> list[dict]:
     if p.dataset is None or p.pseudo is None or k <= 0:
         return []
     s = subject.summary()
-    threshold, iou = float(s.get("score_threshold", 0.5)), p.run.detection.iou
+    threshold, iou = float(s["score_threshold"]), p.run.detection.iou
     ids = image_ids(p.dataset)
     groups = {g.group_id: g for g in p.dataset.groups}
     pseudo = p.pseudo.boxes()
@@ -183,18 +183,18 @@ def _objects_panel(ax: Any, table: pd.DataFrame, r: Report) -> None:
 def page(r: Report, table: pd.DataFrame, p: FigurePass, out: Path, stem: str, opts: FigureOptions) -> list[Path]:
     from pairedgta.datasets import load_image
     from pairedgta.figures.det_qualitative import _boxes
-    from pairedgta.figures.model_report_page import _standing_panel, _tracking_panel
+    from pairedgta.figures.model_report_page import standing_panel, tracking_panel
 
     n_cases = len(r.cases)
     with paper_style():
         fig = plt.figure(figsize=(TEXT_WIDTH * 1.5, 6.2 + 1.5 * math.ceil(n_cases / 2)))
         grid = fig.add_gridspec(2 + math.ceil(n_cases / 2), 2, height_ratios=[1, 1] + [0.8] * math.ceil(n_cases / 2),
                                 hspace=0.55, wspace=0.55)
-        _standing_panel(fig.add_subplot(grid[0, 0]), r, r.xi, "xi_mean", "(a) mean detection ξ per condition")
-        _standing_panel(fig.add_subplot(grid[0, 1]), r, r.gt, "gt_miou", "(b) COCO AP per condition")
+        standing_panel(fig.add_subplot(grid[0, 0]), r, r.xi, "xi_mean", "(a) mean detection ξ per condition")
+        standing_panel(fig.add_subplot(grid[0, 1]), r, r.gt, "gt_miou", "(b) COCO AP per condition")
         _objects_panel(fig.add_subplot(grid[1, 0]), table, r)
         ax = fig.add_subplot(grid[1, 1])
-        _tracking_panel(ax, r)
+        tracking_panel(ax, r)
         ax.set_xlabel("Spearman(detection ξ, GT AP) across detectors")
         ax.set_title("(d) Spearman(ξ, AP) per condition", loc="left")
         groups = {g.group_id: g for g in p.dataset.groups} if p.dataset is not None else {}
@@ -216,7 +216,7 @@ def page(r: Report, table: pd.DataFrame, p: FigurePass, out: Path, stem: str, op
 
 def _threshold(p: FigurePass, r: Report) -> float:
     e = next(e for e in p.evaluations if e.model == r.subject)
-    return float(e.summary().get("score_threshold", 0.5))
+    return float(e.summary()["score_threshold"])
 
 
 def markdown(r: Report, table: pd.DataFrame, p: FigurePass, page_name: str) -> str:
@@ -231,17 +231,17 @@ def markdown(r: Report, table: pd.DataFrame, p: FigurePass, page_name: str) -> s
             f"the members defined in that condition (n); ties share the better rank. Percentile: the share of the "
             f"population the subject beats, ties counted half. Percentile interval: {scenes}.\n"]
     clean = row(r, r.clean, "gt_miou")
-    text.append(f"\nClean ({r.clean}) COCO AP: {_num(clean['subject'])}, rank {rank_text(clean)}, percentile "
-                f"{pct_text(clean)}; population {_spread(clean)} (median [min, max]).\n")
+    text.append(f"\nClean ({r.clean}) COCO AP: {num_text(clean['subject'])}, rank {rank_text(clean)}, percentile "
+                f"{pct_text(clean)}; population {spread_text(clean)} (median [min, max]).\n")
     rows = []
     for cond in r.conditions:
         x, g = row(r, cond, "xi_mean"), row(r, cond, "gt_miou")
-        rows.append([cond, _num(x["subject"]), rank_text(x), pct_text(x), _ci(x["percentile_ci_low"],
-                     x["percentile_ci_high"]), _spread(x), _num(g["subject"]), rank_text(g), pct_text(g), _spread(g)])
+        rows.append([cond, num_text(x["subject"]), rank_text(x), pct_text(x), ci_text(x["percentile_ci_low"],
+                     x["percentile_ci_high"]), spread_text(x), num_text(g["subject"]), rank_text(g), pct_text(g), spread_text(g)])
     text.append("\n## Per adverse condition\n\n" + markdown_table(
         ["condition", "detection ξ", "ξ rank", "ξ percentile", "ξ percentile CI", "population ξ median [min, max]",
          "AP", "AP rank", "AP percentile", "population AP median [min, max]"], rows))
-    rows = [[d["condition"], _num(d["loss"]), _num(d["rpc"]), _num(d["population_median_loss"]), pct_text(d),
+    rows = [[d["condition"], num_text(d["loss"]), num_text(d["rpc"]), num_text(d["population_median_loss"]), pct_text(d),
              f"{d['n_population']:.0f}"] for d in r.worst]
     what = "COCO AP lost from the clean image" if r.has_gt else "1 − detection ξ (no ground truth)"
     text.append(f"\n## Where it loses most\n\nThe {len(r.worst)} adverse condition(s) with the largest {what}; "
@@ -251,14 +251,14 @@ def markdown(r: Report, table: pd.DataFrame, p: FigurePass, page_name: str) -> s
     if not table.empty:
         worst = {d["condition"] for d in r.worst}
         t = table[table["condition"].isin(worst)]
-        rows = [[x.condition, x.height_px, f"{x.objects}", _num(x.found_share), _num(x.population_median),
-                 f"[{_num(x.population_min)}, {_num(x.population_max)}]"] for x in t.itertuples()]
+        rows = [[x.condition, x.height_px, f"{x.objects}", num_text(x.found_share), num_text(x.population_median),
+                 f"[{num_text(x.population_min)}, {num_text(x.population_max)}]"] for x in t.itertuples()]
         text.append("\n## Objects found by height\n\nThe share of scored ground-truth objects it finds (its confident "
                     "boxes, IoU ≥ 0.5) in its worst conditions, beside the population's.\n\n" + markdown_table(
                         ["condition", "height (px)", "objects", "found", "population median", "population range"],
                         rows))
     if r.cases:
-        rows = [[c["condition"], c["pair_id"], str(c["reference_boxes"]), _num(c["kept"])] for c in r.cases]
+        rows = [[c["condition"], c["pair_id"], str(c["reference_boxes"]), num_text(c["kept"])] for c in r.cases]
         text.append(f"\n## Worst images\n\nIts {len(r.cases)} (scene, condition) pair(s) keeping the smallest share of "
                     "the reference's boxes (panel e).\n\n" + markdown_table(
                         ["condition", "scene", "reference boxes", "kept"], rows))
@@ -266,8 +266,8 @@ def markdown(r: Report, table: pd.DataFrame, p: FigurePass, page_name: str) -> s
     for t_ in r.track:
         cond = t_["condition"]
         rows.append([cond if cond != "mean" else f"mean over {t_['n_conditions']} condition(s)",
-                     _num(t_["spearman"], "{:.2f}"), _ci(t_["scene_ci_low"], t_["scene_ci_high"], "{:.2f}"),
-                     _ci(t_["model_ci_low"], t_["model_ci_high"], "{:.2f}"), str(t_["n_models"])])
+                     num_text(t_["spearman"], "{:.2f}"), ci_text(t_["scene_ci_low"], t_["scene_ci_high"], "{:.2f}"),
+                     ci_text(t_["model_ci_low"], t_["model_ci_high"], "{:.2f}"), str(t_["n_models"])])
     text.append(f"\n## How well detection ξ tracks AP on these scenes\n\nSpearman of mean detection ξ against COCO AP "
                 f"across the {len(r.models)} ranked detectors within each condition (pooled over conditions it would "
                 f"mostly order the conditions by severity); intervals at {level} over models (drawn with "
@@ -283,10 +283,10 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         if not p.evaluations:
             continue
         r = gather(p, opts)
-        _standings(r)
+        standings(r)
         r.track = tracking(r.xi, r.gt, r.conditions, r.scene["xi"] if r.scene else None,
                            r.scene["gt"] if r.scene else None, r.resamples, r.confidence, r.seed, r.n_scenes)
-        _worst(r, opts.run.report.worst_conditions)
+        worst_conditions(r, opts.run.report.worst_conditions)
         evals = {e.model: e for e in p.evaluations}
         r.cases = _cases(r, p, evals[r.subject], opts.run.report.worst_cases)
         table = objects_table([evals[m] for m in r.models], r.subject)

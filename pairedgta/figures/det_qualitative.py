@@ -47,7 +47,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
             s = e.summary()
             if str(s.get("reference_model")) == e.model:
                 continue
-            threshold = float(s.get("score_threshold", 0.5))
+            threshold = float(s["score_threshold"])
             cases = []
             for cond in s["conditions"]:
                 if cond == p.grid.reference:

@@ -45,7 +45,8 @@ from pairedgta.metrics.model_report import standing, standing_interval, tracking
 
 log = logging.getLogger("pairedgta.plot")
 GT_SOURCE = "ground_truth"  # the xi rows scored against the true labels, not the pseudo-labels
-__all__ = ["Report", "cache_key", "compute", "draw", "markdown"]  # cache_key: the FigureSpec's key, read from here too
+__all__ = ["Report", "cache_key", "ci_text", "compute", "draw", "markdown", "num_text", "spread_text", "standings",
+           "worst_conditions"]  # cache_key: the FigureSpec's key, read from here too
 
 
 def _means(e: Evaluation) -> tuple[pd.Series, pd.Series]:
@@ -144,7 +145,7 @@ def _standing(r: Report, condition: str, measure: str, values: np.ndarray, scene
             "percentile_ci_high": hi, **dict(zip(("population_median", "population_min", "population_max"), spread))}
 
 
-def _standings(r: Report) -> None:
+def standings(r: Report) -> None:
     """The subject's standing per adverse condition and measure, and the clean image's GT mIoU (where losses start)."""
     values = {"xi_mean": r.xi, "gt_miou": r.gt, "gt_miou_drop": r.gt_clean[:, None] - r.gt}
     scene = None if r.scene is None else {"xi_mean": r.scene["xi"], "gt_miou": r.scene["gt"],
@@ -159,7 +160,7 @@ def _standings(r: Report) -> None:
     r.rows.append(_standing(r, r.clean, "gt_miou", r.gt_clean, None if r.scene is None else r.scene["gt_clean"]))
 
 
-def _worst(r: Report, k: int) -> None:
+def worst_conditions(r: Report, k: int) -> None:
     """The k conditions where the subject loses the most GT mIoU from the clean image (1 − ξ without labels)."""
     out = []
     for c, cond in enumerate(r.conditions):
@@ -208,10 +209,10 @@ def _cases(r: Report, p: FigurePass, subject: Evaluation, k: int, device: str) -
 def compute(p: FigurePass, opts: FigureOptions) -> Report:
     """Every number of the report of pass `p` (the cases' images too)."""
     r = gather(p, opts)
-    _standings(r)
+    standings(r)
     r.track = tracking(r.xi, r.gt, r.conditions, r.scene["xi"] if r.scene else None, r.scene["gt"] if r.scene else None,
                        r.resamples, r.confidence, r.seed, r.n_scenes)
-    _worst(r, opts.run.report.worst_conditions)
+    worst_conditions(r, opts.run.report.worst_conditions)
     subject = next(e for e in p.evaluations if e.model == r.subject)
     if opts.run.report.worst_cases > 0:
         r.cases = _cases(r, p, subject, opts.run.report.worst_cases, opts.run.device)
@@ -219,16 +220,16 @@ def compute(p: FigurePass, opts: FigureOptions) -> Report:
 
 
 # -- text ---------------------------------------------------------------------------------------------------------
-def _num(v: float, fmt: str = "{:.3f}") -> str:
+def num_text(v: float, fmt: str = "{:.3f}") -> str:
     return "–" if v is None or not math.isfinite(v) else fmt.format(v)
 
 
-def _ci(lo: float, hi: float, fmt: str = "{:.1f}") -> str:
+def ci_text(lo: float, hi: float, fmt: str = "{:.1f}") -> str:
     return "–" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{fmt.format(lo)}, {fmt.format(hi)}]"
 
 
-def _spread(d: dict) -> str:
-    return f"{_num(d['population_median'])} [{_num(d['population_min'])}, {_num(d['population_max'])}]"
+def spread_text(d: dict) -> str:
+    return f"{num_text(d['population_median'])} [{num_text(d['population_min'])}, {num_text(d['population_max'])}]"
 
 
 def markdown(r: Report, p: FigurePass, page: str) -> str:
@@ -247,19 +248,19 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
             f"every member). Percentile interval: {scenes}; – where the resamples do not vary or fewer than half "
             f"define it (no interval is no certainty).\n"]
     clean = row(r, r.clean, "gt_miou")
-    text.append(f"\nClean ({r.clean}) GT mIoU: {_num(clean['subject'])}, rank {rank_text(clean)}, percentile "
-                f"{pct_text(clean)} {_ci(clean['percentile_ci_low'], clean['percentile_ci_high'])}; population "
-                f"{_spread(clean)} (median [min, max]).\n")
+    text.append(f"\nClean ({r.clean}) GT mIoU: {num_text(clean['subject'])}, rank {rank_text(clean)}, percentile "
+                f"{pct_text(clean)} {ci_text(clean['percentile_ci_low'], clean['percentile_ci_high'])}; population "
+                f"{spread_text(clean)} (median [min, max]).\n")
     rows = []
     has_f = any(d["measure"] == "xi_f" for d in r.rows)
     for cond in r.conditions:
         x, g = row(r, cond, "xi_mean"), row(r, cond, "gt_miou")
-        f = [_num(row(r, cond, "xi_f")["subject"]), rank_text(row(r, cond, "xi_f"))] if has_f else []
+        f = [num_text(row(r, cond, "xi_f")["subject"]), rank_text(row(r, cond, "xi_f"))] if has_f else []
         rows.append([cond, *(cell for d in (x,) for cell in (
-            _num(d["subject"]), rank_text(d), pct_text(d), _ci(d["percentile_ci_low"], d["percentile_ci_high"]),
-            _spread(d))), *f, *(cell for d in (g,) for cell in (
-            _num(d["subject"]), rank_text(d), pct_text(d), _ci(d["percentile_ci_low"], d["percentile_ci_high"]),
-            _spread(d)))])
+            num_text(d["subject"]), rank_text(d), pct_text(d), ci_text(d["percentile_ci_low"], d["percentile_ci_high"]),
+            spread_text(d))), *f, *(cell for d in (g,) for cell in (
+            num_text(d["subject"]), rank_text(d), pct_text(d), ci_text(d["percentile_ci_low"], d["percentile_ci_high"]),
+            spread_text(d)))])
     f_note = ("ξ_F: the harmonic mean of ξ and its precision per class (of the pixels the model predicts as a class "
               "on the pseudo-label's valid pixels, the share whose pseudo-label is that class), class-wise mean over "
               "ξ's classes (evaluate's xi_precision.csv): ξ is a recall, which a model painting one class everywhere "
@@ -270,14 +271,14 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
          "GT mIoU", "GT mIoU rank", "GT mIoU percentile", "GT mIoU percentile CI",
          "population GT mIoU median [min, max]"], rows))
     what = ("GT mIoU lost from the clean image" if r.has_gt else "1 − ξ (no ground truth)")
-    rows = [[d["condition"], _num(d["loss"]), _num(d["rpc"]), _num(d["population_median_loss"]), pct_text(d),
-             _ci(d["percentile_ci_low"], d["percentile_ci_high"]), f"{d['n_population']:.0f}"] for d in r.worst]
+    rows = [[d["condition"], num_text(d["loss"]), num_text(d["rpc"]), num_text(d["population_median_loss"]), pct_text(d),
+             ci_text(d["percentile_ci_low"], d["percentile_ci_high"]), f"{d['n_population']:.0f}"] for d in r.worst]
     text.append(f"\n## Where it loses most\n\nThe {len(r.worst)} adverse condition(s) with the largest {what}; "
                 f"percentile: the share of the population that loses more (ties half).\n\n" + markdown_table(
                     ["condition", "loss", "rPC (adverse / clean GT mIoU)", "population median loss", "percentile",
                      "percentile CI", "n population"], rows))
     if r.cases:
-        rows = [[c["condition"], c["pair_id"], _num(c["agreement"])] for c in r.cases]
+        rows = [[c["condition"], c["pair_id"], num_text(c["agreement"])] for c in r.cases]
         text.append(f"\n## Worst images\n\nIts {len(r.cases)} (scene, condition) pair(s) with the lowest pixel "
                     f"agreement with the pseudo-labels (panel d).\n\n"
                     + markdown_table(["condition", "scene", "pixel agreement"], rows))
@@ -289,8 +290,8 @@ def markdown(r: Report, p: FigurePass, page: str) -> str:
     for t in r.track:
         cond = t["condition"]
         rows.append([cond if cond != "mean" else f"mean over {t['n_conditions']} condition(s)",
-                     _num(t["spearman"], "{:.2f}"), _ci(t["scene_ci_low"], t["scene_ci_high"], "{:.2f}"),
-                     _ci(t["model_ci_low"], t["model_ci_high"], "{:.2f}"), str(t["n_models"]),
+                     num_text(t["spearman"], "{:.2f}"), ci_text(t["scene_ci_low"], t["scene_ci_high"], "{:.2f}"),
+                     ci_text(t["model_ci_low"], t["model_ci_high"], "{:.2f}"), str(t["n_models"]),
                      *(rank_text(ranks[cond]) if cond in ranks else "–" for ranks in ranked)])
     text.append(f"\n## How well ξ tracks ground truth on these scenes\n\nSpearman of mean ξ against GT mIoU across "
                 f"the "

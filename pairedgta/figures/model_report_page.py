@@ -21,7 +21,7 @@ SUBJECT_COLOR, POPULATION_COLOR = "#d62728", "0.55"
 CASE_COLUMNS = ("adverse image", "pseudo-label\n(reference, clean)", "prediction", "disagreement with\npseudo-label")
 
 
-def _standing_panel(ax: Any, r: Report, values: np.ndarray, measure: str, title: str) -> None:
+def standing_panel(ax: Any, r: Report, values: np.ndarray, measure: str, title: str) -> None:
     y = np.arange(len(r.conditions))
     rng = np.random.default_rng(0)
     for i in y:
@@ -73,7 +73,7 @@ def _loss_panel(ax: Any, r: Report) -> None:
     ax.set_title(f"(c) where it loses most (the {len(worst)} worst in red)", loc="left")
 
 
-def _tracking_panel(ax: Any, r: Report) -> None:
+def tracking_panel(ax: Any, r: Report) -> None:
     rows = r.track
     y = np.arange(len(rows))
     level = f"{r.confidence:.0%}"
@@ -150,13 +150,13 @@ def page(r: Report, out: Path, stem: str, opts: FigureOptions) -> list[Path]:
         fig = plt.figure(figsize=(TEXT_WIDTH, 2 * top_h + case_h + 0.5), layout="constrained")
         parts = fig.subfigures(3 if r.cases else 2, 1, height_ratios=[top_h, top_h] + ([case_h] if r.cases else []))
         a, b = parts[0].subplots(1, 2, sharey=True)
-        _standing_panel(a, r, r.xi, "xi_mean", f"(a) mean ξ vs {r.reference}'s pseudo-labels")
-        _standing_panel(b, r, r.gt, "gt_miou", "(b) GT mIoU")
+        standing_panel(a, r, r.xi, "xi_mean", f"(a) mean ξ vs {r.reference}'s pseudo-labels")
+        standing_panel(b, r, r.gt, "gt_miou", "(b) GT mIoU")
         a.set_xlabel("mean ξ (rank/n · percentile at right)")
         b.set_xlabel("GT mIoU (rank/n · percentile at right)")
         c, e, k = parts[1].subplots(1, 3, gridspec_kw={"width_ratios": [1.0, 1.1, 0.55]})
         _loss_panel(c, r)
-        _tracking_panel(e, r)
+        tracking_panel(e, r)
         _rank_panel(k, r)
         if r.cases:
             _case_panels(parts[2], r, opts.dpi)

@@ -124,9 +124,9 @@ class Predictions:
         found = read_prediction(self.stored, group.group_id, condition) if self.stored is not None else None
         if found is not None and (found[1] is not None or not self.confidence):
             return found
-        from pairedgta.models import shared_segmenter
+        from pairedgta.models import shared_model
 
-        segmenter = shared_segmenter(self.model_cfg, device=self.device)  # the one evaluate loaded, within a run
+        segmenter = shared_model(self.model_cfg, device=self.device)  # the one evaluate loaded, within a run
         labels, conf = segmenter.predict(image[None])
         self.predicted += 1
         return labels.numpy()[0], conf.numpy()[0]

@@ -14,27 +14,27 @@ from typing import Any, Mapping
 from pairedgta.errors import ConfigError
 
 FIGURE = "model_report"
-FIGURES = ("model_report", "det_model_report")  # segmentation's, detection's (pairedgta/figures/det_model_report.py)
 EXAMPLE = "report.population=[demo_ddrnet,demo_pidnet]"
 
 
-def zoo(task: str = "segmentation") -> list[str]:
-    """The offline zoo of the task: experiment=zoo's list (pairedgta/conf/experiment/zoo.yaml), or the detection
-    zoo that task=detection runs (pairedgta/conf/task/detection.yaml)."""
+def zoo(task: str) -> list[str]:
+    """The offline zoo of the task: the `models` of the option file its declaration names (pairedgta/tasks.py `zoo`:
+    experiment=zoo's list for segmentation, the detection task's own)."""
     import yaml
 
+    from pairedgta import tasks
     from pairedgta.configs import CONFIG_DIR
 
-    file = CONFIG_DIR / "task" / "detection.yaml" if task == "detection" else CONFIG_DIR / "experiment" / "zoo.yaml"
-    return [str(m) for m in yaml.safe_load(file.read_text())["models"]]
+    return [str(m) for m in yaml.safe_load((CONFIG_DIR / tasks.get(task).zoo).read_text())["models"]]
 
 
 def draws_report(run: Any) -> bool:
     """Whether the run draws a model report (pairedgta.schema.RunConfig)."""
+    from pairedgta import tasks
     from pairedgta.figures import figures_of
     from pairedgta.schema import as_dict
 
-    return bool(set(FIGURES) & set(figures_of(as_dict(run))))
+    return bool(set(tasks.report_figures()) & set(figures_of(as_dict(run))))
 
 
 def subject_name(model_cfg: Mapping[str, Any]) -> str:
@@ -91,4 +91,4 @@ def cache_key(passes: Any, opts: Any) -> tuple[dict[str, Any], dict[str, str]]:
             "seed": boot.seed}, {}
 
 
-__all__ = ["FIGURE", "FIGURES", "zoo", "draws_report", "subject_name", "members", "cache_key"]
+__all__ = ["FIGURE", "zoo", "draws_report", "subject_name", "members", "cache_key"]

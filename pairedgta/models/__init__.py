@@ -1,6 +1,6 @@
 """Model zoo: one registry of families, configs in the `model` config group.
 
-`build_segmenter(name_or_config, device=..., **overrides)` reads the model's YAML through the config
+`build_model(name_or_config, device=..., **overrides)` reads the model's YAML through the config
 search path (or takes an already composed config), applies overrides, parses the options every family
 shares once (`RuntimeOptions`: device, batch_size, amp, channels_last, compile) and calls the family's
 builder with the remaining keys as keyword arguments plus `runtime`; as in timm, a family declares only
@@ -9,7 +9,8 @@ builder (pairedgta/models/checkpoint.py: build_inproject, timm's build_model_wit
 module declares only its `architecture` arguments (and its PRETRAINED defaults of the shared input options),
 and one registry line below names it. Architecture modules know nothing about Hydra.
 
-Inside `run_models()` (one run of the app) `shared_segmenter` builds each distinct model config once:
+It builds either kind a config names (`model_kind`): a segmenter (label maps) or a detector (boxes), typed
+`Model`. Inside `run_models()` (one run of the app) `shared_model` builds each distinct model config once:
 pseudo-labelling, evaluation and the qualitative figure use the same loaded model."""
 from __future__ import annotations
 
@@ -19,9 +20,9 @@ import logging
 from typing import Any, Iterator, Mapping
 
 from pairedgta.configs import group_option, group_options
-from pairedgta.models.contract import CONTRACT_OPTIONS, check_contract
+from pairedgta.models.contract import CONTRACT_OPTIONS, DETECTOR_OPTIONS, check_contract
 from pairedgta.errors import ConfigError
-from pairedgta.models.base import Segmenter, resolve_device
+from pairedgta.models.base import BoxModel, Model, Segmenter, resolve_device
 from pairedgta.models.runtime import MODEL_KEYS as RUNTIME_OPTION_KEYS
 from pairedgta.models.runtime import RuntimeOptions, runtime_defaults, split_runtime
 from pairedgta.registry import Registry, accepted_keys
@@ -49,37 +50,37 @@ FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE, de
 FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE, detector="det_onnx")
 FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE, detector="det_python")
 DETECTOR_SOURCE = {"via": "pairedgta.detection.contract:build_detector_source", "kind": "detector", "source": True,
-                   "check": "pairedgta.detection.contract:check_contract",
-                   "filled": ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels",
-                              "score_threshold", "nms_iou", "max_detections")}
+                   "check": "pairedgta.detection.contract:check_contract", "filled": DETECTOR_OPTIONS}
 for _source in ("hf", "torchvision", "export", "onnx", "python"):
     FAMILIES.register(f"det_{_source}", f"pairedgta.detection.sources.{_source}:load", **DETECTOR_SOURCE)
 # Detectors (task=detection): torchvision's detection heads on a small trunk, one builder for what every detector has
 # (pairedgta/detection/models.py: build_detector); `kind` says which task's stages can run them (pairedgta/tasks.py).
 DETECTOR = {"via": "pairedgta.detection.models:build_detector", "kind": "detector",
+            "check": "pairedgta.detection.models:check_options",
             "filled": ("random_init", "init_seed", "score_threshold", "min_size", "max_size")}
 FAMILIES.register("fcos", "pairedgta.detection.models:fcos", **DETECTOR)
 FAMILIES.register("retinanet", "pairedgta.detection.models:retinanet", **DETECTOR)
 FAMILIES.register("fasterrcnn", "pairedgta.detection.models:fasterrcnn", **DETECTOR)
+DEFAULT_KIND = "segmenter"  # a family that declares no `kind` builds label maps (the paper's models)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")
-_RUN_CACHE: dict[str, Segmenter] | None = None  # per run, see run_models()
+_RUN_CACHE: dict[str, Model] | None = None  # per run, see run_models()
 
 
 def model_kind(cfg: Mapping[str, Any]) -> str:
     """What a model config builds: "detector" (boxes) or "segmenter" (label maps); read without building it."""
     family = cfg.get("family")
-    return str(FAMILIES.meta(family).get("kind", "segmenter")) if isinstance(family, str) and family in FAMILIES \
-        else "segmenter"
+    return str(FAMILIES.meta(family).get("kind", DEFAULT_KIND)) if isinstance(family, str) and family in FAMILIES \
+        else DEFAULT_KIND
 
 
 def for_kind(cfg: Mapping[str, Any], kind: str) -> dict[str, Any]:
-    """A source model's config for the run's task: `model=onnx` under task=detection is the detector source
-    `det_onnx` (the same keys, read by the detector's loader); anything else as it is."""
+    """A source model's config for the run's task: `model=onnx` under a task of detectors is the detector source
+    `det_onnx` (its registry line names its twin of that kind: `detector="det_onnx"`); anything else as it is."""
     out = dict(cfg)
     family = out.get("family")
-    if kind == "detector" and isinstance(family, str) and family in FAMILIES:
-        twin = FAMILIES.meta(family).get("detector")
+    if isinstance(family, str) and family in FAMILIES and model_kind(out) != kind:
+        twin = FAMILIES.meta(family).get(kind)
         if twin:
             out["family"] = twin
     return out
@@ -158,14 +159,12 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
                               f"configure(s) a detector; run model={cfg['family']} with task=detection, or leave "
                               f"{'it' if len(detector_only) == 1 else 'them'} out for segmentation")
         check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
-        check = FAMILIES.meta(cfg["family"]).get("check")  # a detector source's contract check, by its registry line
-        if check:
-            import importlib
-
-            module, attr = check.split(":")
-            getattr(importlib.import_module(module), attr)(cfg, f"{where} ({cfg.get('name')})")
-        else:
+        if not _family_check(cfg, where):  # a detector source's contract check, by its registry line
             check_contract(cfg, f"{where} ({cfg.get('name')})")
+        RuntimeOptions.from_config(cfg)
+        return
+    if _family_check(cfg, where):  # a family of its own kind (the detectors): its registry line names its check
+        check_keys(family_keys(cfg.get("family")), cfg, f"{where} ({cfg.get('name')})", runtime=RUNTIME_KEYS)
         RuntimeOptions.from_config(cfg)
         return
     examples = {"mean": "[0.485,0.456,0.406]", "std": "[0.229,0.224,0.225]"}
@@ -190,13 +189,27 @@ def check_model_config(cfg: Mapping[str, Any], where: str = "model") -> None:
     RuntimeOptions.from_config(cfg)  # a bad model.batch_size / amp is the same one-line error before any stage
 
 
+def _family_check(cfg: Mapping[str, Any], where: str) -> bool:
+    """The check the family's registry line names (`check="module:function"`), run on the config; False if none."""
+    family = cfg.get("family")
+    check = FAMILIES.meta(family).get("check") if isinstance(family, str) and family in FAMILIES else None
+    if not check:
+        return False
+    import importlib
+
+    module, attr = check.split(":")
+    getattr(importlib.import_module(module), attr)(cfg, f"{where} ({cfg.get('name')})")
+    return True
+
+
 def model_keys() -> set[str]:
     """Every key some family's model config may set (the command line's `model.<key>=`)."""
     return set().union(*(family_keys(f) for f in FAMILIES.names()))
 
 
-def build_segmenter(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Segmenter:
-    """Build a segmenter by model name or from a composed model config mapping."""
+def build_model(model: str | Mapping[str, Any], device: str | None = None, **overrides: Any) -> Model:
+    """Build a model by name or from a composed model config mapping: a segmenter or a detector, as its family's
+    kind says (`model_kind`)."""
     cfg = dict(model) if isinstance(model, Mapping) else model_config(str(model))
     cfg.update(overrides)
     device = device or cfg.pop("device", None) or "cpu"
@@ -210,8 +223,8 @@ def _cache_key(cfg: Mapping[str, Any], device: str | None) -> str:
 
 
 @contextlib.contextmanager
-def run_models() -> Iterator[dict[str, Segmenter]]:
-    """The scope of one run: `shared_segmenter` keeps every model it builds until the scope ends
+def run_models() -> Iterator[dict[str, Model]]:
+    """The scope of one run: `shared_model` keeps every model it builds until the scope ends
     (nested scopes share the outer one). Outside a scope it builds a fresh model each call."""
     global _RUN_CACHE
     if _RUN_CACHE is not None:
@@ -224,17 +237,18 @@ def run_models() -> Iterator[dict[str, Segmenter]]:
         _RUN_CACHE = None
 
 
-def shared_segmenter(model: Mapping[str, Any], device: str | None = None) -> Segmenter:
-    """`build_segmenter(model, device)`, built once per run for the same composed config and device."""
+def shared_model(model: Mapping[str, Any], device: str | None = None) -> Model:
+    """`build_model(model, device)`, built once per run for the same composed config and device."""
     if _RUN_CACHE is None:
-        return build_segmenter(model, device=device)
+        return build_model(model, device=device)
     key = _cache_key(model, device)
     if key not in _RUN_CACHE:
-        _RUN_CACHE[key] = build_segmenter(model, device=device)
+        _RUN_CACHE[key] = build_model(model, device=device)
     else:
         log.debug("model %s: reused within this run", model.get("name"))
     return _RUN_CACHE[key]
 
 
-__all__ = ["Segmenter", "RuntimeOptions", "build_segmenter", "with_defaults", "family_keys", "model_keys", "shared_segmenter", "run_models", "model_config", "check_model_config", "available_models",
+__all__ = ["BoxModel", "Model", "Segmenter", "RuntimeOptions", "build_model", "with_defaults", "family_keys", "model_keys",
+           "shared_model", "run_models", "model_config", "check_model_config", "available_models",
            "resolve_device", "FAMILIES", "RUNTIME_KEYS", "is_source", "model_kind", "for_kind"]

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import Iterator, NamedTuple, Sequence
+from typing import Any, Iterator, NamedTuple, Protocol, Sequence, Union
 
 import numpy as np
 
@@ -193,6 +193,21 @@ class Segmenter(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, device={self.device})"
+
+
+class BoxModel(Protocol):
+    """What a detector gives the stages (pairedgta/detection/models.py Detector, contract.ContractDetector): its boxes
+    per image of an RGB uint8 batch, at or above its operating threshold counted as found."""
+
+    name: str
+    device: Any
+    score_threshold: float
+
+    def detect(self, images: np.ndarray) -> list[Any]:
+        ...
+
+
+Model = Union[Segmenter, BoxModel]  # what the one builder (pairedgta.models.build_model) returns, by model kind
 
 
 class PixelMaps(NamedTuple):

@@ -35,6 +35,11 @@ CONTRACT_OPTIONS = ("mean", "std", "scale", "channels", "resize", "pad_multiple"
 DEFAULTS: dict[str, Any] = {"mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD), "scale": 1, "channels": "rgb",
                             "resize": None, "pad_multiple": 1, "inference": "whole", "crop": None, "stride": None,
                             "output": "logits", "labels": "cityscapes"}
+# A detector source's keys (pairedgta/detection/contract.py reads them): the input keys, its output layout and
+# label space, and its operating point; declared here so the model registry lists them without importing detection.
+DETECTOR_OPTIONS = ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels", "score_threshold",
+                    "nms_iou", "max_detections")
+DEFAULT_SCORE_THRESHOLD = 0.5  # a detector's operating point where its config gives none (sources and zoo alike)
 PROBE_SIZE = (256, 512)  # the probe forward's image (height, width): the main job's (a program may guard smaller sizes)
 
 
@@ -330,4 +335,4 @@ def build_source(loader, /, *, name: str | None = None, family: str, mean: list 
 
 
 __all__ = ["Network", "Contract", "ContractSegmenter", "build_source", "make_contract", "check_contract",
-           "CONTRACT_OPTIONS", "DEFAULTS"]
+           "CONTRACT_OPTIONS", "DEFAULTS", "DEFAULT_SCORE_THRESHOLD", "DETECTOR_OPTIONS"]

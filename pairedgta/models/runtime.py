@@ -1,7 +1,7 @@
 """How a model runs, as opposed to what it is: the options every family shares, with one default each.
 
 A model's config (pairedgta/conf/model/<name>.yaml, `model.<key>=` overrides) may set any of these; the family
-builders never see them as keys: `build_segmenter` parses them once into `RuntimeOptions` and hands that to the
+builders never see them as keys: `build_model` parses them once into `RuntimeOptions` and hands that to the
 family, which passes it to `Segmenter`. Torch-free, so a cached run can check and fill a config without torch.
 """
 from __future__ import annotations

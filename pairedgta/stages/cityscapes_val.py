@@ -1,184 +1,39 @@
-"""Cityscapes-val check, per model: per-class IoU and mIoU against the gtFine ground truth.
-
-The check the paper's authors ran to catch a wrong preprocessing: a model far below its published
-mIoU is normalised, resized or channel-ordered differently from how it was trained. Streaming: one
-image at a time into a 19 x 19 confusion matrix, so memory does not grow with the split.
-
-mIoU follows cityscapesScripts: the mean over classes with a non-empty union (a class predicted but
-absent from the ground truth counts as 0; one absent from both is left out). On the full val split,
-where every class occurs, this equals the mean over ground-truth classes used elsewhere.
-"""
+"""Cityscapes-val check, per model: the check the paper's authors ran to catch a wrong preprocessing, on the real
+Cityscapes split (scope "check", run alone: `+experiment=cityscapes_val_check`). What is scored is the run's task's
+work (segmentation's mIoU against the published one in pairedgta/evaluation/cityscapes_val.py, detection's box AP in
+pairedgta/detection/cityscapes_val.py); this module opens the split, keys and caches each model's entry and records
+it in its nested MLflow run."""
 from __future__ import annotations
 
-import dataclasses
-import json
-import logging
-import math
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
-import pandas as pd
-import torch
-from tqdm import tqdm
-
-from pairedgta.cityscapes import CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from pairedgta.datasets import image_notes, open_dataset
 from pairedgta.datasets.cityscapes import CityscapesSplit
 from pairedgta.errors import ConfigError
-from pairedgta.metrics import ConfusionMatrix
-from pairedgta.jsonio import write_json
-from pairedgta.models import shared_segmenter
-from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
-from pairedgta.tracking import bundle, dataset_label, run_name
+from pairedgta.stages.common import Check, Context, run_checks
 
 if TYPE_CHECKING:  # planning reads this module's spec, not the module
     from pairedgta.stages.planning import PassResult, RunState
 
-log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
-VERSION = "1"
-# Cityscapes-val mIoU of each zoo checkpoint as given in the model-zoo issue (reference only; the warning
-# fires below half of it, so a modest mismatch of evaluation protocol does not trigger it)
-PUBLISHED_MIOU: dict[str, float] = {
-    "segformer_b5": 0.767,
-    "mask2former_swin_l": 0.680,
-    "segformer_b2": 0.653,
-    "mask2former_swin_s": 0.645,
-    "segformer_b0": 0.582,
-    "ddrnet_23": 0.795,
-    "pidnet_m": 0.765,
-    "deeplabv3plus_r101": 0.762,
-}
-WARN_FRACTION = 0.5
 
 
-def preprocessing_warning(model: str, miou: float) -> str | None:
-    """The warning line for a model far below its published mIoU, else None."""
-    published = PUBLISHED_MIOU.get(model)
-    if published is None or math.isnan(miou) or miou >= WARN_FRACTION * published:
-        return None
-    return (
-        f"{model}: Cityscapes mIoU {miou:.3f} is below {WARN_FRACTION:g} x the published {published:.3f}; "
-        "check preprocessing (normalisation mean/std, RGB vs BGR, resize) and the checkpoint"
-    )
+@dataclass
+class CityscapesVal(Check):
+    """The Cityscapes check (pairedgta.stages.common.Stage) of one model; outside the paired graph."""
 
-
-def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, device: str = "cpu") -> dict[str, Any]:
-    segmenter = shared_segmenter(model_cfg, device=device)
-    model = model_cfg["name"]
-    cm = ConfusionMatrix(NUM_CLASSES, IGNORE_INDEX)
-    with tqdm(dataset.samples, desc=f"{STAGE} [{model}]", unit="img") as bar:
-        for sample in bar:
-            image, label = dataset.load(sample)
-            pred, _ = segmenter.predict(image[None])
-            cm.update(torch.from_numpy(label.astype(np.int64)), pred[0])
-            del image, label, pred
-    iou = cm.iou().numpy()
-    miou = cm.miou()  # the Cityscapes convention: classes with TP + FP + FN > 0
-    rows = [{"model": model, "class_id": k, "class_name": CLASS_NAMES[k], "iou": iou[k]} for k in range(NUM_CLASSES)]
-    rows.append({"model": model, "class_id": -1, "class_name": "mean", "iou": miou})
-    pd.DataFrame(rows, columns=["model", "class_id", "class_name", "iou"]).to_csv(out / "iou.csv", index=False)
-    published = PUBLISHED_MIOU.get(model)
-    summary = {
-        "model": model,
-        "dataset": dataset.name,
-        "split": dataset.split,
-        "scale": dataset.scale,
-        "n_images": len(dataset),
-        "label_files": dataset.label_kinds(),
-        "miou": miou,
-        "pixel_accuracy": cm.accuracy(),
-        "published_miou": published,
-        "miou_over_published": miou / published if published else None,
-        "evaluated_pixels": int(cm.mat.sum()),
-        "iou": {CLASS_NAMES[k]: (None if math.isnan(iou[k]) else float(iou[k])) for k in range(NUM_CLASSES)},
-    }
-    write_json(out / "summary.json", summary)
-    np.save(out / "confusion.npy", cm.mat.numpy())  # rows ground truth, columns prediction
-    return {"miou": miou}
-
-
-@dataclasses.dataclass
-class CityscapesVal(Unsharded):
-    """The model check (pairedgta.stages.common.Stage): one model on the Cityscapes val split, against the
-    published mIoU. Outside the paired graph."""
-
-    ctx: Context
-    dataset: CityscapesSplit
-    dataset_key: str
-    model_cfg: dict[str, Any]
     name: str = STAGE
-    version: str = VERSION
-    resumable: bool = False
-    result_cls: type[StageResult] = StageResult
-
-    @property
-    def label(self) -> str:
-        return f"[{self.model_cfg['name']}]"
-
-    def hash_config(self) -> dict[str, Any]:
-        return {"model": model_hash_config(self.model_cfg),
-                "dataset": {"split": self.dataset.split, "n_images": len(self.dataset), "scale": self.dataset.scale}}
-
-    def inputs(self) -> dict[str, str]:
-        return {"dataset": self.dataset_key}
-
-    def build(self, out: Path, key: str) -> dict[str, Any]:
-        return compute(self.dataset, self.model_cfg, out, self.ctx.run.device)
-
-
-def check_model(ctx: Context, dataset: CityscapesSplit, dataset_key: str, model_cfg: dict[str, Any]) -> StageResult:
-    # a check outside the paired graph: it always may compute when this experiment runs
-    own = dataclasses.replace(ctx, stages=[*ctx.stages, STAGE])
-    result = run_cached(own, CityscapesVal(own, dataset, dataset_key, model_cfg))
-    if result.hit:
-        log.info("%s [%s]: cached; force=[%s] recomputes", STAGE, model_cfg["name"], STAGE)
-    return result
-
-
-def tracked_metrics(result_dir: Path) -> dict[str, float]:
-    summary = json.loads((result_dir / "summary.json").read_text())
-    metrics = {f"{STAGE}/miou": summary["miou"], f"{STAGE}/pixel_accuracy": summary["pixel_accuracy"]}
-    iou = pd.read_csv(result_dir / "iou.csv")
-    for row in iou.itertuples():
-        if row.class_id >= 0:
-            metrics[f"{STAGE}/iou/{row.class_name}"] = row.iou
-    return metrics
 
 
 def step(ctx: Context, p: PassResult, state: RunState) -> None:
     """The app's step (scope "check", run alone; `p` holds no dataset): every evaluated model on the Cityscapes
-    split, each in a nested MLflow run, and its mIoU against the published one in the run's summary."""
+    split, each in a nested MLflow run, its result in the run's summary."""
     dataset = open_dataset(ctx.cfg["dataset"])
     if not isinstance(dataset, CityscapesSplit):
         raise ConfigError(f"stages=[{STAGE}] checks models on Cityscapes; set dataset=cityscapes dataset.root=PATH")
     dataset_key = f"cityscapes:{dataset.fingerprint()}"
-    tracker = state.recorder
-    tracker.tags({"dataset": dataset.name, "dataset_key": dataset_key, "split": dataset.split})
-    summary = state.summary
-    summary["dataset"] = str(dataset.root)
-    summary[STAGE] = {}
+    state.recorder.tags({"dataset": dataset.name, "dataset_key": dataset_key, "split": dataset.split,
+                         "task": ctx.run.task})
     with image_notes(f"dataset {dataset.name}"):  # a blank or converted image: one warning, after every model
-        for model_cfg in state.models.evaluated:
-            name = model_cfg["name"]
-            with tracker.run(run_name(tracker.experiment, [name], [dataset_label(dataset.name, dataset_key)]), nested=True):
-                result = check_model(ctx, dataset, dataset_key, model_cfg)
-                tracker.params({"model": model_cfg, "dataset": ctx.cfg["dataset"]})
-                tracker.tags({f"{STAGE}_hash": result.key, "cache_hit": str(result.hit), "model": name})
-                tracker.metrics(tracked_metrics(result.path))
-                tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1], {"split": dataset.split})
-                tracker.config({**{k: v for k, v in ctx.cfg.items() if k != "hydra"}, "model": model_cfg})
-                tracker.stage_files(bundle(STAGE, result.key), result.hit, [result.path / "iou.csv", result.path / "summary.json"],
-                                    STAGE)
-            s = json.loads((result.path / "summary.json").read_text())
-            published = s.get("published_miou")
-            log.info(
-                "%s [%s]: mIoU %.3f, pixel accuracy %.3f over %d %s images%s", STAGE, name, s["miou"], s["pixel_accuracy"],
-                s["n_images"], s["split"], f" (published {published:.3f})" if published else "",
-            )
-            warning = preprocessing_warning(name, s["miou"])
-            if warning:
-                log.warning("%s", warning)
-            summary["evaluate"][name] = str(result.path)
-            summary[STAGE][name] = {"miou": s["miou"], "published_miou": published, "warning": warning}
+        run_checks(ctx, state, CityscapesVal, dataset, dataset_key, params={"dataset": ctx.cfg["dataset"]})

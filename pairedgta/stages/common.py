@@ -1,4 +1,5 @@
-"""What every stage shares: the run context, stage results and cache lookups."""
+"""What every stage shares: the runner that hashes, shards and reads the cache (the entry and context types are
+pairedgta/entries.py's, below the stages, so a task's work can use them)."""
 from __future__ import annotations
 
 import logging
@@ -6,126 +7,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from pairedgta.cache import StageCache, stage_hash
-from pairedgta.conditions import ConditionGrid
+from pairedgta.cache import stage_hash
+from pairedgta.entries import (  # noqa: F401 - the stages' names for them
+    HASH_ONLY_MODEL_KEYS,
+    Context,
+    StageResult,
+    model_config_from_hash,
+    model_files,
+    model_hash_config,
+)
 from pairedgta.errors import ConfigError, PairedGTAError
-from pairedgta.models.runtime import SPEED_ONLY_KEYS
-from pairedgta.schema import RunConfig
 
 log = logging.getLogger("pairedgta")
-
-
-@dataclass
-class StageResult:
-    """A stage's cache entry. Each stage subclasses it with readers of its own files, so no other stage,
-    figure or the app needs to know a file name of another stage."""
-
-    stage: str
-    key: str
-    path: Path
-    hit: bool
-    extra: dict[str, Any] = field(default_factory=dict)
-    complete: bool = True  # False: a shard job's part, while other shards' parts are missing
-
-    def manifest(self) -> dict[str, Any]:
-        import json
-
-        from pairedgta.cache import MANIFEST
-
-        return json.loads((self.path / MANIFEST).read_text())
-
-
-@dataclass
-class Context:
-    cfg: dict[str, Any]  # the pass's composed config: the chosen group options (renderer, region, dataset ...)
-    grid: ConditionGrid
-    cache: StageCache
-    stages: list[str]
-    force: set[str]
-    results: dict[str, Any] = field(default_factory=dict)
-    run: RunConfig = None  # type: ignore[assignment]  # the same config, typed (pairedgta/schema.py); parsed if not given
-
-    def __post_init__(self) -> None:
-        if self.run is None:
-            from pairedgta import schema
-
-            self.run = schema.parse(self.cfg)
-
-
-WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth", ".json", ".onnx", ".pt2", ".data", ".tsv", ".txt")
-
-
-def model_files(model_cfg: dict[str, Any]) -> list[Path]:
-    """Every local file a model's numbers depend on: its weights folder (model.path, a folder or one file: an ONNX
-    graph and its external data, a .pt2, an HF or SMP folder), model.checkpoint_path, a label TSV (model.labels) and
-    the module of a `model=python` factory (model.target, found without importing it)."""
-    from pairedgta.models.hf_common import PACKAGE_DIR
-
-    files: list[Path] = []
-    path = model_cfg.get("path")
-    if path:
-        root = PACKAGE_DIR / str(path)[len("pkg://"):] if str(path).startswith("pkg://") else Path(path).expanduser()
-        if root.is_dir():
-            files += sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in WEIGHT_SUFFIXES)
-        elif root.is_file():
-            files.append(root)
-            if root.suffix == ".onnx":  # external data lies beside the graph (pairedgta/models/sources/onnx.py)
-                files += sorted(p for p in root.parent.iterdir() if p.is_file() and p != root
-                                and p.name.startswith(root.stem) and p.suffix in (".data", ".bin", ".weight"))
-    ckpt = model_cfg.get("checkpoint_path")
-    if ckpt:  # a pkg:// file is the zoo's, inside the package: retrained weights must not be a cache hit either
-        from pairedgta.models.hf_common import resolve_checkpoint_path
-
-        if (ckpt := resolve_checkpoint_path(ckpt)).is_file():
-            files.append(ckpt)
-    labels = model_cfg.get("labels")
-    if isinstance(labels, str) and ("/" in labels or labels.endswith((".tsv", ".txt"))):
-        if (table := Path(labels).expanduser()).is_file():
-            files.append(table)
-    target = model_cfg.get("target")
-    if isinstance(target, str) and ":" in target:
-        import importlib.util
-
-        try:
-            spec = importlib.util.find_spec(target.split(":")[0])
-        except (ImportError, ValueError):
-            spec = None
-        if spec is not None and spec.origin and Path(spec.origin).is_file():
-            files.append(Path(spec.origin))
-    return files
-
-
-def _weights_fingerprint(model_cfg: dict[str, Any]) -> str | None:
-    """Content hash of every local file of the model (`model_files`): replacing a file behind an unchanged path must
-    not be a cache hit, and restoring it is one again. Hub ids are pinned by name (and model.revision) only."""
-    import hashlib
-
-    files = model_files(model_cfg)
-    if not files:
-        return None
-    from pairedgta.filehash import default
-
-    memo = default()  # large weights are read once, then only when their size or mtime changes
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f"{f.name}|{memo.sha256(f)}\n".encode())
-    return h.hexdigest()[:16]
-
-
-HASH_ONLY_MODEL_KEYS = ("weights_sha256",)  # identify the weights in a hash; never a model option
-
-
-def model_config_from_hash(hashed: dict[str, Any]) -> dict[str, Any]:
-    """The buildable model config back from the one a stage hashed (runtime keys take their defaults)."""
-    return {k: v for k, v in hashed.items() if k not in HASH_ONLY_MODEL_KEYS}
-
-
-def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
-    cfg = {k: v for k, v in model_cfg.items() if k not in SPEED_ONLY_KEYS}
-    fingerprint = _weights_fingerprint(model_cfg)
-    if fingerprint:
-        cfg[HASH_ONLY_MODEL_KEYS[0]] = fingerprint
-    return cfg
 
 
 class Stage(Protocol):
@@ -233,3 +126,73 @@ def run_cached(ctx: Context, stage: Stage) -> StageResult:
     ctx.cache.use(name, key)
     ctx.results.setdefault("stages", []).append({"stage": name, "label": label, "key": key, "hit": False})
     return stage.result_cls(name, key, ctx.cache.path(name, key), hit=False, extra=extra)
+
+
+@dataclass
+class Check(Unsharded):
+    """A check of the models themselves (scope "check"): one model's entry on one dataset, the run's task's work
+    (pairedgta.work.CheckWork) doing it. Each check stage subclasses it with its `name`."""
+
+    ctx: Context
+    dataset: Any
+    dataset_key: str
+    model_cfg: dict[str, Any]
+    work: Any = None  # its CheckWork: the run's task's, when not given
+    name: str = ""
+    version: str = ""  # the task's work declares it
+    resumable: bool = False
+    result_cls: type[StageResult] = field(default=StageResult)
+
+    def __post_init__(self) -> None:
+        if self.work is None:
+            from pairedgta import tasks
+
+            self.work = tasks.get(self.ctx.run.task).work_for(self.name)
+        self.version, self.result_cls = self.work.version, self.work.result_cls
+
+    @property
+    def label(self) -> str:
+        return f"[{self.model_cfg['name']}]"
+
+    def hash_config(self) -> dict[str, Any]:
+        return self.work.hash_config(self.ctx, self.dataset, self.model_cfg)
+
+    def inputs(self) -> dict[str, str]:
+        return {"dataset": self.dataset_key}
+
+    def build(self, out: Path, key: str) -> dict[str, Any]:
+        from pairedgta.models.runtime import torch_threads
+
+        with torch_threads(self.ctx.run.threads):
+            return self.work.compute(self.ctx, self.dataset, self.dataset_key, self.model_cfg, out)
+
+
+def run_checks(ctx: Context, state: Any, stage: type[Check], dataset: Any, dataset_key: str,
+               params: dict[str, Any] | None = None) -> None:
+    """Every evaluated model through the check `stage`, each in a nested MLflow run: its entry (a check of its own:
+    it always may compute), the lines its work says, its metrics and files; the run's summary gets
+    `<stage>`: {model: ...} and `evaluate`: {model: path}."""
+    import dataclasses
+
+    from pairedgta.tracking import bundle, dataset_label, run_name
+
+    name = stage.__dataclass_fields__["name"].default
+    own = dataclasses.replace(ctx, stages=[*ctx.stages, name])
+    tracker, summary = state.recorder, state.summary
+    summary["dataset"] = str(dataset.root)
+    summary[name] = {}
+    for model_cfg in state.models.evaluated:
+        model = model_cfg["name"]
+        with tracker.run(run_name(tracker.experiment, [model], [dataset_label(dataset.name, dataset_key)]), nested=True):
+            check = stage(own, dataset, dataset_key, model_cfg)
+            result = run_cached(own, check)
+            metrics, entry = check.work.report(result, model_cfg)
+            tracker.params({"model": model_cfg, **(params or {})})
+            tracker.tags({f"{name}_hash": result.key, "cache_hit": str(result.hit), "model": model})
+            tracker.metrics(metrics)
+            tracker.dataset(dataset.name, dataset.root, dataset_key.split(":", 1)[-1],
+                            {"split": dataset.split} if hasattr(dataset, "split") else {"dataset_key": dataset_key})
+            tracker.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
+            tracker.stage_files(bundle(name, result.key), result.hit, check.work.files(result), name)
+        summary["evaluate"][model] = str(result.path)
+        summary[name][model] = entry

@@ -107,7 +107,7 @@ class Plan:
     force: set[str]
     needs: set[str]  # upstream stages the requested stages' config makes them read (the figures')
     models: Any = None  # RunModels, once resolved: checked for availability before a new dataset is rendered
-    task: tasks.Task = tasks.TASKS["segmentation"]  # whose pseudo-labeller and evaluation the stages run
+    task: tasks.Task = tasks.TASKS[tasks.DEFAULT]  # whose work (pseudo-labeller, evaluation, checks) the stages call
 
     def runs(self, name: str) -> bool:
         """Whether a stage runs: listed in `stages`, read by a listed stage's config, or upstream of either."""
@@ -115,7 +115,7 @@ class Plan:
 
     def steps(self, *scopes: str) -> list[stage_registry.StageSpec]:
         """The stages of these scopes that run, in the order they run."""
-        return [self.task.resolve(s) for s in stage_registry.in_scope(*scopes) if self.runs(s.name)]
+        return [s for s in stage_registry.in_scope(*scopes) if self.runs(s.name)]
 
     @property
     def plotting(self) -> bool:

@@ -17,11 +17,11 @@ import sys
 from pairedgta.schema import RunConfig
 from pairedgta.tracking import background
 from pairedgta.tracking.mlflow_tracker import Tracker
-from pairedgta.tracking.naming import bundle, dataset_label, run_name, xi_table
+from pairedgta.tracking.naming import bundle, dataset_label, run_name
 from pairedgta.tracking.recorder import Recorder
 from pairedgta.tracking.store import check_uri
 
-__all__ = ["Recorder", "bundle", "dataset_label", "open_tracker", "run_name", "xi_table"]
+__all__ = ["Recorder", "bundle", "dataset_label", "open_tracker", "run_name"]
 
 
 def open_tracker(run: RunConfig) -> Recorder:

@@ -22,16 +22,6 @@ def bundle(stage: str, key: str, *parts: str) -> str:
     return ".".join([stage, key, *(re.sub(r"[^A-Za-z0-9_\-]+", "_", str(x)) for x in parts)])
 
 
-def xi_table(xi: Any) -> Any:
-    """An evaluation's xi.csv as the MLflow table the UI lines up across runs: model, reference, condition
-    (the grid's name), class, xi and its bootstrap interval."""
-    if xi.empty:
-        return xi
-    cols = {"model": "model", "reference_model": "reference", "condition": "condition", "class_name": "class",
-            "xi": "xi", "ci_low": "ci_low", "ci_high": "ci_high"}
-    return xi[list(cols)].rename(columns=cols).reset_index(drop=True)
-
-
 def dataset_label(name: str, key: str | None) -> str:
     """A dataset as runs name it: its name and the first 8 characters of its hash (generate or content)."""
     return f"{name}@{str(key).split(':', 1)[-1][:8]}" if key else name

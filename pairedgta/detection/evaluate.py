@@ -1,4 +1,4 @@
-"""Detection's evaluate stage (task=detection), per model: the detector on every condition of every group, then the
+"""Detection's evaluation (the work of the `evaluate` stage for task=detection), per model: the detector on every condition of every group, then the
 detection metrics of pairedgta/detection/registry.py over the stored detections (detection xi with its precision
 side and pseudo-AP against the reference's clean boxes; COCO AP, P / mPC / rPC against the renderer's ground truth;
 the per-object view). Every model's detections are kept per condition in COCO results format
@@ -11,10 +11,9 @@ from __future__ import annotations
 import json
 import logging
 import math
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -25,22 +24,17 @@ from pairedgta.detection import registry
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.detection.models import Detections
 from pairedgta.detection.inputs import GroupResult, Inputs, image_ids
-from pairedgta.stages.detection_pseudolabel import DetectionLabels, boxes_by_group, write_json_atomic
-from pairedgta.errors import ConfigError, PairedGTAError
+from pairedgta.detection.pseudolabel import DetectionLabels, boxes_by_group, write_json_atomic
+from pairedgta.entries import Context, StageResult, model_config_from_hash, model_hash_config
+from pairedgta.errors import ConfigError
 from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
 from pairedgta.metrics import detection_xi, per_object
 from pairedgta.metrics.conventions import convention_from_config
 from pairedgta.detection import setup_check
-from pairedgta.models import is_source, shared_segmenter
+from pairedgta.models import is_source, shared_model
 from pairedgta.models.runtime import torch_threads
 from pairedgta.schema import as_dict
-from pairedgta.tasks import TASKS
-from pairedgta.stages.common import Context, StageResult, model_config_from_hash, model_hash_config, run_cached
-from pairedgta.stages.evaluate import parts_dir  # shard parts lie where segmentation's do
-
-if TYPE_CHECKING:
-    from pairedgta.stages.planning import PassResult, RunState
 
 log = logging.getLogger("pairedgta.evaluate")
 VERSION = "det2"  # 2: a source detector's set-up check (pairedgta/detection/setup_check.py)
@@ -162,7 +156,7 @@ def detect_groups(ctx: Context, model_cfg: dict[str, Any], conditions: list[str]
     boxes per group, or None), both read once by the caller."""
     if not groups:
         return []
-    detector = shared_segmenter(model_cfg, device=ctx.run.device)
+    detector = shared_model(model_cfg, device=ctx.run.device)
     det = ctx.run.detection
     out = []
     with torch_threads(ctx.run.threads):
@@ -205,7 +199,7 @@ def settings(ctx: Context, reference: str) -> dict[str, Any]:
 
 
 def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model_cfg: dict[str, Any],
-            conditions: list[str], s: dict[str, Any], out: Path, parts: Path, where: str = "the dataset"
+            conditions: list[str], s: dict[str, Any], out: Path, parts: Path, task: Any, where: str = "the dataset"
             ) -> dict[str, Any]:
     done = read_parts(parts)
     missing = [g for g in dataset.groups if g.group_id not in done]
@@ -216,26 +210,26 @@ def compute(ctx: Context, dataset: PairedDataset, labels: DetectionLabels, model
     boxes = {c: boxes_by_group(gts[c]) if c in gts else None for c in conditions}
     for r in detect_groups(ctx, model_cfg, conditions, missing, pseudo, boxes):
         done[r.group_id] = r
-    detector = shared_segmenter(model_cfg, device=ctx.run.device)  # built once per run: the shards' too
+    detector = shared_model(model_cfg, device=ctx.run.device)  # built once per run: the shards' too
     inputs = Inputs(str(model_cfg["name"]), labels.reference_model(), conditions, s["clean"],
                     [done[g.group_id] for g in dataset.groups if g.group_id in done], image_ids(dataset),
                     pseudo, gts, float(detector.score_threshold), s, tuple(getattr(detector, "blind", ())))
     extra = {}
     if is_source(model_cfg):  # a researcher's detector: is it set up as it was trained? (its line on every run)
         extra = setup_check.run(detector, dataset, gts.get(s["clean"]), s["clean"], where)
-    return write_outputs(out, inputs, extra)
+    return write_outputs(out, inputs, task, extra)
 
 
-def write_outputs(out: Path, inputs: Inputs, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def write_outputs(out: Path, inputs: Inputs, task: Any, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The registered metrics' tables, the detections per condition (COCO results) and summary.json."""
     for cond in inputs.conditions:
         write_json_atomic(out / DETECTIONS_DIR / f"{cond}.json", inputs.coco_results(cond))
-    summary: dict[str, Any] = {"task": "detection", "model": inputs.model, "reference_model": inputs.reference_model,
+    summary: dict[str, Any] = {"task": task.name, "model": inputs.model, "reference_model": inputs.reference_model,
                                "conditions": inputs.conditions, "clean": inputs.clean, "groups": len(inputs.groups),
                                "score_threshold": inputs.threshold, "settings": inputs.settings}
     if not inputs.ground_truth:
         summary["ground_truth"] = "none: the dataset has no instance masks or boxes; GT AP skipped, xi computed"
-    for metric in TASKS["detection"].metric_list():  # the task's metrics, listed once (pairedgta/detection/registry.py)
+    for metric in task.metric_list():  # the task's metrics, listed once (pairedgta/detection/registry.py)
         tables, values = metric.compute(inputs)
         for file, table in tables.items():
             tmp = out / f".{file}.tmp"
@@ -247,147 +241,58 @@ def write_outputs(out: Path, inputs: Inputs, extra: dict[str, Any] | None = None
     return {k: summary[k] for k in ("groups",)}
 
 
-@dataclass
+@dataclass(frozen=True)
 class DetectionEvaluate:
-    """The detection evaluate stage (pairedgta.stages.common.Stage) of one detector on one dataset's labels."""
+    """The `evaluate` stage's work for detection (pairedgta.work.EvaluateWork)."""
 
-    ctx: Context
-    dataset: PairedDataset
-    dataset_key: str
-    pseudo: DetectionLabels
-    model_cfg: dict[str, Any]
-    name: str = "evaluate"
-    version: str = VERSION
-    resumable: bool = False
+    task: Any
     result_cls: type[DetectionEvaluateResult] = DetectionEvaluateResult
 
-    def __post_init__(self) -> None:
-        self.version = f"{VERSION}+{'+'.join(registry.versions())}"
-        grid = self.dataset.grid or self.ctx.grid
-        self.conditions = conditions_for(self.ctx.run.evaluate, grid)
-        self.settings = settings(self.ctx, self.dataset.reference)
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return f"{VERSION}+{'+'.join(registry.versions())}"
 
-    @property
-    def label(self) -> str:
-        return f"[{self.model_cfg['name']}]"
+    def settings(self, ctx: Context, dataset: PairedDataset) -> dict[str, Any]:
+        return settings(ctx, dataset.reference)
 
-    def hash_config(self) -> dict[str, Any]:
-        return {"task": "detection", "model": model_hash_config(self.model_cfg), "metric": self.settings,
-                "conditions": self.conditions, "threads": self.ctx.run.threads}
+    def hash_config(self, model_cfg: dict[str, Any], settings: dict[str, Any], conditions: list[str],
+                    threads: int) -> dict[str, Any]:
+        return {"task": self.task.name, "model": model_hash_config(model_cfg), "metric": settings,
+                "conditions": conditions, "threads": threads}
 
-    def inputs(self) -> dict[str, str]:
-        return {"dataset": self.dataset_key, "pseudolabel": self.pseudo.key}
-
-    def build(self, out: Path, key: str) -> dict[str, Any]:
+    def compute(self, ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: DetectionLabels,
+                model_cfg: dict[str, Any], conditions: list[str], settings: dict[str, Any], out: Path,
+                parts: Path) -> dict[str, Any]:
         from pairedgta.evaluation.setup_check import place
 
-        return compute(self.ctx, self.dataset, self.pseudo, self.model_cfg, self.conditions, self.settings, out,
-                       parts_dir(self.ctx, key), place(self.ctx.cfg, self.dataset_key, self.dataset.name))
+        return compute(ctx, dataset, pseudo, model_cfg, conditions, settings, out, parts, self.task,
+                       place(ctx.cfg, dataset_key, dataset.name))
 
-    def shards(self) -> tuple[int, int]:
-        return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
+    def groups(self, ctx: Context, dataset: PairedDataset, pseudo: DetectionLabels, model_cfg: dict[str, Any],
+               conditions: list[str], groups: list[Any], settings: dict[str, Any]) -> list[GroupResult]:
+        gt = {c: pseudo.ground_truth(c) for c in conditions}
+        return detect_groups(ctx, model_cfg, conditions, groups, pseudo.boxes(), gt)
 
-    def build_shard(self, key: str) -> Path | None:
-        num, shard = self.shards()
-        parts, groups = parts_dir(self.ctx, key), self.dataset.groups
-        mine = groups[shard::num]
-        done = read_parts(parts)
-        todo = [g for g in mine if g.group_id not in done]
-        log.info("evaluate [%s] shard %d of %d: %d of %d groups (%d already done)", self.model_cfg["name"], shard, num,
-                 len(mine), len(groups), len(mine) - len(todo))
-        if todo:
-            gt = {c: self.pseudo.ground_truth(c) for c in self.conditions}
-            new = detect_groups(self.ctx, self.model_cfg, self.conditions, todo, self.pseudo.boxes(), gt)
-            write_part(parts, shard, num, [done[g.group_id] for g in mine if g.group_id in done] + new)
-        covered = read_parts(parts)
-        if all(g.group_id in covered for g in groups):
-            return None
-        log.info("evaluate [%s]: %d of %d groups evaluated by shards so far; run the remaining shards, then without "
-                 "evaluate.shard to merge", self.model_cfg["name"], len(covered), len(groups))
-        return parts
+    def read_parts(self, parts: Path) -> dict[str, GroupResult]:
+        return read_parts(parts)
 
+    def write_part(self, parts: Path, shard: int, num: int, results: list[GroupResult]) -> None:
+        write_part(parts, shard, num, results)
 
-def run(ctx: Context, dataset: PairedDataset, dataset_key: str, labels: DetectionLabels,
-        model_cfg: dict[str, Any]) -> DetectionEvaluateResult:
-    stage = DetectionEvaluate(ctx, dataset, dataset_key, labels, model_cfg)
-    result = run_cached(ctx, stage)
-    assert isinstance(result, DetectionEvaluateResult)
-    if result.complete:
-        result.extra["model_config"] = dict(model_cfg)
-        shutil.rmtree(parts_dir(ctx, result.key), ignore_errors=True)
-    return result
-
-
-def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, labels: StageResult,
-                exclude: set[str]) -> list[DetectionEvaluateResult]:
-    """Every cached detection evaluation of this dataset and labels under the same settings and conditions (the
-    models of an earlier sweep over `model=`): the newest per model, except the models in `exclude`."""
-    from pairedgta.cache import canonical_json
-
-    want_inputs = {"dataset": dataset_key, "pseudolabel": labels.key}
-    grid = dataset.grid or ctx.grid
-    want = json.loads(canonical_json({"metric": settings(ctx, dataset.reference),
-                                      "conditions": conditions_for(ctx.run.evaluate, grid)}))
-    found: dict[str, tuple[float, DetectionEvaluateResult]] = {}
-    for cached in ctx.cache.entries("evaluate"):
-        m = cached.manifest
-        cfg = m.get("config") or {}
-        if m.get("inputs") != want_inputs or cfg.get("task") != "detection" or \
-                {"metric": cfg.get("metric"), "conditions": cfg.get("conditions")} != want:
-            continue
-        name = str((cfg.get("model") or {}).get("name"))
-        if name not in exclude and (name not in found or cached.mtime > found[name][0]):
-            found[name] = (cached.mtime, DetectionEvaluateResult("evaluate", cached.key, cached.path, hit=True))
-    return [r for _, r in sorted(found.values(), key=lambda t: t[1].key)]
-
-
-def step(ctx: Context, p: PassResult, state: RunState) -> None:
-    """The app's step for one pass (task=detection): every detector's evaluation, each in a nested MLflow run; with
-    plot.collect_cached, the cached evaluations of other detectors too."""
-    from pairedgta.tracking import bundle, dataset_label, run_name
-
-    plan, recorder = state.plan, state.recorder
-    collect = plan.plotting and ctx.run.plot.collect_cached
-    for model_cfg in state.models.evaluated:
-        name = f"{p.label}/{model_cfg['name']}" if state.multi else model_cfg["name"]
-        try:
-            result = run(ctx, p.dataset, p.dataset_key, p.pseudo, model_cfg)
-        except PairedGTAError as exc:
-            if collect and "evaluate" not in plan.stages and "no cached output" in str(exc):
-                log.info("evaluate [%s]: not cached; plot collects the cached models only", model_cfg["name"])
-                continue
-            raise
-        if not result.complete:
-            if plan.plotting:
-                raise ConfigError("evaluate.shard is set and other shards' groups are still missing: run the remaining "
-                                  "shards, then plot without evaluate.shard/num_shards")
-            continue
-        p.evaluations.append(result)
+    def said(self, result: DetectionEvaluateResult, model_cfg: dict[str, Any]) -> None:
         if result.summary().get("setup_line"):  # computed now or read from the cached entry: said on every run
             log.warning("%s", result.summary()["setup_line"])
-        label = dataset_label(p.dataset.name, p.dataset_key)
-        with recorder.run(run_name(state.experiment, [model_cfg["name"]], [label]), nested=True):
-            recorder.params({"model": model_cfg, "detection": as_dict(ctx.run.detection), "task": "detection",
-                             "reference_model": state.models.reference["name"]})
-            recorder.tags({"evaluate_hash": result.key, "cache_hit": str(result.hit), "dataset": p.dataset.name,
-                           "pass": p.label, "model": model_cfg["name"], "task": "detection"})
-            recorder.metrics(result.metrics(per_class=ctx.run.tracking.class_metrics))
-            p.record_dataset(recorder)
-            recorder.config({**{k: v for k, v in ctx.cfg.items() if k not in ("hydra", "variants")}, "model": model_cfg})
-            recorder.stage_files(bundle("evaluate", result.key), result.hit, result.artifacts(), "evaluate",
-                                 tables={"det_xi_table.json": xi_table(result.xi())})
-            state.model_runs.append((recorder.run_id(), model_cfg["name"], p.label))
-        state.summary["evaluate"][name] = str(result.path)
-    if collect:
-        extra = find_cached(ctx, p.dataset, p.dataset_key, p.pseudo, exclude={e.model for e in p.evaluations})
-        if extra:
-            log.info("plot: collected %d cached evaluation(s) of this dataset: %s", len(extra),
-                     ", ".join(e.model for e in extra))
-            p.evaluations.extend(extra)
-    if plan.plotting and "evaluate" in plan.needs and not p.evaluations:
-        raise ConfigError(f"plot: no evaluation of dataset {p.label} to draw; run it first, e.g. stages=[evaluate,plot]")
+
+    def record(self, ctx: Context, result: DetectionEvaluateResult, model_cfg: dict[str, Any]
+               ) -> tuple[dict[str, Any], dict[str, str], dict[str, Any]]:
+        options = as_dict(ctx.run.detection)  # the run's detection node: box matching, max detections, min area
+        return ({self.task.name: options, "task": self.task.name}, {"task": self.task.name},
+                {"det_xi_table.json": xi_table(result.xi())})
 
 
 def xi_table(xi: pd.DataFrame) -> pd.DataFrame:
     cols = ["model", "reference_model", "condition", "class_name", "xi", "ci_low", "ci_high", "precision", "pseudo_ap50"]
     return xi[[c for c in cols if c in xi.columns]].reset_index(drop=True) if not xi.empty else xi
+
+
+__all__ = ["DETECTIONS_DIR", "DetectionEvaluate", "DetectionEvaluateResult", "SUMMARY", "compute", "detect_groups",
+           "settings", "write_outputs", "xi_table"]

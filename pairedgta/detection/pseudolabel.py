@@ -1,4 +1,4 @@
-"""Detection's pseudo-label stage (task=detection): the reference detector's boxes on each group's clean image with
+"""Detection's pseudo-labels (the work of the `pseudolabel` stage for task=detection): the reference detector's boxes on each group's clean image with
 score >= tau (0.6, as the paper's pixels) are the weak ground truth detection xi counts; beside them, the true boxes
 of every condition from the renderer's instance masks (pairedgta/detection/boxes.py), written as COCO JSON so the
 data goes to any other tool. Both are labels of the dataset, so they share this entry: keyed by the reference
@@ -9,7 +9,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -21,12 +21,8 @@ from pairedgta.detection.ground_truth import group_ground_truth
 from pairedgta.detection.inputs import detections_from_json, detections_json, image_ids
 from pairedgta.detection.models import Detections
 from pairedgta.jsonio import write_json
-from pairedgta.models import shared_segmenter
-from pairedgta.models.runtime import torch_threads
-from pairedgta.stages.common import Context, StageResult, Unsharded, model_hash_config, run_cached
-
-if TYPE_CHECKING:
-    from pairedgta.stages.planning import PassResult, RunState
+from pairedgta.entries import Context, StageResult, model_hash_config
+from pairedgta.models import shared_model
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "det1"
@@ -87,39 +83,50 @@ class DetectionLabels(StageResult):
             sorted((self.path / GT_DIR).glob("*.json"))
 
 
+def condition_ground_truth(dataset: PairedDataset, cond: str, min_area: int, min_transmittance: float,
+                           ids: dict[str, int] | None = None) -> tuple[dict[str, Any], list[list[gtboxes.Box]]] | None:
+    """The COCO ground truth of one condition (its images named relative to the dataset root, each tagged with its
+    group) and the boxes per image; None where no group has instance masks under it."""
+    ids = ids if ids is not None else image_ids(dataset)
+    images, per_image, gids = [], [], []
+    for g in dataset.groups:
+        if cond not in g.images:
+            continue
+        boxes = group_ground_truth(g, cond, dataset.reference, min_area=min_area, min_transmittance=min_transmittance)
+        if boxes is None:
+            continue
+        w, h = image_size(g.images[cond])
+        images.append((ids[g.group_id], str(g.images[cond].relative_to(dataset.root)), w, h))
+        per_image.append(boxes)
+        gids.append(g.group_id)
+    if not images:
+        return None
+    coco = gtboxes.coco_ground_truth(images, per_image)
+    for im, gid in zip(coco["images"], gids):
+        im["pairedgta_group"] = gid
+    coco["info"].update(condition=cond, min_area=min_area, min_transmittance=min_transmittance)
+    return coco, per_image
+
+
 def write_ground_truth(dataset: PairedDataset, out: Path, min_area: int, min_transmittance: float) -> dict[str, Any]:
     """COCO JSON per condition (ground_truth/<condition>.json); counts of objects and ignore regions."""
     ids = image_ids(dataset)
     counts: dict[str, Any] = {}
     for cond in dataset.conditions:
-        images, per_image, gids = [], [], []
-        for g in dataset.groups:
-            if cond not in g.images:
-                continue
-            boxes = group_ground_truth(g, cond, dataset.reference, min_area=min_area,
-                                       min_transmittance=min_transmittance)
-            if boxes is None:
-                continue
-            w, h = image_size(g.images[cond])
-            images.append((ids[g.group_id], str(g.images[cond].relative_to(dataset.root)), w, h))
-            per_image.append(boxes)
-            gids.append(g.group_id)
-        if not images:
+        found = condition_ground_truth(dataset, cond, min_area, min_transmittance, ids)
+        if found is None:
             continue
-        coco = gtboxes.coco_ground_truth(images, per_image)
-        for im, gid in zip(coco["images"], gids):
-            im["pairedgta_group"] = gid
-        coco["info"].update(condition=cond, min_area=min_area, min_transmittance=min_transmittance)
+        coco, per_image = found
         write_json_atomic(out / GT_DIR / f"{cond}.json", coco)
         flat = [b for bs in per_image for b in bs]
-        counts[cond] = {"images": len(images), "objects": sum(not b.ignore for b in flat),
+        counts[cond] = {"images": len(per_image), "objects": sum(not b.ignore for b in flat),
                         **{f"ignored_{r}": sum(b.ignore == r for b in flat) for r in ("small", "fog")},
                         "truncated": sum(b.truncated for b in flat)}
     return counts
 
 
 def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any], tau: float) -> dict[str, Any]:
-    detector = shared_segmenter(model_cfg, device=ctx.run.device)
+    detector = shared_model(model_cfg, device=ctx.run.device)
     groups: dict[str, Any] = {}
     per_class = np.zeros(gtboxes.NUM_INSTANCE_CLASSES, np.int64)
     batch = max(1, ctx.run.pseudolabel.batch_size)
@@ -149,44 +156,26 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
     return {"groups": len(groups), "pseudo_boxes": int(per_class.sum())}
 
 
-@dataclass
-class DetectionPseudolabel(Unsharded):
-    """The detection pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference detector."""
+@dataclass(frozen=True)
+class DetectionPseudolabels:
+    """The `pseudolabel` stage's work for detection (pairedgta.work.PseudolabelWork): keyed by the reference
+    detector, tau and the ground truth's rules."""
 
-    ctx: Context
-    dataset: PairedDataset
-    dataset_key: str
-    model_cfg: dict[str, Any]
-    name: str = "pseudolabel"
+    task: Any
     version: str = VERSION
-    resumable: bool = False
     result_cls: type[DetectionLabels] = DetectionLabels
 
-    @property
-    def label(self) -> str:
-        return f"[{self.model_cfg['name']}]"
-
-    def hash_config(self) -> dict[str, Any]:
-        det = self.ctx.run.detection
-        return {"task": "detection", "reference_model": model_hash_config(self.model_cfg),
-                "tau": self.ctx.run.pseudolabel.tau, "reference": self.dataset.reference, "threads": self.ctx.run.threads,
-                "ground_truth": {"min_area": det.min_area, "min_transmittance": self.ctx.run.metric.min_transmittance,
+    def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
+        det = ctx.run.detection
+        return {"task": self.task.name, "reference_model": model_hash_config(model_cfg),
+                "tau": ctx.run.pseudolabel.tau, "reference": dataset.reference, "threads": ctx.run.threads,
+                "ground_truth": {"min_area": det.min_area, "min_transmittance": ctx.run.metric.min_transmittance,
                                  "rules": gtboxes.RULES_VERSION}}
 
-    def inputs(self) -> dict[str, str]:
-        return {"dataset": self.dataset_key}
-
-    def build(self, out: Path, key: str) -> dict[str, Any]:
-        with torch_threads(self.ctx.run.threads):
-            return compute(self.ctx, self.dataset, out, self.model_cfg, self.ctx.run.pseudolabel.tau)
+    def compute(self, ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str, Any]) -> dict[str, Any]:
+        return compute(ctx, dataset, out, model_cfg, ctx.run.pseudolabel.tau)
 
 
-def step(ctx: Context, p: PassResult, state: RunState) -> None:
-    """The app's step for one pass (task=detection): the reference detector's boxes and the ground truth."""
-    from pairedgta.tracking import bundle
-
-    p.pseudo = run_cached(ctx, DetectionPseudolabel(ctx, p.dataset, p.dataset_key, state.models.reference))
-    assert isinstance(p.pseudo, DetectionLabels)
-    state.summary.setdefault("pseudolabel", str(p.pseudo.path))
-    state.recorder.stage_files(bundle("pseudolabel", p.pseudo.key), p.pseudo.hit, p.pseudo.artifacts(),
-                               f"pseudolabel/{p.label}" if state.multi else "pseudolabel")
+__all__ = ["DetectionLabels", "DetectionPseudolabels", "boxes_by_group", "compute", "condition_ground_truth",
+           "write_ground_truth",
+           "write_json_atomic"]
