@@ -16,8 +16,10 @@ from pairedgta.entries import Context, StageResult
 class PseudolabelWork(Protocol):
     """The weak ground truth of one dataset from the reference model's clean predictions (stage `pseudolabel`)."""
 
-    version: str                      # the entry's version for this task
     result_cls: type[StageResult]     # the typed reader of its entry (`reference_model()`, `tau()`, `artifacts()`)
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        """The entry's version for this task."""
 
     def hash_config(self, ctx: Context, dataset: Any, model_cfg: dict[str, Any]) -> dict[str, Any]:
         """What of the config decides the labels."""
@@ -66,8 +68,10 @@ class EvaluateWork(Protocol):
 class CheckWork(Protocol):
     """A check of the models themselves, outside the paired graph (stages `cityscapes_val`, `model_check`)."""
 
-    version: str
     result_cls: type[StageResult]
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        ...
 
     def hash_config(self, ctx: Context, dataset: Any, model_cfg: dict[str, Any]) -> dict[str, Any]:
         ...

@@ -70,3 +70,59 @@ def test_a_toy_task_runs_through_the_cli_with_cache_shards_and_mlflow(tmp_path):
     assert nested and nested[0].data.tags["task"] == "presence"
     assert nested[0].data.metrics["presence_recall/Day-RAIN"] == pytest.approx(
         float(table.set_index("condition").loc["Day-RAIN", "xi"]))
+
+
+def _detector_check(tmp: Path, *model: str) -> subprocess.CompletedProcess:
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    args = ["+experiment=model_check", "task=detection", *base_overrides(tmp, store=False), "renderer=synthetic",
+            "region=synthetic_street", "renderer.width=96", "renderer.height=48", "generate.num_scenes=3",
+            "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY]", "detection.min_area=4", "tracking.enabled=false",
+            "threads=1", *model]
+    return run_cli(args, tmp, env_extra={"PYTHONPATH": str(Path(__file__).resolve().parent)})
+
+
+@pytest.mark.slow
+def test_model_check_checks_detectors_as_it_checks_segmenters(tmp_path):
+    """`+experiment=model_check task=detection`: the issue's command ended in an AttributeError ('ContractDetector' has
+    no 'predict'); now a researcher's detector gets its clean GT AP50 as configured and under each one-key
+    alternative, a zoo detector its configured row, both written to the entry and the run's summary."""
+    proc = _detector_check(tmp_path, "model=python", "model.target=detector_nets:red_car_bgr", "model.labels=coco91")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout + proc.stderr
+    assert "model_check [red_car_bgr]: clean GT AP50 on" in out and "model.channels=bgr" in out
+    (entry,) = [p for p in (tmp_path / "cache" / "model_check").iterdir() if not p.name.startswith(".")]
+    table = pd.read_csv(entry / "model_check.csv")
+    assert table["setup"].iloc[0] == "configured" and "model.channels=bgr" in set(table["setup"])
+    summary = json.loads((entry / "summary.json").read_text())
+    assert summary["task"] == "detection" and summary["alternatives"] == len(table) - 1 >= 1
+    assert "| set-up | clean GT AP50 | images |" in (entry / "model_check.md").read_text()
+
+    zoo = _detector_check(tmp_path, "model=tiny_fcos")
+    assert zoo.returncode == 0, zoo.stderr[-3000:]
+    assert "generate: cache hit" in zoo.stdout + zoo.stderr  # the scenes rendered once
+    rows = [pd.read_csv(p / "model_check.csv") for p in (tmp_path / "cache" / "model_check").iterdir()
+            if not p.name.startswith(".") and p != entry]
+    assert len(rows) == 1 and list(rows[0]["setup"]) == ["configured"]
+
+
+def test_a_detector_key_out_of_range_stops_before_any_stage(tmp_path):
+    """The issue's late error: model.score_threshold=2 stopped evaluate after rendering and pseudo-labelling; now the
+    run stops with one line before anything is computed (the cache stays empty)."""
+    from pairedgta.errors import ConfigError
+    from pairedgta.models import check_model_config, model_config
+
+    cfg = model_config("demo_fcos_adverse", score_threshold=2)
+    with pytest.raises(ConfigError, match=r"score_threshold=2 must be in \[0, 1\]"):
+        check_model_config(cfg)
+    for key, value in (("min_size", 8), ("max_size", "big")):
+        with pytest.raises(ConfigError, match=key):
+            check_model_config(model_config("demo_fcos_adverse", **{key: value}))
+
+    from pairedgta.testing.cli import base_overrides, run_cli
+
+    proc = run_cli(["task=detection", *base_overrides(tmp_path, store=False), "renderer=synthetic",
+                    "region=synthetic_street", "model=demo_fcos_adverse", "model.score_threshold=2",
+                    "tracking.enabled=false"], tmp_path)
+    assert proc.returncode != 0 and "score_threshold=2 must be in [0, 1]" in proc.stderr
+    assert not (tmp_path / "cache" / "generate").exists()

@@ -81,8 +81,10 @@ class DetectionCityscapesVal:
     """The `cityscapes_val` stage's work for detection (pairedgta.work.CheckWork)."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[StageResult] = StageResult
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: CityscapesSplit, model_cfg: dict[str, Any]) -> dict[str, Any]:
         det = ctx.run.detection

@@ -91,8 +91,10 @@ class DetectionModelCheck:
     """The `model_check` stage's work for detection (pairedgta.work.CheckWork)."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[StageResult] = StageResult
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"task": self.task.name, "model": model_hash_config(model_cfg), "images": setup_check.CHECK_IMAGES,

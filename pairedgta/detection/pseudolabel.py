@@ -162,8 +162,10 @@ class DetectionPseudolabels:
     detector, tau and the ground truth's rules."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[DetectionLabels] = DetectionLabels
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         det = ctx.run.detection

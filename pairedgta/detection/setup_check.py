@@ -95,7 +95,8 @@ def score(det: Any, images: dict[int, np.ndarray], coco: dict[str, Any]) -> floa
         results += results_format(iid, d.boxes, d.scores, d.labels + 1)
     from pairedgta.detection.boxes import INSTANCE_CLASSES
 
-    cats = [k + 1 for k, n in enumerate(INSTANCE_CLASSES) if n not in det.blind]
+    blind = getattr(det, "blind", ())  # a zoo detector predicts every class
+    cats = [k + 1 for k, n in enumerate(INSTANCE_CLASSES) if n not in blind]
     return float(average_precision(gt, results, categories=cats)["ap50"])
 
 

@@ -109,8 +109,10 @@ class SegmentationCityscapesVal:
     """The `cityscapes_val` stage's work for segmentation (pairedgta.work.CheckWork)."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[StageResult] = StageResult
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: CityscapesSplit, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"model": model_hash_config(model_cfg),

@@ -71,8 +71,10 @@ class SegmentationModelCheck:
     """The `model_check` stage's work for segmentation (pairedgta.work.CheckWork)."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[ModelCheckResult] = ModelCheckResult
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"model": model_hash_config(model_cfg), "images": setup_check.CHECK_IMAGES,

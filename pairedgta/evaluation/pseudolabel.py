@@ -151,8 +151,10 @@ class SegmentationPseudolabels:
     """The `pseudolabel` stage's work for segmentation (pairedgta.work.PseudolabelWork)."""
 
     task: Any
-    version: str = VERSION
     result_cls: type[PseudoLabels] = PseudoLabels
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"reference_model": model_hash_config(model_cfg), "tau": ctx.run.pseudolabel.tau,

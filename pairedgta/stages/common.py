@@ -129,36 +129,42 @@ def run_cached(ctx: Context, stage: Stage) -> StageResult:
 
 
 @dataclass
-class Check(Unsharded):
-    """A check of the models themselves (scope "check"): one model's entry on one dataset, the run's task's work
-    (pairedgta.work.CheckWork) doing it. Each check stage subclasses it with its `name`."""
+class TaskStage:
+    """A stage whose work is the run's task's (pairedgta/work.py): one model's entry on one dataset. The stage keys,
+    caches and records it; `work` (the task's, unless given) computes it. Each such stage subclasses it with its
+    `name`; the work declares the entry's `version(model_cfg)` and `result_cls`."""
 
     ctx: Context
     dataset: Any
     dataset_key: str
     model_cfg: dict[str, Any]
-    work: Any = None  # its CheckWork: the run's task's, when not given
-    name: str = ""
-    version: str = ""  # the task's work declares it
-    resumable: bool = False
-    result_cls: type[StageResult] = field(default=StageResult)
+    work: Any = field(default=None, kw_only=True)
+    name: str = field(default="", kw_only=True)
+    version: str = field(default="", kw_only=True)  # the task's work declares it
+    resumable: bool = field(default=False, kw_only=True)
+    result_cls: type[StageResult] = field(default=StageResult, kw_only=True)
 
     def __post_init__(self) -> None:
         if self.work is None:
             from pairedgta import tasks
 
             self.work = tasks.get(self.ctx.run.task).work_for(self.name)
-        self.version, self.result_cls = self.work.version, self.work.result_cls
+        self.version, self.result_cls = self.work.version(self.model_cfg), self.work.result_cls
 
     @property
     def label(self) -> str:
         return f"[{self.model_cfg['name']}]"
 
-    def hash_config(self) -> dict[str, Any]:
-        return self.work.hash_config(self.ctx, self.dataset, self.model_cfg)
-
     def inputs(self) -> dict[str, str]:
         return {"dataset": self.dataset_key}
+
+
+@dataclass
+class Check(Unsharded, TaskStage):
+    """A check of the models themselves (scope "check"), its work a pairedgta.work.CheckWork."""
+
+    def hash_config(self) -> dict[str, Any]:
+        return self.work.hash_config(self.ctx, self.dataset, self.model_cfg)
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
         from pairedgta.models.runtime import torch_threads

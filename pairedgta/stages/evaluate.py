@@ -14,14 +14,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pairedgta import tasks
 from pairedgta.cache import canonical_json
 from pairedgta.datasets import PairedDataset
 from pairedgta.entries import StageResult
 from pairedgta.errors import ConfigError, PairedGTAError
 from pairedgta.evaluation.settings import conditions_for
-from pairedgta.stages.common import Context, run_cached
-from pairedgta.work import EvaluateWork
+from pairedgta.stages.common import Context, TaskStage, run_cached
 
 if TYPE_CHECKING:  # planning reads this module's spec, not the module
     from pairedgta.stages.planning import PassResult, RunState
@@ -35,36 +33,23 @@ def parts_dir(ctx: Context, key: str) -> Path:
 
 
 @dataclass
-class Evaluate:
-    """The evaluate stage (pairedgta.stages.common.Stage) of one model on one dataset's pseudo-labels."""
+class Evaluate(TaskStage):
+    """The evaluate stage (pairedgta.stages.common.Stage) of one model on one dataset's pseudo-labels (`pseudo`), its
+    work a pairedgta.work.EvaluateWork."""
 
-    ctx: Context
-    dataset: PairedDataset
-    dataset_key: str
-    pseudo: StageResult
-    model_cfg: dict[str, Any]
-    work: EvaluateWork = None  # type: ignore[assignment]  # the run's task's, when not given
-    name: str = "evaluate"
-    version: str = ""  # the task's work declares it
-    resumable: bool = False
-    result_cls: type[StageResult] = field(default=StageResult)
+    pseudo: StageResult = field(default=None, kw_only=True)  # type: ignore[assignment]
+    name: str = field(default="evaluate", kw_only=True)
 
     def __post_init__(self) -> None:
-        if self.work is None:
-            self.work = tasks.get(self.ctx.run.task).work_for(self.name)
-        self.version, self.result_cls = self.work.version(self.model_cfg), self.work.result_cls
+        super().__post_init__()
         self.conditions = conditions_for(self.ctx.run.evaluate, self.dataset.grid or self.ctx.grid)
         self.settings = self.work.settings(self.ctx, self.dataset)
-
-    @property
-    def label(self) -> str:
-        return f"[{self.model_cfg['name']}]"
 
     def hash_config(self) -> dict[str, Any]:
         return self.work.hash_config(self.model_cfg, self.settings, self.conditions, self.ctx.run.threads)
 
     def inputs(self) -> dict[str, str]:
-        return {"dataset": self.dataset_key, "pseudolabel": self.pseudo.key}
+        return {**super().inputs(), "pseudolabel": self.pseudo.key}
 
     def parts(self, key: str) -> Path:
         return parts_dir(self.ctx, key)
@@ -100,7 +85,7 @@ class Evaluate:
 
 def run(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: StageResult,
         model_cfg: dict[str, Any]) -> Any:
-    stage = Evaluate(ctx, dataset, dataset_key, pseudo, model_cfg)
+    stage = Evaluate(ctx, dataset, dataset_key, model_cfg, pseudo=pseudo)
     result = run_cached(ctx, stage)
     if result.complete:
         result.extra["model_config"] = dict(model_cfg)  # what later readers (the qualitative figure) rebuild
@@ -113,7 +98,7 @@ def find_cached(ctx: Context, dataset: PairedDataset, dataset_key: str, pseudo: 
                 exclude: set[str]) -> list[Any]:
     """Every cached evaluation of this dataset and pseudo-labels under the same settings and conditions (e.g. the
     models of an earlier multirun over `model=`): the newest per model, except the models in `exclude`."""
-    probe = Evaluate(ctx, dataset, dataset_key, pseudo, {"name": ""})
+    probe = Evaluate(ctx, dataset, dataset_key, {"name": ""}, pseudo=pseudo)
     keyed = probe.work.hash_config({}, probe.settings, probe.conditions, ctx.run.threads)
     want = json.loads(canonical_json({k: v for k, v in keyed.items() if k not in ("model", "threads")}))
     want_inputs = {"dataset": dataset_key, "pseudolabel": pseudo.key}

@@ -8,45 +8,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pairedgta import tasks
-from pairedgta.datasets import PairedDataset
-from pairedgta.entries import StageResult
 from pairedgta.models.runtime import torch_threads
-from pairedgta.stages.common import Context, Unsharded, run_cached
-from pairedgta.work import PseudolabelWork
+from pairedgta.stages.common import Context, TaskStage, Unsharded, run_cached
 
 if TYPE_CHECKING:  # planning reads this module's spec, not the module
     from pairedgta.stages.planning import PassResult, RunState
 
 
 @dataclass
-class Pseudolabel(Unsharded):
-    """The pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference model."""
+class Pseudolabel(Unsharded, TaskStage):
+    """The pseudo-label stage (pairedgta.stages.common.Stage) of one dataset and reference model (`model_cfg`: the
+    run's `reference_model`), its work a pairedgta.work.PseudolabelWork."""
 
-    ctx: Context
-    dataset: PairedDataset
-    dataset_key: str
-    model_cfg: dict[str, Any]  # the reference model's composed config (the run's `reference_model`)
-    work: PseudolabelWork = None  # type: ignore[assignment]  # the run's task's, when not given
-    name: str = "pseudolabel"
-    version: str = ""  # the task's work declares it
-    resumable: bool = False
-    result_cls: type[StageResult] = field(default=StageResult)
-
-    def __post_init__(self) -> None:
-        if self.work is None:
-            self.work = tasks.get(self.ctx.run.task).work_for(self.name)
-        self.version, self.result_cls = self.work.version, self.work.result_cls
-
-    @property
-    def label(self) -> str:
-        return f"[{self.model_cfg['name']}]"
+    name: str = field(default="pseudolabel", kw_only=True)
 
     def hash_config(self) -> dict[str, Any]:
         return self.work.hash_config(self.ctx, self.dataset, self.model_cfg)
-
-    def inputs(self) -> dict[str, str]:
-        return {"dataset": self.dataset_key}
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
         with torch_threads(self.ctx.run.threads):

@@ -47,8 +47,10 @@ class PresenceLabels(StageResult):
 @dataclass(frozen=True)
 class PresencePseudolabels:
     task: Any
-    version: str = "1"
     result_cls: type[PresenceLabels] = PresenceLabels
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return "1"
 
     def hash_config(self, ctx: Any, dataset: Any, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"task": self.task.name, "reference_model": model_hash_config(model_cfg), "reference": dataset.reference,
