@@ -163,6 +163,11 @@ class GameState:
         h = math.radians(self.heading)
         return (-math.sin(h), math.cos(h)), (math.cos(h), math.sin(h))
 
+    def sends_boxes(self) -> bool:
+        """Whether a frame carries its bbox2d string: asked for, recording, and a frame the plugin's buffers match."""
+        fits = self.width <= BOXES_MAX_FRAME[0] and self.height <= BOXES_MAX_FRAME[1]
+        return self.export_bbox2d and self.recording and fits
+
     def picture_size(self) -> tuple[int, int]:
         """The screen the plugin captures (screenResolution), else the frame."""
         return self.screen or (self.width, self.height)
@@ -656,7 +661,7 @@ class SyntheticView:
             rows, cols = np.nonzero(owner == e.handle)
             if len(rows):  # first and last pixel, in frame pixels
                 left, top = int(cols.min()) * fw // w, int(rows.min()) * fh // h
-                right, bottom = int(cols.max()) * fw // w, int(rows.max()) * fh // h
+                right, bottom = (int(cols.max()) + 1) * fw // w - 1, (int(rows.max()) + 1) * fh // h - 1
             else:  # the plugin's untouched box: nothing of it on screen
                 left, top, right, bottom = fw, fh, 0, 0
             u0, v0, u1, v1 = self._drawn.get(e.handle, (0, 0, 0, 0))
@@ -1156,8 +1161,7 @@ class DeepGTAVTestServer:
                 self._last_sent = time.monotonic()
                 return
             frame = self._encode(self.view.render(state))
-            fits = state.width <= BOXES_MAX_FRAME[0] and state.height <= BOXES_MAX_FRAME[1]
-            boxes = self.view.bbox2d(state) if state.export_bbox2d and state.recording and fits else None
+            boxes = self.view.bbox2d(state) if state.sends_boxes() else None
             doc = encode_state(self.plugin.message(), boxes)
             width, height = state.picture_size()
         self._last_sent = time.monotonic()
