@@ -329,8 +329,10 @@ def test_generate_writes_box_files_that_the_detection_reader_reads(tmp_path):
     # the server's objects as its picture shows them, through the plugin's string and the client's parser
     lines = SyntheticView().bbox2d(state)
     expected = parse_bbox2d(lines, where="server", box_size=(96, 54))
-    assert len(lines.splitlines()) == 3 and [e["class"] for e in expected] == ["bus", "bus"]  # the mule is hidden
-    handles = {e.handle for e in state.entities}
+    handles = {e.handle for e in [*state.entities, *state.ambient()]}
+    spawned = [e for e in expected if e["instance"] in {e.handle for e in state.entities}]
+    assert len(lines.splitlines()) == 10 and [e["class"] for e in spawned] == ["bus", "bus"]  # the mule is hidden
+    assert sorted(e["class"] for e in expected if e not in spawned) == ["bicycle", "motorcycle", "rider", "rider"]
     for cond in index["conditions"]:
         path = boxes_file(scene, cond)
         raw = json.loads(path.read_text())
