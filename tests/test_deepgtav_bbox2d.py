@@ -204,7 +204,8 @@ def test_frame_other_than_the_screen_is_scaled_or_refused():
     plugin.handle(b'{"start": {"scenario": null, "dataset": {"exportBBox2D": true, "frame": [2560, 1440]}}}')
     plugin.handle(b'{"StartRecording": null}')
     assert plugin.state.picture_size() == (2560, 1440) and not plugin.state.sends_boxes()
-    plugin.handle(b'{"config": {"scenario": null, "dataset": {"frame": [1920, 1080], "screenResolution": [2560, 1440]}}}')
+    plugin.handle(b'{"config": {"scenario": null, "dataset": {"frame": [1920, 1080], '
+                  b'"screenResolution": [2560, 1440]}}}')
     assert plugin.state.picture_size() == (2560, 1440) and plugin.state.sends_boxes()
 
 
