@@ -19,8 +19,10 @@ JSON document as `RenderResult.state` (ego location, clock, spawned entities whe
 Ground-truth boxes (`boxes`, default true): the session asks for `dataset.exportBBox2D` and sends
 StartRecording (DeepGTAV-PreSIL fills `bbox2d` only while recording; close() sends StopRecording), and
 `render` turns the frame's `bbox2d` string into `RenderResult.boxes` (deepgtav_protocol.parse_bbox2d:
-Cityscapes instance classes, xyxy pixels of the frame). A plugin that sends no `bbox2d` at all (the classic
-one) gives `boxes=None`, said once.
+Cityscapes instance classes, xyxy pixels of the frame). The plugin captures the screen (`screenResolution`,
+renderer.width x renderer.height) but measures the boxes in `dataset.frame` pixels (renderer.frame, the screen by
+default), so they are scaled to the picture; above 1920x1080 it sends none, which is refused at construction.
+A plugin that sends no `bbox2d` at all (the classic one) gives `boxes=None`, said once.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from pairedgta.scene.descriptor import DynamicObject, SceneDescriptor
 from pairedgta.scene.validation import PED_CATEGORIES, VEHICLE_CATEGORIES, entity_mismatches
 
 log = logging.getLogger(__name__)
+BOXES_MAX_FRAME = (1920, 1080)  # above it DeepGTAV-PreSIL's buffers do not match dataset.frame: no bbox2d
 
 
 def _any_state(state: Mapping[str, Any]) -> str | None:
@@ -89,6 +92,7 @@ class DeepGTAVRenderer(Renderer):
         clock_tolerance_min: int = 10,
         ego_tolerance_m: float = 5.0,
         boxes: bool = True,
+        frame: Sequence[int] | None = None,
     ) -> None:
         given = dict(locals())
 
@@ -122,6 +126,23 @@ class DeepGTAVRenderer(Renderer):
              "set the allowed clock drift in minutes")
         need("ego_tolerance_m", isnum(ego_tolerance_m) and ego_tolerance_m > 0, "set a distance in metres")
         need("boxes", isinstance(boxes, bool), "use true (ask the plugin for its 2D boxes) or false")
+        fr = list(frame) if isinstance(frame, (list, tuple)) else None
+        fr_ok = fr is not None and len(fr) == 2 and all(isint(v) and 1 <= v <= 16384 for v in fr)
+        need("frame", frame is None or fr_ok,
+             "use null (the screen: renderer.width x renderer.height) or [width, height] of the plugin's dataset.frame")
+        fw, fh = (fr[0], fr[1]) if fr is not None else (width, height)
+        # the plugin's boxes come in dataset.frame pixels (its depth and stencil buffers), the picture in the screen's
+        if boxes and (fw > BOXES_MAX_FRAME[0] or fh > BOXES_MAX_FRAME[1]):
+            raise ConfigError(
+                f"renderer.frame={[fw, fh]} (the plugin's dataset.frame) is too large for boxes: above "
+                f"{BOXES_MAX_FRAME[0]}x{BOXES_MAX_FRAME[1]} DeepGTAV-PreSIL's depth and stencil buffers do not "
+                f"match it and no bbox2d arrives; set renderer.frame=[{BOXES_MAX_FRAME[0]}, {BOXES_MAX_FRAME[1]}] "
+                "(the boxes are scaled to the screen) or renderer.boxes=false")
+        if abs(fw / fh - width / height) > 0.01 * width / height:
+            raise ConfigError(
+                f"renderer.frame={[fw, fh]} (the plugin's dataset.frame) has another aspect ratio than the screen "
+                f"renderer.width x renderer.height = {width}x{height}, so the boxes would be stretched; set "
+                "renderer.frame to the screen's shape (e.g. null) or the screen to the game's resolution")
         super().__init__(width, height)
         self.host, self.port, self.transport = host, int(port), transport
         self.timeout_s, self.retries, self.backoff_s = float(timeout_s), int(retries), float(backoff_s)
@@ -133,6 +154,7 @@ class DeepGTAVRenderer(Renderer):
         self.check_state, self.clock_tolerance_min = bool(check_state), int(clock_tolerance_min)
         self.ego_tolerance_m = float(ego_tolerance_m)
         self.boxes = boxes
+        self.frame = (fw, fh)  # dataset.frame: the boxes' pixels; the picture is the screen's, width x height
         self._said_no_boxes = False
         self._session = False  # a session was started on the current connection
         self._scene: SceneDescriptor | None = None  # scene built on the current connection
@@ -203,7 +225,7 @@ class DeepGTAVRenderer(Renderer):
                             "no <condition>_boxes.json", "no field" if "bbox2d" not in result.state else repr(raw))
             return None
         h, w = result.image.shape[:2]
-        return parse_bbox2d(raw, where=where, box_size=(self.width, self.height), image_size=(w, h))
+        return parse_bbox2d(raw, where=where, box_size=self.frame, image_size=(w, h))
 
     # ------------------------------------------------------------------ messages
     def session_message(self, descriptor: SceneDescriptor, key: str = "start") -> dict[str, Any]:
@@ -218,8 +240,8 @@ class DeepGTAVRenderer(Renderer):
         }
         dataset = {
             "rate": self.rate,
-            "frame": [self.width, self.height],
-            "screenResolution": [self.width, self.height],
+            "frame": list(self.frame),  # the boxes' pixels (the plugin's buffers)
+            "screenResolution": [self.width, self.height],  # the picture's: the plugin captures the screen
             "vehicles": True,
             "peds": True,
             "trafficSigns": None,
@@ -366,8 +388,10 @@ class DeepGTAVRenderer(Renderer):
 
     def _condition_objection(self, condition: Condition, state: Mapping[str, Any]) -> str | None:
         if self.boxes and "bbox2d" in state and not isinstance(state["bbox2d"], str):
-            return (f"its bbox2d is {state['bbox2d']!r}, not the boxes (the plugin exports them only while recording; "
-                    "renderer.boxes=false renders without them)")
+            return (f"its bbox2d is {state['bbox2d']!r}, not the boxes (the plugin exports them only while recording, "
+                    f"and only when its depth and stencil buffers match dataset.frame = renderer.frame "
+                    f"{self.frame[0]}x{self.frame[1]}: run the game at that resolution; renderer.boxes=false renders "
+                    "without them)")
         weather = state.get("weather")
         if isinstance(weather, str) and weather.upper() != condition.weather.upper():
             return f"weather is {weather}, requested {condition.weather}"

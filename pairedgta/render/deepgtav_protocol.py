@@ -82,10 +82,17 @@ def decode_frame(buf: bytes | bytearray | memoryview, width: int, height: int) -
 
 
 
+def _last_member_wins(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object whose repeated member keeps its last value: DeepGTAV-PreSIL writes a `null` placeholder for
+    every export it was asked for and, while recording, the same key again with the value (rapidjson AddMember
+    does not replace), so `"bbox2d": null, ..., "bbox2d": "Car ..."` means the string."""
+    return dict(pairs)
+
+
 def parse_state(raw: bytes) -> dict[str, Any]:
     """A frame's JSON document as the state dict; ReplyError, worded as what the server sent, otherwise."""
     try:
-        doc = json.loads(raw.decode("utf-8"))
+        doc = json.loads(raw.decode("utf-8"), object_pairs_hook=_last_member_wins)
     except (UnicodeDecodeError, ValueError):
         raise ReplyError(f"sent a frame whose JSON document is not valid JSON ({raw[:24]!r}...)") from None
     except RecursionError:  # hostile or broken nesting ([[[[...]]]]): not a state document
@@ -97,36 +104,64 @@ def parse_state(raw: bytes) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- 2D boxes (dataset.exportBBox2D)
 
-# The plugin's bbox2d (DeepGTAV-PreSIL, ObjectDetection::exportDetectionsString): one line per vehicle, then per
-# pedestrian, fields separated by single spaces, in the order of its augmented KITTI labels
+# The plugin's bbox2d (DeepGTAV-PreSIL, ObjectDetection::exportEntity through exportDetectionsString): one line per
+# vehicle, then per pedestrian, fields separated by single spaces, in the order of its augmented KITTI labels
 # (dataformat-augmented.txt): type truncated occluded alpha left top right bottom height width length x y z
 # rotation_y, then entity_id points_2d points_3d speed roll pitch model v_ped_is_in. left..bottom are whole pixels of
-# the `dataset.frame` size: the first and last column and row of the object's visible pixels (its segmentation);
-# an object with none keeps "width height 0 0" (left > right), which is not a box. `truncated` is the fraction of
-# the object's projected 3D box outside the image, `occluded` the fraction of its points hidden (0..1).
+# the `dataset.frame` size: the first and last column and row of the object's visible pixels (its segmentation; with
+# DISTINGUISH_PEDS_IN_VEHICLES a rider's pixels are the rider's, not the vehicle's); an object with none keeps
+# "width height 0 0" (left > right), which is not a box. `truncated` is 1 - inside/total of the object's projected
+# 3D box, printed unguarded (an MSVC build writes NaN as -nan(ind)); `occluded` the fraction of its points hidden.
+# `model` is a vehicle's display name (lower case, letters only) or a ped's model hash; v_ped_is_in is the entity id
+# of the vehicle a ped is in, 0 when it is in none.
 BBOX2D_FIELDS = ("type", "truncated", "occluded", "alpha", "left", "top", "right", "bottom")
 BBOX2D_AUGMENTED_FIELDS = 23  # the 15 KITTI fields and the 8 augmented ones
+_ENTITY, _MODEL, _PED_IN = 15, 21, 22  # their places in an augmented line
 # the plugin's types (KITTI's and those of its GTA vehicle table) -> Cityscapes instance classes; any other type
-# (Misc, DontCare, Trailer, Industrial, Utility, Boat, Airplane, Animal, ...) is not a Cityscapes instance: dropped
+# (Misc, DontCare, Trailer, Industrial, Utility, Boat, Airplane, Animal, ...) is not a Cityscapes instance: dropped.
+# Cyclist is the bicycle alone and Motorbike the motorcycle alone, their riders are Pedestrian lines (Cityscapes
+# labels both: the two-wheeler and its rider); "Moterbike" is the plugin's own spelling for bikes and quads missing
+# from its vehicle table. Truck lines of SUVs (BBOX2D_SUVS) are cars.
 BBOX2D_CLASSES = {
     "car": "car", "van": "car", "truck": "truck", "bus": "bus",
     "pedestrian": "person", "person_sitting": "person",
-    # the plugin's Cyclist is a bicycle with its rider's pixels merged in (KITTI: the person riding it): one box,
-    # the rider's class, and no separate bicycle box (Cityscapes would have both)
-    "cyclist": "rider",
-    # Motorbike boxes hold their riders' pixels too; "Moterbike" is the plugin's own spelling for models
-    # missing from its vehicle table
+    "cyclist": "bicycle", "bicycle": "bicycle",
     "motorbike": "motorcycle", "motorcycle": "motorcycle", "moterbike": "motorcycle",
-    "bicycle": "bicycle", "train": "train", "tram": "train", "railed": "train",
+    "train": "train", "tram": "train", "railed": "train",
 }
-_TWO_WHEELERS = frozenset({"cyclist", "motorbike", "motorcycle", "moterbike", "bicycle"})
+_TWO_WHEELERS = frozenset({"cyclist", "bicycle", "motorbike", "motorcycle", "moterbike"})
 _PEDESTRIANS = frozenset({"pedestrian", "person_sitting"})
+# how a C++ stream prints a non-finite float: glibc nan/inf, MSVC -nan(ind) and its older 1.#QNAN/1.#IND/1.#INF
+_NON_FINITE = re.compile(r"[+-]?(?:nan(?:\([^)]*\))?|inf(?:inity)?|1\.#(?:qnan|snan|ind|inf)\d*)", re.IGNORECASE)
 
 
-def _occlusion_level(value: float) -> int:
+def model_key(model: str) -> str:
+    """A vehicle model as the plugin writes it in bbox2d: lower case, letters only (cavalcade2 -> cavalcade)."""
+    return "".join(c for c in model.lower() if "a" <= c <= "z")
+
+
+def _read_suvs() -> frozenset[str]:
+    from pairedgta.data import DEEPGTAV_SUVS
+
+    rows = [line for line in DEEPGTAV_SUVS.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    return frozenset(model_key(row.split(",")[0]) for row in rows[1:])
+
+
+BBOX2D_SUVS = _read_suvs()  # pairedgta/data/deepgtav_suvs.csv, in the plugin's spelling
+
+
+def _number(token: str) -> float | None:
+    """A numeric field; None when the plugin printed a non-finite value (its 'unknown'); ValueError otherwise."""
+    if _NON_FINITE.fullmatch(token):
+        return None
+    value = float(token)
+    return value if math.isfinite(value) else None
+
+
+def _occlusion_level(value: float | None) -> int:
     """KITTI's occlusion level (0 fully visible, 1 partly, 2 largely occluded, 3 unknown) of the plugin's hidden
-    fraction (0..1; a negative value is its 'unknown'); a KITTI level above 1 (2, 3) is kept as it is."""
-    if value < 0:
+    fraction (0..1; a negative or non-finite value is unknown); a KITTI level above 1 (2, 3) is kept as it is."""
+    if value is None or value < 0:
         return 3
     if value == 0:
         return 0
@@ -141,14 +176,18 @@ def parse_bbox2d(text: str, *, where: str, box_size: tuple[int, int],
     "truncated", "occluded"}], bbox in pixels of the delivered image (`image_size`, default `box_size`: the boxes
     come in `dataset.frame` pixels and are scaled when the image differs), right/bottom one past the object's
     last column/row (as boxes from instance masks) and clipped to the image. `instance` is the plugin's entity
-    id (augmented lines), else the line's 1-based number. Types that are no Cityscapes instance class, and objects
-    without visible pixels, are left out; a pedestrian inside a vehicle (v_ped_is_in) is a rider when that vehicle
-    is a two-wheeler of the same frame and left out otherwise (Cityscapes labels the vehicle, not its occupants).
+    id (augmented lines), else the line's 1-based number. A Cyclist/Motorbike line is the two-wheeler; a pedestrian
+    whose v_ped_is_in is a two-wheeler of the same frame is a rider, one in any other vehicle is left out (Cityscapes
+    labels the vehicle, not its occupants); a Truck line of an SUV is a car (BBOX2D_SUVS). Types that are no
+    Cityscapes instance class, and objects without visible pixels, are left out. A non-finite number (the plugin
+    prints NaN as nan or -nan(ind)) is ignored in a dropped line; in a kept one it is unknown: truncation then
+    follows the image border, occlusion is level 3, and a box edge that is not finite leaves the object out.
     A line that is not a box line raises DataError naming `where` (the frame) and the line."""
     bw, bh = box_size
     iw, ih = image_size or box_size
     sx, sy = iw / bw, ih / bh
-    rows: list[tuple[int, str, list[float], int, int]] = []  # (line number, type, numbers, entity id, ped in)
+    # (line number, type, numbers, entity id, model, ped in)
+    rows: list[tuple[int, str, list[float | None], int, str, int]] = []
     for n, line in enumerate(text.splitlines(), start=1):
         tokens = line.split()
         if not tokens:
@@ -165,36 +204,38 @@ def parse_bbox2d(text: str, *, where: str, box_size: tuple[int, int],
         numbers = []
         for name, token in zip(BBOX2D_FIELDS[1:], tokens[1:len(BBOX2D_FIELDS)]):
             try:
-                value = float(token)
+                numbers.append(_number(token))
             except ValueError:
                 raise bad(f"{name} {token!r} is not a number") from None
-            if not math.isfinite(value):
-                raise bad(f"{name} {token!r} is not finite")
-            numbers.append(value)
-        entity, ped_in = n, 0
-        if len(tokens) >= BBOX2D_AUGMENTED_FIELDS:  # entity_id is field 16, v_ped_is_in the last
-            for name, token in (("entity_id", tokens[15]), ("v_ped_is_in", tokens[-1])):
+        entity, model, ped_in = n, "", 0
+        if len(tokens) >= BBOX2D_AUGMENTED_FIELDS:
+            for name, token in (("entity_id", tokens[_ENTITY]), ("v_ped_is_in", tokens[_PED_IN])):
                 if not re.fullmatch(r"-?\d+", token):
                     raise bad(f"{name} {token!r} is not an integer")
-            entity, ped_in = int(tokens[15]), int(tokens[-1])
-        rows.append((n, tokens[0].lower(), numbers, entity, ped_in))
-    two_wheelers = {entity for _, kind, _, entity, _ in rows if kind in _TWO_WHEELERS}
+            entity, model, ped_in = int(tokens[_ENTITY]), tokens[_MODEL], int(tokens[_PED_IN])
+        rows.append((n, tokens[0].lower(), numbers, entity, model, ped_in))
+    two_wheelers = {entity for _, kind, _, entity, _, _ in rows if kind in _TWO_WHEELERS}
     boxes: list[dict[str, Any]] = []
-    for n, kind, (truncated, occluded, _alpha, left, top, right, bottom), entity, ped_in in rows:
+    for n, kind, (truncated, occluded, _alpha, left, top, right, bottom), entity, model, ped_in in rows:
         cls = BBOX2D_CLASSES.get(kind)
-        if cls is None or right < left or bottom < top:  # not a Cityscapes instance, or not seen
+        if cls is None:  # not a Cityscapes instance: whatever its numbers are
             continue
+        if left is None or top is None or right is None or bottom is None or right < left or bottom < top:
+            continue  # not seen, or nowhere to put it
         if kind in _PEDESTRIANS and ped_in:
             if ped_in not in two_wheelers:
                 continue
             cls = "rider"
+        elif kind == "truck" and model_key(model) in BBOX2D_SUVS:
+            cls = "car"
         x0, y0 = min(max(left * sx, 0.0), iw), min(max(top * sy, 0.0), ih)
         x1, y1 = min(max((right + 1) * sx, 0.0), iw), min(max((bottom + 1) * sy, 0.0), ih)
         if x1 <= x0 or y1 <= y0:
             continue
         edge = x0 <= 0 or y0 <= 0 or x1 >= iw or y1 >= ih
         boxes.append({"class": cls, "bbox": [x0, y0, x1, y1], "instance": entity,
-                      "truncated": bool(truncated > 0 or edge), "occluded": _occlusion_level(occluded)})
+                      "truncated": bool((truncated is not None and truncated > 0) or edge),
+                      "occluded": _occlusion_level(occluded)})
     return boxes
 
 
@@ -407,6 +448,7 @@ def wire_int(value: Any) -> Any:
 
 __all__ = [
     "BBOX2D_CLASSES",
+    "BBOX2D_SUVS",
     "INT32",
     "MESSAGE_FIELDS",
     "WEATHERS",
@@ -419,6 +461,7 @@ __all__ = [
     "paint_index",
     "parse_bbox2d",
     "parse_state",
+    "model_key",
     "ped_model",
     "row_stride",
     "validate_message",

@@ -23,13 +23,20 @@ constants both sides share are pairedgta/render/deepgtav_protocol.py's):
 Extensions: the JSON also reports ``"weather"`` and the spawned entities under ``"vehicles"`` /
 ``"peds"`` (``"spawned": true``), which the client uses to check that a condition was applied.
 
-2D boxes as DeepGTAV-PreSIL gives them: with ``dataset.exportBBox2D`` the JSON has ``"bbox2d"``, ``[]`` until
-``StartRecording`` (the plugin fills it only while recording, until ``StopRecording``), then one augmented
-KITTI line per entity within ``REPORT_RADIUS_M`` (vehicles, then peds, by entity id): its type from the
-model (the plugin's vehicle table: Car, Truck, Bus, Motorbike, Cyclist; Pedestrian), the first and last
-column and row of its visible pixels in the synthetic picture (``width height 0 0`` when none is visible),
-the hidden fraction of its drawn box as ``occluded``, the part of that box outside the frame as
-``truncated``, and a made-up but plausible 3D part. ``SyntheticView.instance_map`` gives the pixels.
+2D boxes as DeepGTAV-PreSIL gives them: with ``dataset.exportBBox2D`` the JSON has ``"bbox2d": null`` (the
+plugin's placeholder) and, while recording (``StartRecording`` until ``StopRecording``), a second ``"bbox2d"``
+member holding the string, as the plugin writes it (the duplicate key is real). The string has one augmented KITTI
+line per entity within ``REPORT_RADIUS_M`` (vehicles, then peds, by entity id): its type from the model (the
+plugin's vehicle table: Car, Truck, Bus, Motorbike, Cyclist, Trailer, Boat; Pedestrian, Animal), the first and
+last column and row of its visible pixels in ``dataset.frame`` pixels (``width height 0 0`` when none is visible),
+the hidden fraction of its drawn box as ``occluded``, 1 - inside/total of that box as ``truncated`` (NaN,
+written ``-nan(ind)`` as an MSVC build does, for a box it does not draw), the model as the plugin spells it, the
+vehicle a ped rides in as ``v_ped_is_in``, and a made-up but plausible 3D part. Besides the spawned entities it
+keeps ambient traffic around the ego (``AMBIENT``: a cyclist and a motorcyclist with their riders, a dog, a
+trailer, a boat behind the camera), drawn but not listed under ``"vehicles"``/``"peds"``. The picture has the
+``screenResolution`` size (the plugin captures the screen), the boxes the ``dataset.frame`` size, and a frame
+above ``BOXES_MAX_FRAME`` gets no boxes (the plugin's buffers do not match it). ``SyntheticView.instance_map``
+gives the pixels.
 
 Fault injection (for the first ``fault_sessions`` sessions, or all when None):
 ``silent`` (never send a frame), ``close_mid_frame`` (send half a frame, then drop the
@@ -60,7 +67,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from pairedgta.render.deepgtav_protocol import INT32, WEATHERS, row_stride
+from pairedgta.render.deepgtav_protocol import INT32, WEATHERS, model_key, row_stride
 from pairedgta.scene.validation import joaat
 
 log = logging.getLogger(__name__)
@@ -69,11 +76,16 @@ FAULTS = ("silent", "close_mid_frame", "garbage", "wrong_size")
 _MAX_TCP_MESSAGE = 1 << 20  # the plugin reads messages into a fixed buffer
 REPORT_RADIUS_M = 150.0  # classic DeepGTAV lists vehicles/peds within 150 m of the ego
 FIRST_HANDLE = 4098  # entity ids: FIRST_HANDLE + 256 * n for the n-th entity created (like GTA's script handles)
+BOXES_MAX_FRAME = (1920, 1080)  # a larger dataset.frame: the plugin's buffers differ from it and no bbox2d is sent
 
 # GTA bicycle and motorcycle model names, for the classic DeepGTAV classID in the state JSON
 _BICYCLES = frozenset(["bmx", "cruiser", "fixter", "scorcher", "tribike", "tribike2", "tribike3"])
 _BUSES = frozenset(["airbus", "bus", "coach", "pbus", "rentalbus", "tourbus"])
-_TRUCKS = frozenset(["benson", "mule", "mule2", "mule3", "packer", "phantom", "pounder"])
+# the plugin's table types these SUVs Truck too (pairedgta/data/deepgtav_suvs.csv)
+_TRUCKS = frozenset(["benson", "mule", "mule2", "mule3", "packer", "phantom", "pounder",
+                     "cavalcade", "cavalcade2", "contender", "dubsta3", "fbi2", "granger"])
+_TRAILERS = frozenset(["boattrailer", "trailers", "trailers2", "trailersmall", "tanker", "tvtrailer"])
+_BOATS = frozenset(["dinghy", "dinghy2", "jetmax", "marquis", "seashark", "speeder", "squalo", "suntrap", "tropic"])
 _MOTORCYCLES = frozenset(
     ["akuma", "avarus", "bagger", "bati", "bati2", "bf400", "carbonrs", "chimera", "cliffhanger", "daemon", "daemon2", "defiler", "diablous", "double", "enduro", "esskey", "faggio", "faggio2", "faggio3", "fcr", "gargoyle", "hakuchou", "hexer", "innovation", "lectro", "manchez", "nemesis", "nightblade", "pcj", "policeb", "ratbike", "ruffian", "sanchez", "sanchez2", "sovereign", "thrust", "vader", "vindicator", "vortex", "wolfsbane", "zombiea", "zombieb"]
 )
@@ -101,6 +113,8 @@ class Entity:
     spawned_at: float
     color: tuple[int, int] = (-1, -1)
     handle: int = 0  # the game's entity id (bbox2d's entity_id)
+    ped_in: int = 0  # the handle of the vehicle a ped rides (bbox2d's v_ped_is_in)
+    size: tuple[float, float, float] | None = None  # (drawn width, height, depth) when not the kind's default
 
 
 def _object_or_null(value: Any, name: str) -> dict[str, Any]:
@@ -134,6 +148,8 @@ class GameState:
     report: dict[str, bool] = field(
         default_factory=lambda: {"vehicles": True, "peds": True, "location": True, "time": True}
     )
+    screen: tuple[int, int] | None = None  # dataset.screenResolution: the picture's size (None: the frame's)
+    traffic: bool = True  # the AMBIENT entities around the ego
     stationary: bool = False
     export_bbox2d: bool = False
     recording: bool = False  # StartRecording/StopRecording: the plugin keeps it across sessions
@@ -146,6 +162,39 @@ class GameState:
     def forward_right(self) -> tuple[tuple[float, float], tuple[float, float]]:
         h = math.radians(self.heading)
         return (-math.sin(h), math.cos(h)), (math.cos(h), math.sin(h))
+
+    def sends_boxes(self) -> bool:
+        """Whether a frame carries its bbox2d string: asked for, recording, and a frame the plugin's buffers match."""
+        fits = self.width <= BOXES_MAX_FRAME[0] and self.height <= BOXES_MAX_FRAME[1]
+        return self.export_bbox2d and self.recording and fits
+
+    def picture_size(self) -> tuple[int, int]:
+        """The screen the plugin captures (screenResolution), else the frame."""
+        return self.screen or (self.width, self.height)
+
+    def ambient(self) -> list[Entity]:
+        """The ambient traffic at its place around the ego (none with ``traffic=False``)."""
+        if not self.traffic:
+            return []
+        (fx, fy), (rx, ry) = self.forward_right()
+        return [Entity(kind, model, self.x + fwd * fx + right * rx, self.y + fwd * fy + right * ry, self.z,
+                       self.heading + 90.0, 0.0, handle=handle, ped_in=ped_in, size=size)
+                for kind, model, fwd, right, size, handle, ped_in in AMBIENT]
+
+
+# Ambient traffic (kind, model, forward, right, (drawn width, height, depth), handle, v_ped_is_in), relative to the
+# ego, crossing it side-on on the sidewalks: a bicycle and a motorbike, each with its rider drawn just in front of
+# it (the rider's pixels are the rider's, DISTINGUISH_PEDS_IN_VEHICLES), a dog (an Animal line), a trailer, and a
+# boat behind the camera (never drawn). Handles are below FIRST_HANDLE, so they never meet spawned ones.
+AMBIENT: tuple[tuple[str, str, float, float, tuple[float, float, float], int, int], ...] = (
+    ("vehicle", "scorcher", 24.0, 7.0, (1.8, 1.1, 0.7), 1026, 0),
+    ("ped", "a_m_y_cyclist_01", 23.8, 7.0, (0.5, 1.75, 0.4), 1282, 1026),
+    ("vehicle", "bati", 32.0, -7.0, (2.1, 1.2, 0.8), 1538, 0),
+    ("ped", "a_m_y_motox_01", 31.8, -7.0, (0.5, 1.7, 0.4), 1794, 1538),
+    ("animal", "a_c_husky", 14.0, -6.5, (0.9, 0.6, 0.3), 2050, 0),
+    ("vehicle", "trailers", 60.0, 8.5, (2.6, 3.8, 12.0), 2306, 0),
+    ("vehicle", "dinghy", -15.0, 3.0, (2.0, 1.5, 4.5), 2562, 0),
+)
 
 
 class BadMessage(Exception):
@@ -415,6 +464,16 @@ class Plugin:
             raise BadMessage("dataset.frame is not an array")
         elif defaults:
             out.update(width=1920, height=1080)
+        screen = dc.get("screenResolution")
+        if isinstance(screen, list) and len(screen) >= 2 and all(v is not None for v in screen[:2]):
+            out["screen"] = (_int(screen[0], "dataset.screenResolution[0]"),
+                             _int(screen[1], "dataset.screenResolution[1]"))
+            if not all(1 <= v <= 16384 for v in out["screen"]):
+                raise BadMessage(f"dataset.screenResolution {list(out['screen'])} is not a usable size")
+        elif screen is not None and not isinstance(screen, list):
+            raise BadMessage("dataset.screenResolution is not an array")
+        elif defaults:
+            out["screen"] = None
         report = {}
         for key in ("vehicles", "peds", "location", "time"):
             if dc.get(key) is not None:
@@ -461,8 +520,8 @@ class Plugin:
         if s.entities:
             s.entities = [e for e in s.entities if now - e.spawned_at <= s.despawn_s]
 
-    def message(self, bbox2d: str | None = None) -> dict[str, Any]:
-        """The JSON document sent after each frame (`bbox2d`: the frame's boxes, sent while recording)."""
+    def message(self) -> dict[str, Any]:
+        """The JSON document sent after each frame (its bbox2d string, while recording, is added by encode_state)."""
         s = self.state
         s.index += 1
         (fx, fy), (rx, ry) = s.forward_right()
@@ -491,9 +550,18 @@ class Plugin:
                  "speed": 0.0, "spawned": True}
                 for e in near if e.kind == "ped"
             ]
-        if s.export_bbox2d:  # the plugin's empty placeholder until it records
-            doc["bbox2d"] = bbox2d if s.recording and bbox2d is not None else []
+        if s.export_bbox2d:  # the plugin's placeholder; the string follows as a second member (encode_state)
+            doc["bbox2d"] = None
         return doc
+
+
+def encode_state(doc: dict[str, Any], bbox2d: str | None) -> bytes:
+    """The frame's JSON as the plugin writes it: with a bbox2d string, a second "bbox2d" member after the null
+    placeholder (rapidjson's AddMember appends, so the key appears twice; a JSON reader keeps the last)."""
+    text = json.dumps(doc)
+    if bbox2d is not None and "bbox2d" in doc:
+        text = text[:-1] + ", " + json.dumps("bbox2d") + ": " + json.dumps(bbox2d) + "}"
+    return text.encode()
 
 
 def _class_id(model: str) -> int:
@@ -502,21 +570,26 @@ def _class_id(model: str) -> int:
 
 
 def bbox2d_type(e: Entity) -> str:
-    """The plugin's object type of an entity (its vehicle table for vehicles; KITTI's Pedestrian for peds)."""
+    """The plugin's object type of an entity (its vehicle table for vehicles; Pedestrian or Animal for peds)."""
     if e.kind != "vehicle":
-        return "Pedestrian"
+        return "Animal" if e.kind == "animal" else "Pedestrian"
     m = e.model.lower()
-    if m in _BUSES:
-        return "Bus"
-    if m in _TRUCKS:
-        return "Truck"
+    for names, kind in ((_BUSES, "Bus"), (_TRUCKS, "Truck"), (_TRAILERS, "Trailer"), (_BOATS, "Boat")):
+        if m in names:
+            return kind
     return {0: "Car", 1: "Motorbike", 2: "Cyclist"}[_class_id(m)]
 
 
+def _msvc_float(v: float) -> str:
+    """A float as the plugin's stream writes it in an MSVC build (%g-like; NaN as -nan(ind))."""
+    return "-nan(ind)" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else f"{v:g}"
+
+
 def _model_string(e: Entity) -> str:
-    """The plugin's model field: the vehicle's name, a ped's model hash in decimal."""
+    """The plugin's model field: a vehicle's name in lower case, letters only (as it spells display names); a ped's
+    model hash in decimal."""
     if e.kind == "vehicle":
-        return e.model
+        return model_key(e.model)
     text = e.model.strip()
     return str(int(text, 16) if text.lower().startswith("0x") else joaat(text))
 
@@ -538,7 +611,8 @@ def _geometry_key(s: GameState) -> tuple:
     ents = tuple(
         (e.kind, e.model, round(e.x, 2), round(e.y, 2), round(e.heading, 1), e.handle) for e in s.entities
     )
-    return (s.width, s.height, round(s.x, 2), round(s.y, 2), round(s.z, 2), round(s.heading, 2),
+    return (s.width, s.height, s.picture_size(), s.traffic, round(s.x, 2), round(s.y, 2), round(s.z, 2),
+            round(s.heading, 2),
             tuple(round(c, 3) for c in s.camera), ents)
 
 
@@ -577,21 +651,23 @@ class SyntheticView:
         return self._boxes
 
     def _bbox2d(self, s: GameState) -> str:
-        owner, w, h = self.instance_map(s), s.width, s.height
-        near = [e for e in s.entities if math.hypot(e.x - s.x, e.y - s.y) < REPORT_RADIUS_M]
+        owner, (w, h) = self.instance_map(s), s.picture_size()
+        fw, fh = s.width, s.height  # the boxes' pixels: dataset.frame
+        near = [e for e in [*s.entities, *s.ambient()] if math.hypot(e.x - s.x, e.y - s.y) < REPORT_RADIUS_M]
         (fx, fy), (rx, ry) = s.forward_right()
         cam_x, cam_y, cam_z = s.camera[:3]
         lines = []
         for e in sorted(near, key=lambda e: (e.kind != "vehicle", e.handle)):
             rows, cols = np.nonzero(owner == e.handle)
-            if len(rows):
-                left, top, right, bottom = int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max())
+            if len(rows):  # first and last pixel, in frame pixels
+                left, top = int(cols.min()) * fw // w, int(rows.min()) * fh // h
+                right, bottom = (int(cols.max()) + 1) * fw // w - 1, (int(rows.max()) + 1) * fh // h - 1
             else:  # the plugin's untouched box: nothing of it on screen
-                left, top, right, bottom = w, h, 0, 0
+                left, top, right, bottom = fw, fh, 0, 0
             u0, v0, u1, v1 = self._drawn.get(e.handle, (0, 0, 0, 0))
             full = max(u1 - u0, 0) * max(v1 - v0, 0)
             inside = max(min(u1, w) - max(u0, 0), 0) * max(min(v1, h) - max(v0, 0), 0)
-            truncated = 1.0 - inside / full if full else 0.0
+            truncated = 1.0 - inside / full if full else math.nan  # the plugin's 1 - inside/total, unguarded
             occluded = 1.0 - len(rows) / inside if inside else 1.0
             width, height, length = _entity_size(e)
             dx, dy = e.x - s.x, e.y - s.y
@@ -600,12 +676,13 @@ class SyntheticView:
             ry_cam = math.remainder(math.radians(e.heading - s.heading) - math.pi / 2, 2 * math.pi)
             alpha = math.remainder(ry_cam - math.atan2(x, z), 2 * math.pi)
             values = [bbox2d_type(e), truncated, occluded, alpha, left, top, right, bottom, height, width, length,
-                      x, y, z, ry_cam, e.handle, len(rows), 0, 0.0, 0.0, 0.0, _model_string(e), 0]
-            lines.append(" ".join(v if isinstance(v, str) else str(v) if isinstance(v, int) else f"{v:g}"
+                      x, y, z, ry_cam, e.handle, len(rows), 0, 0.0, 0.0, 0.0, _model_string(e), e.ped_in]
+            lines.append(" ".join(v if isinstance(v, str) else str(v) if isinstance(v, int) else _msvc_float(v)
                                   for v in values) + "\n")
         return "".join(lines)
 
     def render(self, s: GameState) -> np.ndarray:
+        """The picture of `s` at the screen's size (dataset.screenResolution, else dataset.frame)."""
         self._ensure(s)
         assert self._albedo is not None and self._depth is not None
         light_key = (s.hour, s.minute, s.weather)
@@ -615,7 +692,7 @@ class SyntheticView:
 
     @staticmethod
     def _geometry(s: GameState) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, tuple[int, int, int, int]]]:
-        w, h = s.width, s.height
+        w, h = s.picture_size()
         seed = zlib.crc32(repr((round(s.x, 1), round(s.y, 1), round(s.heading, 1))).encode())
         rng = np.random.default_rng(seed)
         cam_x, cam_y, cam_h, rot_x, _, rot_z = s.camera
@@ -661,7 +738,7 @@ class SyntheticView:
         # entities relative to the ego pose, far to near
         (fx, fy), (rx, ry) = s.forward_right()
         items = []
-        for e in s.entities:
+        for e in [*s.entities, *s.ambient()]:
             dx, dy = e.x - s.x, e.y - s.y
             fwd = dx * fx + dy * fy - cam_y
             right = dx * rx + dy * ry
@@ -697,6 +774,8 @@ class SyntheticView:
 
 def _entity_size(e: Entity) -> tuple[float, float, float]:
     """(width, height, length) in metres of an entity's stand-in box."""
+    if e.size is not None:
+        return e.size
     if e.kind != "vehicle":
         return 0.6, 1.8, 0.5
     if e.model.lower() in _BUSES:
@@ -945,6 +1024,7 @@ class DeepGTAVTestServer:
         fault: str | None = None,
         fault_sessions: int | None = None,
         on_bad_message: str = "drop",
+        traffic: bool = True,
     ) -> None:
         if transport not in ("zmq", "tcp"):
             raise ValueError(f"transport must be 'zmq' or 'tcp', not {transport!r}")
@@ -959,6 +1039,7 @@ class DeepGTAVTestServer:
         self.fault_sessions = fault_sessions
         self.on_bad_message = on_bad_message
         self.plugin = Plugin()
+        self.plugin.state.traffic = traffic  # the AMBIENT entities (False: only what the client spawns)
         self.view = SyntheticView()
         self.frames_sent = 0
         self.lock = threading.Lock()
@@ -1080,9 +1161,9 @@ class DeepGTAVTestServer:
                 self._last_sent = time.monotonic()
                 return
             frame = self._encode(self.view.render(state))
-            boxes = self.view.bbox2d(state) if state.export_bbox2d and state.recording else None
-            doc = json.dumps(self.plugin.message(boxes)).encode()
-            width, height = state.width, state.height
+            boxes = self.view.bbox2d(state) if state.sends_boxes() else None
+            doc = encode_state(self.plugin.message(), boxes)
+            width, height = state.picture_size()
         self._last_sent = time.monotonic()
         self._session_frames += 1
         if fault == "close_mid_frame":
