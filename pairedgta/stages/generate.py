@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm import tqdm
 
+from pairedgta import corruptions
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, boxes_file, scene_files, transmittance_file, transmittance_png
@@ -132,6 +133,8 @@ def hash_config(run: RunConfig, grid: ConditionGrid) -> dict[str, Any]:
         # the backend's own version (blender_version): another Blender draws other pixels, so another entry; the
         # manifest's config records it. A backend without one (synthetic, deepgtav) hashes as before
         **renderer_versions(run.renderer.get("backend")),
+        # a set with corruption conditions: the library and its version (another version, other pixels); none else
+        **corruptions.hash_config(grid),
     }
 
 
@@ -181,7 +184,7 @@ def render_scene(
         images: dict[str, np.ndarray] = {}
         pairing = gen.pairing
         perturbed: dict[str, SceneDescriptor] = {}
-        for condition in grid:
+        for condition in grid.rendered:
             shown = descriptor
             if condition.name != grid.reference and not is_perfect(pairing):
                 shown = perturb_descriptor(descriptor, condition.name, pairing, placement(gen), region)
@@ -206,7 +209,12 @@ def render_scene(
                 write_json(boxes_file(tmp, condition.name), {"boxes": result.boxes})
             states[condition.name] = result.state
             images[condition.name] = result.image
+        t2 = time.perf_counter()
+        corrupt_scene(tmp, descriptor.scene_id, images, grid, gen.seed)
+        corrupting = time.perf_counter() - t2
         rendering = time.perf_counter() - t1
+        # the rendered images only: a corrupted one is paired by construction, and a strong filter (glass blur 5)
+        # would fail the structure check that looks for a renderer that moved something
         validation = validate(images, grid, descriptor, states, gen.validation, perturbed)
         descriptor.save(tmp / "descriptor.json")
         # the backend's overhead (reconnects, retries, waiting) happens inside the phases; the paper
@@ -218,6 +226,7 @@ def render_scene(
             "scene_sampling_time": t["scene_sampling_time"], "semantic_scene_construction_time": construction,
             "condition_wise_rendering_time": rendering, "pipeline_time": max(wall - overhead, 0.0),
             "overhead_time": overhead, "total_time": wall, "retries": int(getattr(renderer, "retries_used", 0)),
+            **({"corruption_time": corrupting} if grid.corrupted else {}),
         }
         write_json(tmp / "timings.json", row)
         write_json(tmp / "validation.json", validation)
@@ -228,6 +237,15 @@ def render_scene(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def corrupt_scene(scene_dir: Path, scene_id: str, images: dict[str, np.ndarray], grid: ConditionGrid,
+                  seed: int) -> None:
+    """Write each corruption condition's image: its clean image through the library, seeded by (seed, scene,
+    condition). No label, instance or transmittance file: the readers give it the clean condition's truth."""
+    for c in grid.corrupted:
+        image = corruptions.corrupt(images[c.source], c.corruption, c.severity, corruptions.seed_for(seed, scene_id, c.name))
+        save_png_atomic(image, scene_files(scene_dir, c.name)[0])
 
 
 def validators() -> tuple[Any, Any]:
@@ -313,6 +331,8 @@ def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[
     workers = gen.workers
     if gen.validation.enabled:
         validators()  # a broken install says so before the first scene is rendered, not after it
+    if grid.corrupted:
+        corruptions.library()  # likewise the corruption library
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for tmp in scenes_dir.glob(".tmp-*"):
@@ -378,7 +398,7 @@ def write_index(out: Path, run: RunConfig, grid: ConditionGrid, n: int, connect:
     if rows:
         rows[0]["overhead_time"] += connect
         rows[0]["total_time"] += connect
-    _write_csv(out / "timings.csv", rows, TIMING_COLUMNS)
+    _write_csv(out / "timings.csv", rows, TIMING_COLUMNS + (["corruption_time"] if grid.corrupted else []))
     _write_csv(out / "validation.csv", valid_rows, sorted({k for r in valid_rows for k in r}, key=lambda c: (c != "scene_id", c != "ok", c)))
     dropped = n - len(scenes)
     if dropped:
