@@ -60,7 +60,8 @@ def _names(value: Any, key: str) -> list[str]:
         raise ConfigError(f"{key}={value!r}; use a subset ({', '.join(SUBSETS)}) or a list of corruption names")
     unknown = [str(v) for v in value if str(v) not in SUBSETS["all"]]
     if unknown:
-        raise ConfigError(f"{key}: unknown corruption(s) {unknown}; use names of {LIBRARY}: {', '.join(SUBSETS['all'])}")
+        raise ConfigError(f"{key}: unknown corruption(s) {unknown}; use names of {LIBRARY}: "
+                          f"{', '.join(SUBSETS['all'])}")
     return list(dict.fromkeys(str(v) for v in value))
 
 
