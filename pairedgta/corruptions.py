@@ -108,7 +108,7 @@ def options(node: Mapping[str, Any] | None) -> dict[str, Any] | None:
 def conditions(node: Mapping[str, Any] | None, rendered: list[Any], reference: str) -> list[Any]:
     """The corruption conditions of `node` over the clean condition among `rendered` (pairedgta.conditions.Condition),
     corruption by corruption, each at every severity."""
-    from pairedgta.conditions import Condition
+    from dataclasses import replace
 
     opts = options(node)
     if opts is None:
@@ -120,8 +120,8 @@ def conditions(node: Mapping[str, Any] | None, rendered: list[Any], reference: s
         raise ConfigError(f"{where}={clean_name!r}: corruptions need a rendered clean condition to corrupt, and the "
                           f"set has none of that name (it has {[c.name for c in rendered]}); set "
                           "conditions.corruptions.of to one of them, or choose conditions=corruptions")
-    params = {k: v for k, v in clean.to_dict().items() if k != "name"}
-    return [Condition(name=condition_name(n, s), **params, corruption=n, severity=s, source=clean.name)
+    # the clean condition's light and weather, under a name of its own (checked as the clean one was)
+    return [replace(clean, name=condition_name(n, s), corruption=n, severity=s, source=clean.name)
             for n in opts["names"] for s in opts["severities"]]
 
 

@@ -17,7 +17,7 @@ from PIL import Image
 from pairedgta import corruptions
 from pairedgta.conditions import build_condition_grid
 from pairedgta.errors import ConfigError
-from pairedgta.metrics import corruption_summary as cs
+from pairedgta import corruption_summary as cs
 from pairedgta.testing.cli import base_overrides, compose_cfg, run_cli
 
 # the `corruptions` extra (in .[dev]); through the wrapper, which supplies pkg_resources where setuptools has none
@@ -231,6 +231,8 @@ def test_the_released_layout_gets_its_clean_frames_corrupted(tmp_path):
             want = corruptions.corrupt(clean, *c, corruptions.seed_for(0, loc, name))
             assert png(entry / "scenes" / loc / f"{name}.png").tobytes() == want.tobytes()
     assert json.loads((entry / "index.json").read_text())["groups"] == ["0001", "0002"]
+    again = run_cli(args, tmp_path)
+    assert again.returncode == 0 and "cache hit" in again.stderr + again.stdout, again.stderr[-3000:]
 
 
 # -- summaries -------------------------------------------------------------------------------------------------------

@@ -28,11 +28,12 @@ from tqdm import tqdm
 
 from pairedgta import corruptions
 from pairedgta.conditions import ConditionGrid, build_condition_grid
-from pairedgta.datasets.base import PairedDataset, save_png_atomic
+from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, boxes_file, scene_files, transmittance_file, transmittance_png
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError, reason
 from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer, renderer_versions
+from pairedgta.render.corruptions import corrupt_scene, writer_alive
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region, region_for_scene
@@ -239,16 +240,6 @@ def render_scene(
         raise
 
 
-def corrupt_scene(scene_dir: Path, scene_id: str, images: dict[str, np.ndarray], grid: ConditionGrid,
-                  seed: int) -> None:
-    """Write each corruption condition's image: its clean image through the library, seeded by (seed, scene,
-    condition). No label, instance or transmittance file: the readers give it the clean condition's truth."""
-    for c in grid.corrupted:
-        seeded = corruptions.seed_for(seed, scene_id, c.name)
-        image = corruptions.corrupt(images[c.source], c.corruption, c.severity, seeded)
-        save_png_atomic(image, scene_files(scene_dir, c.name)[0])
-
-
 def validators() -> tuple[Any, Any]:
     """(validate_group, entity_mismatches) of pairedgta.scene.validation. A module that fails to import
     is a broken install: one line naming what is missing and the fix, never a scene passed unchecked."""
@@ -308,23 +299,6 @@ def finished_scenes(scenes_dir: Path) -> set[int]:
     return {int(p.name) for p in scenes_dir.iterdir() if p.is_dir() and p.name.isdigit() and (p / "timings.json").is_file()}
 
 
-def _writer_alive(tmp: Path) -> bool:
-    """Whether the process that names `.tmp-<scene>-<pid>` still runs (on this machine)."""
-    try:
-        pid = int(tmp.name.rsplit("-", 1)[1])
-    except (IndexError, ValueError):
-        return False
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[int]) -> float:
     """Render the scenes `indices` that are not yet in out/scenes; returns the backend's connect time."""
     gen = run.generate
@@ -337,7 +311,7 @@ def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for tmp in scenes_dir.glob(".tmp-*"):
-        if not _writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
+        if not writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
             shutil.rmtree(tmp, ignore_errors=True)
     done = finished_scenes(scenes_dir)
     todo = [k for k in indices if k not in done]
@@ -469,145 +443,6 @@ class Generate:
         return work
 
 
-# -- corruptions of a dataset that exists (dataset.root: the released PairedGTA layout, another generated one) --------
-CORRUPT_VERSION = "1"
-DONE = "done.json"  # a group's corrupted images are complete (written last)
-
-
-def corrupt_group(group: Any, grid: ConditionGrid, seed: int, scenes_dir: Path) -> None:
-    """The corruption conditions of one group of an existing dataset, from its clean image (which stays where it is),
-    into scenes_dir/<group id>/ under a temporary name, renamed when complete."""
-    from pairedgta.datasets import load_image
-
-    final = scenes_dir / str(group.group_id)
-    tmp = scenes_dir / f".tmp-{group.group_id}-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
-        sources = {c.source for c in grid.corrupted}
-        images = {c: load_image(group.images[c]) for c in sources if c in group.images}
-        missing = sorted(sources - set(images))
-        if missing:
-            raise PairedGTAError(f"group {group.group_id}: no image of {', '.join(missing)} to corrupt; set "
-                                 "conditions.corruptions.of to a condition every group has (the reference)")
-        t0 = time.perf_counter()
-        corrupt_scene(tmp, str(group.group_id), images, grid, seed)
-        write_json(tmp / DONE, {"group_id": str(group.group_id), "corruption_time": time.perf_counter() - t0})
-        if final.exists():
-            shutil.rmtree(final)
-        os.rename(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-_CORRUPT: dict[str, Any] = {}
-
-
-def _init_corrupt_worker(groups: list[Any], grid: ConditionGrid, seed: int) -> None:
-    _CORRUPT.update(groups={str(g.group_id): g for g in groups}, grid=grid, seed=seed)
-
-
-def _corrupt_work(group_id: str, scenes_dir: str) -> None:
-    w = _CORRUPT
-    corrupt_group(w["groups"][group_id], w["grid"], w["seed"], Path(scenes_dir))
-
-
-def corrupt_groups(dataset: Any, grid: ConditionGrid, gen: GenerateConfig, out: Path, indices: list[int]) -> None:
-    """The groups `indices` of `dataset` not yet corrupted in out/scenes, over generate.workers processes."""
-    corruptions.library()
-    scenes_dir = out / "scenes"
-    scenes_dir.mkdir(parents=True, exist_ok=True)
-    for tmp in scenes_dir.glob(".tmp-*"):
-        if not _writer_alive(tmp):
-            shutil.rmtree(tmp, ignore_errors=True)
-    groups = [dataset.groups[i] for i in indices if not (scenes_dir / str(dataset.groups[i].group_id) / DONE).is_file()]
-    if len(groups) < len(indices):
-        log.info("corruptions: resuming, %d of %d groups already corrupted", len(indices) - len(groups), len(indices))
-    if gen.workers == 1:
-        for g in tqdm(groups, desc="corruptions", unit="group"):
-            corrupt_group(g, grid, gen.seed, scenes_dir)
-        return
-    ctx = mp.get_context("spawn")
-    with cf.ProcessPoolExecutor(gen.workers, mp_context=ctx, initializer=_init_corrupt_worker,
-                                initargs=(groups, grid, gen.seed)) as pool:
-        futures = [pool.submit(_corrupt_work, str(g.group_id), str(scenes_dir)) for g in groups]
-        for fut in tqdm(cf.as_completed(futures), total=len(futures), desc="corruptions", unit="group"):
-            fut.result()
-
-
-@dataclass
-class CorruptExisting:
-    """The corruption conditions of a dataset given by dataset.root (the released PairedGTA layout): a generate entry
-    of its own, keyed by that dataset's content and the corruptions, holding only the corrupted images."""
-
-    ctx: Context
-    dataset: Any  # PairedDataset
-    dataset_key: str
-    name: str = "generate"
-    version: str = CORRUPT_VERSION
-    label: str = "[corruptions]"
-    resumable: bool = True
-    result_cls: type[GeneratedData] = GeneratedData
-
-    def hash_config(self) -> dict[str, Any]:
-        grid = self.ctx.grid
-        return {"corrupt": self.dataset_key, "seed": self.ctx.run.generate.seed,
-                "conditions": [c.to_dict() for c in grid.corrupted], **corruptions.hash_config(grid)}
-
-    def inputs(self) -> dict[str, str]:
-        return {}
-
-    def build(self, out: Path, key: str) -> dict[str, Any]:
-        corrupt_groups(self.dataset, self.ctx.grid, self.ctx.run.generate, out, list(range(len(self.dataset))))
-        (out / SHARED_WORK).unlink(missing_ok=True)
-        write_json(out / INDEX, {"corrupts": self.dataset_key, "root": str(self.dataset.root),
-                                 "conditions": [c.name for c in self.ctx.grid.corrupted],
-                                 "groups": [str(g.group_id) for g in self.dataset.groups],
-                                 **corruptions.hash_config(self.ctx.grid)})
-        return {"num_groups": len(self.dataset)}
-
-    def shards(self) -> tuple[int, int]:
-        return self.ctx.run.generate.num_shards, self.ctx.run.generate.shard
-
-    def build_shard(self, key: str) -> Path | None:
-        """As Generate.build_shard: shard i of N corrupts groups i, i+N, ... into the entry's work folder."""
-        num, shard = self.shards()
-        n = len(self.dataset)
-        work = self.ctx.cache.partial_path(self.name, key)
-        work.mkdir(parents=True, exist_ok=True)
-        (work / SHARED_WORK).touch()
-        corrupt_groups(self.dataset, self.ctx.grid, self.ctx.run.generate, work, list(range(shard, n, num)))
-        have = sum((work / "scenes" / str(g.group_id) / DONE).is_file() for g in self.dataset.groups)
-        return None if have == n else work
-
-
-def with_corruptions(dataset: Any, grid: ConditionGrid, entry: Path, key: str) -> Any:
-    """`dataset` with the corrupted images of `entry` added to its groups, each with its clean condition's truth."""
-    from pairedgta.datasets.base import share_clean_truth
-
-    groups = []
-    for g in dataset.groups:
-        images = dict(g.images)
-        for c in grid.corrupted:
-            path = scene_files(entry / "scenes" / str(g.group_id), c.name)[0]
-            if path.is_file():
-                images[c.name] = path
-        groups.append(share_clean_truth(replace(g, images=images), grid))
-    return CorruptedDataset(dataset.name, dataset.root, dataset.reference, grid.names, groups,
-                            dataset.skipped_without_reference, grid=grid, key=key)
-
-
-@dataclass
-class CorruptedDataset(PairedDataset):
-    """An existing dataset and its corruption conditions (images in a generate entry outside its root)."""
-
-    key: str = ""
-
-    def fingerprint(self) -> str:
-        return self.key
-
-
 def will_compute(ctx: Context) -> bool:
     """Whether `run` would render (no intact cached dataset for this config, or generate is forced)."""
     return "generate" in ctx.force or ctx.cache.problem("generate", stage_key(Generate(ctx))) is not None
@@ -628,15 +463,9 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
     dcfg, plan = dict(ctx.cfg["dataset"]), state.plan
     if dcfg.get("root") is not None:
         if ctx.grid.corrupted and p.dataset is not None:  # corrupt its clean images (a cached entry of their own)
-            entry = run_cached(ctx, CorruptExisting(ctx, p.dataset, str(p.dataset_key)))
-            if not entry.complete:
-                if plan.steps("pass", "run"):
-                    raise ConfigError("generate.shard is set and other shards' groups are still to be corrupted: run "
-                                      "the remaining shards, then the later stages without generate.shard/num_shards")
-                return
-            key = f"{p.dataset_key}+corruptions:{entry.key}"
-            p.dataset, p.dataset_key = with_corruptions(p.dataset, ctx.grid, entry.path, key), key
-            p.grid = p.dataset.grid
+            from pairedgta.stages.corrupt_existing import corrupt_existing
+
+            corrupt_existing(ctx, p, plan)
             return
         if Generate.name in plan.stages:
             log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))

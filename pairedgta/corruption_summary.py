@@ -11,7 +11,9 @@ corruption's severities, or over everything for `all`), `relative` (rPC). A mean
 undefined (NaN) is NaN, as a benchmark with a missing cell has no mPC; `complete` says whether the row covers the 15
 common corruptions at all 5 severities (the published protocol) or a subset.
 
-Terminal: `python -m pairedgta.metrics.corruption_summary ENTRY [ENTRY ...] [--csv PATH]` with evaluate entries."""
+Terminal: `python -m pairedgta.corruption_summary ENTRY [ENTRY ...] [--csv PATH]` with evaluate entries. A module of
+its own, not in pairedgta.metrics: it reads both tasks' tables, whose names pairedgta.evaluation and .detection own,
+and metrics is imported by both."""
 from __future__ import annotations
 
 import argparse
@@ -25,8 +27,6 @@ import pandas as pd
 from pairedgta.corruptions import COMMON, SEVERITIES, parse_name
 
 COLUMNS = ["model", "score", "corruption", "severities", "n_conditions", "clean", "mean", "relative", "complete"]
-GT_IOU, XI, DET_AP, DET_XI = "gt_iou.csv", "xi.csv", "detection_ap.csv", "detection_xi.csv"
-GROUND_TRUTH = "ground_truth"  # xi.csv's reference_model for xi against the true labels
 
 
 def _mean(values: list[float]) -> float:
@@ -66,6 +66,12 @@ def summarise(scores: pd.DataFrame, clean: str, score: str = "score") -> pd.Data
 def read_scores(entry: Path) -> dict[str, pd.DataFrame]:
     """The per-condition scores an evaluate entry holds (model, condition, value), by score name: gt_miou, xi, xi_gt
     (segmentation); ap, ap50, detection_xi (detection). Missing files give no score."""
+    # the tables' names and the xi source from the modules that write them (imported on use: they import torch)
+    from pairedgta.detection.registry import GT_AP as DET_AP
+    from pairedgta.detection.registry import XI as DET_XI
+    from pairedgta.evaluation.metric import GT as GROUND_TRUTH
+    from pairedgta.evaluation.tables import GT_IOU, XI
+
     entry = Path(entry)
     out: dict[str, pd.DataFrame] = {}
 
@@ -121,7 +127,7 @@ def format_table(table: pd.DataFrame, score: str | None = None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pairedgta.metrics.corruption_summary",
+    parser = argparse.ArgumentParser(prog="python -m pairedgta.corruption_summary",
                                      description="Cityscapes-C / COCO-C summaries (P, mPC, rPC) of evaluate entries")
     parser.add_argument("entries", nargs="+", type=Path, help="evaluate cache entries (outputs/cache/evaluate/<hash>)")
     parser.add_argument("--clean", default="Day-EXTRASUNNY", help="the clean condition (default Day-EXTRASUNNY)")
