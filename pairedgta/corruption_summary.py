@@ -113,6 +113,27 @@ def write_csv(table: pd.DataFrame, path: Path) -> Path:
     return path
 
 
+SUMMARY = "corruption_summary.csv"
+
+
+def write_entry(entry: Path, clean: str) -> Path | None:
+    """Write SUMMARY beside an evaluate entry's tables when they hold corruption conditions (a hook for the evaluate
+    stages' build, while the entry is still its temporary folder); None when there are none."""
+    table = entry_summary(entry, clean)
+    return write_csv(table, Path(entry) / SUMMARY) if len(table) else None
+
+
+def terminal_summary(entries: Iterable[Path], clean: str) -> str:
+    """The lines a run prints after its xi table: per model the `all` rows (mPC, rPC) of each score, or "" when
+    no entry has corruption conditions."""
+    parts = [entry_summary(e, clean) for e in entries]
+    table = pd.concat([p for p in parts if len(p)], ignore_index=True) if any(len(p) for p in parts) else None
+    if table is None:
+        return ""
+    head = table[table["corruption"] == "all"]
+    return "corruptions (clean = P, mean over corruption x severity = mPC, relative = rPC):\n" + format_table(head)
+
+
 def format_table(table: pd.DataFrame, score: str | None = None) -> str:
     """A terminal table: a row per model and corruption, `clean` (P), `mean` (mPC) and `relative` (rPC)."""
     t = table if score is None else table[table["score"] == score]

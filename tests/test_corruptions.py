@@ -277,3 +277,27 @@ def test_the_summary_reads_evaluates_csvs_and_a_missing_cell_leaves_mpc_undefine
     out = cs.write_csv(table, tmp_path / "corruptions.csv")
     assert pd.read_csv(out).shape == table.shape
     assert "fog" in cs.format_table(table, "gt_miou")
+    assert cs.write_entry(tmp_path, "Day-EXTRASUNNY") == tmp_path / cs.SUMMARY
+    lines = cs.terminal_summary([tmp_path], "Day-EXTRASUNNY").splitlines()
+    assert "mPC" in lines[0] and len(lines) == 1 + 1 + 3  # header, column names, `all` of gt_miou, ap, ap50
+    empty = tmp_path / "rendered"
+    empty.mkdir()
+    gt[~gt["condition"].str.startswith("C-")].to_csv(empty / "gt_iou.csv", index=False)
+    assert cs.write_entry(empty, "Day-EXTRASUNNY") is None and cs.terminal_summary([empty], "Day-EXTRASUNNY") == ""
+
+
+@pytest.mark.slow  # three CLI runs in-process (a few seconds)
+def test_shards_split_the_corruptions_with_their_scenes(tmp_path):
+    proc = run_cli(tiny(tmp_path, "generate.num_shards=2", "generate.shard=0"), tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (work,) = [p for p in (tmp_path / "cache" / "generate").iterdir() if p.name.startswith(".partial-")]
+    assert sorted(p.parent.name for p in work.rglob("C-brightness-3.png")) == ["00000"]  # shard 0's scene only
+    proc = run_cli(tiny(tmp_path, "generate.num_shards=2", "generate.shard=1"), tmp_path)  # the last part: complete
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    entry = entry_of(tmp_path / "cache")
+    for scene in ("00000", "00001"):
+        clean = png(entry / "scenes" / scene / "Day-EXTRASUNNY.png")
+        want = corruptions.corrupt(clean, "gaussian_noise", 3, corruptions.seed_for(0, scene, "C-gaussian_noise-3"))
+        assert png(entry / "scenes" / scene / "C-gaussian_noise-3.png").tobytes() == want.tobytes()
+    again = run_cli(tiny(tmp_path), tmp_path)  # the unsharded run finds the entry
+    assert again.returncode == 0 and "cache hit" in again.stderr + again.stdout
