@@ -1,7 +1,7 @@
 """Seconds per image of each 2D corruption (conditions=corruptions, pairedgta/corruptions.py), per severity, on a
 rendered-like image of the main job's size: which corruptions make a corruption set slow to generate.
 
-    python experiments/bench_corruptions.py                          # the 15 common corruptions, 512x256, severity 1 and 5
+    python experiments/bench_corruptions.py              # the 15 common corruptions, 512x256, severity 1 and 5
     python experiments/bench_corruptions.py --size 1024x512 --repeat 3 --subset all --severities 1 2 3 4 5
     python experiments/bench_corruptions.py --image outputs/cache/generate/<hash>/scenes/00000/Day-EXTRASUNNY.png
 
@@ -78,8 +78,9 @@ def main() -> None:
             slowest.append((med, f"{name}-{severity}"))
             runs = " ".join(f"{w:.3f}" for w in walls)
             print(f"{name:18} {severity:3d} {med:9.3f} {statistics.median(cpus):7.3f}  {runs}")
+    top = ", ".join(f"{n} {t:.2f} s" for t, n in sorted(slowest)[-3:][::-1])
     print(f"total per image over {len(corruptions.SUBSETS[args.subset])} corruptions x {len(args.severities)} "
-          f"severities: {per_image:.2f} s; slowest: " + ", ".join(f"{n} {t:.2f} s" for t, n in sorted(slowest)[-3:][::-1]))
+          f"severities: {per_image:.2f} s; slowest: {top}")
 
 
 if __name__ == "__main__":

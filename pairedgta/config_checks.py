@@ -157,17 +157,17 @@ def check_corruptions(run: RunConfig, where: str) -> None:
         return
     kind = run.dataset.get("kind")
     if kind not in ("generated", "paired_gta"):
-        raise ConfigError(f"{where}conditions.corruptions: dataset={kind} has no clean condition of this grid to corrupt "
-                          "(ACDC brings its own two conditions, Cityscapes none); use dataset=generated or paired_gta, "
+        raise ConfigError(f"{where}conditions.corruptions: dataset={kind} has no clean condition of this grid to "
+                          "corrupt (ACDC brings its own two conditions, Cityscapes none); use dataset=generated or paired_gta, "
                           "or conditions without corruptions")
     if run.metric.min_transmittance > 0.0:
-        raise ConfigError(f"{where}metric.min_transmittance={run.metric.min_transmittance} does not apply to corruption "
-                          f"conditions ({grid.corrupted[0].name}, ...: a 2D filter has no depth, so no transmittance); "
+        raise ConfigError(f"{where}metric.min_transmittance={run.metric.min_transmittance} does not apply to "
+                          f"corruption conditions ({grid.corrupted[0].name}, ...: a 2D filter has no depth, so no transmittance); "
                           "set metric.min_transmittance=0, or leave out conditions.corruptions")
     size = [run.renderer.get("width"), run.renderer.get("height")]
     if kind == "generated" and all(isinstance(v, int) for v in size) and min(size) < 32:
-        raise ConfigError(f"{where}renderer.width x height = {size[0]}x{size[1]}: the corruptions need images of at least "
-                          "32x32 (imagecorruptions); set renderer.width and renderer.height >= 32")
+        raise ConfigError(f"{where}renderer.width x height = {size[0]}x{size[1]}: the corruptions need images of at "
+                          "least 32x32 (imagecorruptions); set renderer.width and renderer.height >= 32")
     if not corruptions.installed():
         raise ConfigError(f"{where}conditions.corruptions needs the package imagecorruptions; install it with "
                           "pip install -e \".[corruptions]\" -c constraints.txt")
