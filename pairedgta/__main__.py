@@ -105,6 +105,14 @@ def main(cfg: DictConfig) -> None:
     lines += [f"  {line}" for line in xi_lines(summary.get("evaluate", {}),
                                                OmegaConf.select(cfg, "conditions.reference", default=None))]
     lines += [f"  {line}" for line in unpredictable_lines(summary.get("evaluate", {}))]
+    if OmegaConf.select(cfg, "conditions.corruptions", default=None) and summary.get("evaluate"):
+        from pathlib import Path
+
+        from pairedgta.corruption_summary import terminal_summary  # Cityscapes-C / Michaelis: P, mPC, rPC
+
+        text = terminal_summary([Path(p) for p in summary["evaluate"].values()],
+                                str(OmegaConf.select(cfg, "conditions.reference", default="")))
+        lines += [f"  {line}" for line in text.splitlines()]
     print("\n".join(lines))
     _to_log_files(lines)
 

@@ -15,6 +15,7 @@ from typing import Any, Iterable, Mapping
 from pairedgta.errors import ConfigError
 
 _FRACTIONS = ("cloud_cover", "wetness")
+CORRUPTION_FIELDS = ("corruption", "severity", "source")  # set by pairedgta/corruptions.py, not by a condition's keys
 KOSCHMIEDER = 3.912  # -ln(0.02): visibility is the distance at which contrast falls to 2 %
 # extinction of rain drops in the visible band, alpha = 1.076 R^0.67 dB/km (Carbonneau's relation for
 # free-space optics), in 1/m: 1.076 / (10 log10 e) / 1000
@@ -43,7 +44,10 @@ class Condition:
     wetness: float = 0.0
     visibility_m: float | None = None  # meteorological visibility of fog or mist; None = clear air
     rain_mm_h: float = 0.0
-
+    # a 2D corruption of the clean condition `source` (pairedgta/corruptions.py): the same light, nothing rendered
+    corruption: str | None = None
+    severity: int | None = None
+    source: str | None = None
 
     def __post_init__(self) -> None:
         if not (0 <= self.clock_hour <= 23 and 0 <= self.clock_minute <= 59):
@@ -100,10 +104,13 @@ class Condition:
         return 0.0 if self.visibility_m is None else min(1.0, 150.0 / float(self.visibility_m))
 
     def transmittance(self, distance_m):
-        """exp(-extinction * distance): 1 in clear air (also toward the sky), 0 for the sky in fog."""
+        """exp(-extinction * distance): 1 in clear air (also toward the sky), 0 for the sky in fog; NaN for a
+        corruption condition (a 2D filter has no depth, so no transmittance)."""
         import numpy as np
 
         d = np.asarray(distance_m, dtype=np.float64)
+        if self.corruption is not None:
+            return np.full(d.shape, np.nan)
         ext = self.extinction_per_m
         if ext == 0.0:
             return np.ones(d.shape, dtype=np.float64)
@@ -111,7 +118,12 @@ class Condition:
             return np.exp(-ext * np.where(np.isfinite(d), d, np.inf))
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Its fields; a rendered condition's without the corruption fields, so its dataset hashes as before."""
+        d = dataclasses.asdict(self)
+        if self.corruption is None:
+            for key in CORRUPTION_FIELDS:
+                d.pop(key)
+        return d
 
 
 @dataclass(frozen=True)
@@ -140,6 +152,15 @@ class ConditionGrid:
     def adverse(self) -> list[str]:
         return [n for n in self.names if n != self.reference]
 
+    @property
+    def corrupted(self) -> list[Condition]:
+        """The corruption conditions (pairedgta/corruptions.py), made from their clean condition, not rendered."""
+        return [c for c in self.conditions if c.corruption is not None]
+
+    @property
+    def rendered(self) -> list[Condition]:
+        return [c for c in self.conditions if c.corruption is None]
+
     def __getitem__(self, name: str) -> Condition:
         for c in self.conditions:
             if c.name == name:
@@ -160,6 +181,10 @@ class ConditionGrid:
         if self.reference not in wanted:  # silently promoting e.g. a rain image to the reference would be wrong
             raise ConfigError(f"conditions.only={wanted} leaves out the reference condition {self.reference}, which every "
                               f"adverse image is compared with; add it, or set conditions.reference to one of {wanted}")
+        orphans = [c.name for c in picked if c.source is not None and c.source not in wanted]
+        if orphans:
+            raise ConfigError(f"conditions.only={wanted} keeps {orphans[0]} but leaves out {self[orphans[0]].source}, "
+                              "the clean condition it corrupts; add it")
         return ConditionGrid(picked, self.reference, self.ladder)
 
 
@@ -238,7 +263,7 @@ def build_condition_grid(cfg: Mapping[str, Any]) -> ConditionGrid:
     cfg = dict(cfg)
     times = dict(cfg.get("times") or {})
     weathers = dict(cfg.get("weathers") or {})
-    fields = {f.name for f in dataclasses.fields(Condition)}
+    fields = {f.name for f in dataclasses.fields(Condition)} - set(CORRUPTION_FIELDS)
     conditions: list[Condition] = []
     for time, tparams in times.items():
         for weather, wparams in weathers.items():
@@ -260,8 +285,12 @@ def build_condition_grid(cfg: Mapping[str, Any]) -> ConditionGrid:
         _check_keys(f"conditions.extra {extra.get('name')!r}", params, fields)
         name = extra.get("name") or condition_name(base_time, base_weather)
         conditions.append(Condition(name=name, time=base_time, weather=base_weather, **params))
+    from pairedgta import corruptions
+
+    reference = str(cfg.get("reference", ""))
+    conditions += corruptions.conditions(cfg.get("corruptions"), conditions, reference)
     only = cfg.get("only")
-    grid = ConditionGrid(tuple(conditions), str(cfg.get("reference", "")), ladder_from_config(cfg.get("ladder")))
+    grid = ConditionGrid(tuple(conditions), reference, ladder_from_config(cfg.get("ladder")))
     if only:
         grid = grid.select(only)
     return grid

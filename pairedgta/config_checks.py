@@ -144,6 +144,35 @@ def check_transmittance(run: RunConfig, where: str) -> None:
                               "set metric.min_transmittance=0 or generate with renderer=blender or synthetic")
 
 
+def check_corruptions(run: RunConfig, where: str) -> None:
+    """Corruption conditions (conditions.corruptions; their names and severities are checked where the grid is
+    built): a dataset with a clean condition to corrupt, no transmittance asked of them, the library installed."""
+    if not run.conditions or not run.conditions.get("corruptions"):
+        return
+    from pairedgta import corruptions
+    from pairedgta.conditions import build_condition_grid
+
+    grid = build_condition_grid(run.conditions)
+    if not grid.corrupted:
+        return
+    kind = run.dataset.get("kind")
+    if kind not in ("generated", "paired_gta"):
+        raise ConfigError(f"{where}conditions.corruptions: dataset={kind} has no clean condition of this grid to "
+                          "corrupt (ACDC brings its own two conditions, Cityscapes none); use dataset=generated or paired_gta, "
+                          "or conditions without corruptions")
+    if run.metric.min_transmittance > 0.0:
+        raise ConfigError(f"{where}metric.min_transmittance={run.metric.min_transmittance} does not apply to "
+                          f"corruption conditions ({grid.corrupted[0].name}, ...: a 2D filter has no depth, so no transmittance); "
+                          "set metric.min_transmittance=0, or leave out conditions.corruptions")
+    size = [run.renderer.get("width"), run.renderer.get("height")]
+    if kind == "generated" and all(isinstance(v, int) for v in size) and min(size) < 32:
+        raise ConfigError(f"{where}renderer.width x height = {size[0]}x{size[1]}: the corruptions need images of at "
+                          "least 32x32 (imagecorruptions); set renderer.width and renderer.height >= 32")
+    if not corruptions.installed():
+        raise ConfigError(f"{where}conditions.corruptions needs the package imagecorruptions; install it with "
+                          "pip install -e \".[corruptions]\" -c constraints.txt")
+
+
 def check_stage_keys(run: RunConfig, names: set[str], where: str) -> None:
     """Keys the stages check against the run's grid or a registry, checked before any stage writes: condition
     names, the renderer backend and the camera."""
@@ -204,6 +233,7 @@ def check_run_config(cfg: dict[str, Any]) -> RunConfig:
         _known_model(run.reference_model, f"{where}reference_model")
         check_plot(run, names, where)
         check_transmittance(run, where)
+        check_corruptions(run, where)
         check_stage_keys(run, set(condition_names(pcfg)), where)
     for i, name in enumerate(typed[0][2].models or []):
         _known_model(name, f"models[{i}]")

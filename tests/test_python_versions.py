@@ -65,6 +65,11 @@ def test_every_supported_python_resolves_its_blender_and_numpy(python):
     numpy = deps["numpy"]
     want_major = "2" if python >= "3.13" else "1"
     assert all(s.version.startswith(want_major) or s.operator == "<" for s in numpy.specifier), numpy
+    # the extras README's install takes (.[dev] includes them) are pinned here too: the corruption library's
+    extras = active([r for rs in project()["optional-dependencies"].values() for r in rs
+                     if not r.startswith("pairedgta[") and Requirement(r).name in ("imagecorruptions", "opencv-python",
+                                                                                   "scikit-image")], python)
+    deps = {**deps, **extras}
     for name, pin in pins.items():  # every constraint satisfies the project's own range on that Python
         assert name in deps or name in ("torch", "torchvision")
         if name in deps and pin.specifier:

@@ -7,7 +7,7 @@ import json
 import logging
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -33,6 +33,21 @@ class Group:
     # instance ids (uint16, one id per object, the same object the same id in every condition): detection's ground
     # truth boxes (pairedgta/detection/boxes.py); or a renderer's 2D boxes (`<condition>_boxes.json`, DeepGTAV)
     instances: dict[str, Path] = field(default_factory=dict)
+
+
+def share_clean_truth(group: Group, grid: ConditionGrid | None) -> Group:
+    """`group` with each corruption condition's ground truth (labels, instances or boxes) taken from the clean
+    condition it corrupts: nothing moved, so the clean image's truth is exact for it (pairedgta/corruptions.py)."""
+    if grid is None or not grid.corrupted:
+        return group
+    labels, instances = dict(group.labels), dict(group.instances)
+    for c in grid.corrupted:
+        if c.name in group.images:
+            if c.source in group.labels:
+                labels[c.name] = group.labels[c.source]
+            if c.source in group.instances:
+                instances[c.name] = group.instances[c.source]
+    return replace(group, labels=labels, instances=instances)
 
 
 @dataclass

@@ -7,6 +7,7 @@
     <root>/scenes/<scene_id>/<condition>_transmittance.png  exp(-extinction * distance), 16-bit (backends with depth)
     <root>/scenes/<scene_id>/<condition>_boxes.json    2D boxes where a backend gives no instance ids (DeepGTAV)
     <root>/scenes/<scene_id>/descriptor.json           the replay file
+A corruption condition (C-fog-3) has its image only: its labels, instances and boxes are the clean condition's.
     <root>/scenes/<scene_id>/timings.json
 """
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pairedgta.conditions import ConditionGrid
-from pairedgta.datasets.base import Group, PairedDataset
+from pairedgta.datasets.base import Group, PairedDataset, share_clean_truth
 from pairedgta.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -84,8 +85,8 @@ def open_generated(*, root: str | Path, grid: ConditionGrid, name: str = "genera
             skipped += 1
             continue
         desc = scene_dir / "descriptor.json"
-        groups.append(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None, transmittance,
-                            instances))
+        groups.append(share_clean_truth(Group(scene["scene_id"], images, labels, desc if desc.is_file() else None,
+                                              transmittance, instances), grid))
     if skipped:
         log.warning("skipped %d group(s) without the reference image %s", skipped, grid.reference)
     if not groups:

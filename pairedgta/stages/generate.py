@@ -26,12 +26,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm import tqdm
 
+from pairedgta import corruptions
 from pairedgta.conditions import ConditionGrid, build_condition_grid
 from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import INDEX, boxes_file, scene_files, transmittance_file, transmittance_png
 from pairedgta.errors import ConfigError, PairedGTAError, RendererError, reason
 from pairedgta.jsonio import write_json
 from pairedgta.render import Renderer, build_renderer, renderer_versions
+from pairedgta.render.corruptions import corrupt_scene, writer_alive
 from pairedgta.scene.descriptor import CameraPose, DynamicObject, SceneDescriptor
 from pairedgta.scene.placement import PlacementConfig, place_objects
 from pairedgta.scene.sampling import build_region, region_for_scene
@@ -132,6 +134,8 @@ def hash_config(run: RunConfig, grid: ConditionGrid) -> dict[str, Any]:
         # the backend's own version (blender_version): another Blender draws other pixels, so another entry; the
         # manifest's config records it. A backend without one (synthetic, deepgtav) hashes as before
         **renderer_versions(run.renderer.get("backend")),
+        # a set with corruption conditions: the library and its version (another version, other pixels); none else
+        **corruptions.hash_config(grid),
     }
 
 
@@ -181,7 +185,7 @@ def render_scene(
         images: dict[str, np.ndarray] = {}
         pairing = gen.pairing
         perturbed: dict[str, SceneDescriptor] = {}
-        for condition in grid:
+        for condition in grid.rendered:
             shown = descriptor
             if condition.name != grid.reference and not is_perfect(pairing):
                 shown = perturb_descriptor(descriptor, condition.name, pairing, placement(gen), region)
@@ -206,7 +210,12 @@ def render_scene(
                 write_json(boxes_file(tmp, condition.name), {"boxes": result.boxes})
             states[condition.name] = result.state
             images[condition.name] = result.image
+        t2 = time.perf_counter()
+        corrupt_scene(tmp, descriptor.scene_id, images, grid, gen.seed)
+        corrupting = time.perf_counter() - t2
         rendering = time.perf_counter() - t1
+        # the rendered images only: a corrupted one is paired by construction, and a strong filter (glass blur 5)
+        # would fail the structure check that looks for a renderer that moved something
         validation = validate(images, grid, descriptor, states, gen.validation, perturbed)
         descriptor.save(tmp / "descriptor.json")
         # the backend's overhead (reconnects, retries, waiting) happens inside the phases; the paper
@@ -218,6 +227,7 @@ def render_scene(
             "scene_sampling_time": t["scene_sampling_time"], "semantic_scene_construction_time": construction,
             "condition_wise_rendering_time": rendering, "pipeline_time": max(wall - overhead, 0.0),
             "overhead_time": overhead, "total_time": wall, "retries": int(getattr(renderer, "retries_used", 0)),
+            **({"corruption_time": corrupting} if grid.corrupted else {}),
         }
         write_json(tmp / "timings.json", row)
         write_json(tmp / "validation.json", validation)
@@ -289,23 +299,6 @@ def finished_scenes(scenes_dir: Path) -> set[int]:
     return {int(p.name) for p in scenes_dir.iterdir() if p.is_dir() and p.name.isdigit() and (p / "timings.json").is_file()}
 
 
-def _writer_alive(tmp: Path) -> bool:
-    """Whether the process that names `.tmp-<scene>-<pid>` still runs (on this machine)."""
-    try:
-        pid = int(tmp.name.rsplit("-", 1)[1])
-    except (IndexError, ValueError):
-        return False
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[int]) -> float:
     """Render the scenes `indices` that are not yet in out/scenes; returns the backend's connect time."""
     gen = run.generate
@@ -313,10 +306,12 @@ def render_scenes(run: RunConfig, grid: ConditionGrid, out: Path, indices: list[
     workers = gen.workers
     if gen.validation.enabled:
         validators()  # a broken install says so before the first scene is rendered, not after it
+    if grid.corrupted:
+        corruptions.library()  # likewise the corruption library
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
     for tmp in scenes_dir.glob(".tmp-*"):
-        if not _writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
+        if not writer_alive(tmp):  # a crashed job's half scene; a live shard's is left alone
             shutil.rmtree(tmp, ignore_errors=True)
     done = finished_scenes(scenes_dir)
     todo = [k for k in indices if k not in done]
@@ -378,7 +373,7 @@ def write_index(out: Path, run: RunConfig, grid: ConditionGrid, n: int, connect:
     if rows:
         rows[0]["overhead_time"] += connect
         rows[0]["total_time"] += connect
-    _write_csv(out / "timings.csv", rows, TIMING_COLUMNS)
+    _write_csv(out / "timings.csv", rows, TIMING_COLUMNS + (["corruption_time"] if grid.corrupted else []))
     _write_csv(out / "validation.csv", valid_rows, sorted({k for r in valid_rows for k in r}, key=lambda c: (c != "scene_id", c != "ok", c)))
     dropped = n - len(scenes)
     if dropped:
@@ -467,6 +462,11 @@ def step(ctx: Context, p: PassResult, state: RunState) -> None:
 
     dcfg, plan = dict(ctx.cfg["dataset"]), state.plan
     if dcfg.get("root") is not None:
+        if ctx.grid.corrupted and p.dataset is not None:  # corrupt its clean images (a cached entry of their own)
+            from pairedgta.stages.corrupt_existing import corrupt_existing
+
+            corrupt_existing(ctx, p, plan)
+            return
         if Generate.name in plan.stages:
             log.info("generate: skipped, dataset.root=%s is an existing dataset", dcfg.get("root"))
         return
