@@ -302,3 +302,29 @@ def test_shards_split_the_corruptions_with_their_scenes(tmp_path):
         assert png(entry / "scenes" / scene / "C-gaussian_noise-3.png").tobytes() == want.tobytes()
     again = run_cli(tiny(tmp_path), tmp_path)  # the unsharded run finds the entry
     assert again.returncode == 0 and "cache hit" in again.stderr + again.stdout
+
+
+@pytest.mark.slow  # two tiny runs through the CLI, one per task (about 30 s)
+def test_evaluate_writes_the_corruption_summary_for_both_tasks(tmp_path):
+    """The task-neutral evaluate stage writes corruption_summary.csv beside either task's tables (P, mPC, rPC of
+    Michaelis et al. for detection's AP, Cityscapes-C's per-corruption means for segmentation's mIoU)."""
+    from pairedgta.corruption_summary import SUMMARY
+
+    seg = [*tiny(tmp_path, "stages=[generate,pseudolabel,evaluate]", "model=tiny_segformer", "models=null",
+                 "reference_model=tiny_segformer", "metric.bootstrap.resamples=20", "threads=1")]
+    proc = run_cli(seg, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (entry,) = [p for p in (tmp_path / "cache" / "evaluate").iterdir() if not p.name.startswith(".")]
+    table = pd.read_csv(entry / SUMMARY)
+    assert {"gt_miou", "xi"} <= set(table["score"]) and {"brightness", "gaussian_noise", "all"} <= set(
+        table["corruption"])
+
+    det = tmp_path / "det"
+    det.mkdir()
+    proc = run_cli([*tiny(det, "stages=[generate,pseudolabel,evaluate]"), "+experiment=smoke_detection",
+                    "renderer.width=96", "renderer.height=48", "models=[tiny_fcos]", "metric.bootstrap.resamples=20",
+                    "threads=1"], det)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (entry,) = [p for p in (det / "cache" / "evaluate").iterdir() if not p.name.startswith(".")]
+    table = pd.read_csv(entry / SUMMARY)
+    assert {"ap", "detection_xi"} <= set(table["score"])

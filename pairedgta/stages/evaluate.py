@@ -55,8 +55,13 @@ class Evaluate(TaskStage):
         return parts_dir(self.ctx, key)
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
-        return self.work.compute(self.ctx, self.dataset, self.dataset_key, self.pseudo, self.model_cfg,
-                                 self.conditions, self.settings, out, self.parts(key))
+        from pairedgta import corruption_summary
+
+        extra = self.work.compute(self.ctx, self.dataset, self.dataset_key, self.pseudo, self.model_cfg,
+                                  self.conditions, self.settings, out, self.parts(key))
+        # 2D-corruption conditions: Cityscapes-C's and Michaelis' summary (P, mPC, rPC) beside the task's tables
+        corruption_summary.write_entry(out, clean=self.dataset.reference)
+        return extra
 
     def shards(self) -> tuple[int, int]:
         return self.ctx.run.evaluate.num_shards, self.ctx.run.evaluate.shard
