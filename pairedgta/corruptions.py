@@ -162,10 +162,12 @@ def library() -> Any:
     scipy.ndimage.interpolation, deprecated in SciPy 1.x, warns once: silenced here). A missing install is one line."""
     if "module" in _LIB:
         return _LIB["module"]
+    shimmed = False
     try:
         import pkg_resources  # noqa: F401
-    except ImportError:
-        sys.modules.setdefault("pkg_resources", _pkg_resources_shim())
+    except ImportError:  # the stand-in only while the library imports (it binds resource_filename then): left in
+        sys.modules["pkg_resources"] = _pkg_resources_shim()  # sys.modules it would break pytest and setuptools
+        shimmed = True
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -174,6 +176,9 @@ def library() -> Any:
         raise PairedGTAError(f"corruption conditions need the package {LIBRARY} ({exc}); install it with "
                              "pip install -e \".[corruptions]\" -c constraints.txt, or choose conditions without "
                              "corruptions") from None
+    finally:
+        if shimmed:
+            sys.modules.pop("pkg_resources", None)
     inner = sys.modules[f"{LIBRARY}.corruptions"]
     if not getattr(inner.gaussian, "_pairedgta_compat", False):
         inner.gaussian = _gaussian_compat(inner.gaussian)

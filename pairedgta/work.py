@@ -8,9 +8,30 @@ imports no stage: its entry type and context come from pairedgta/entries.py."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Iterable, Protocol, runtime_checkable
 
 from pairedgta.entries import Context, StageResult
+
+
+@runtime_checkable
+class TaskMetric(Protocol):
+    """What the stages and the record read of any task's metric, whatever it computes (segmentation's counting
+    metrics, pairedgta/evaluation/metric.py; detection's table metrics, pairedgta/detection/registry.py): its name and
+    version join the evaluate entry's version, its files are the entry's tables."""
+
+    name: str
+    version: str
+    files: tuple[str, ...]
+
+
+def declaration(metrics: Iterable[TaskMetric]) -> tuple[str, ...]:
+    """`name@version` of each metric, in registry order: the part of an evaluate entry's version its metrics make."""
+    return tuple(f"{m.name}@{m.version}" for m in metrics)
+
+
+def result_files(metrics: Iterable[TaskMetric]) -> tuple[str, ...]:
+    """The tables the metrics write, in registry order."""
+    return tuple(f for m in metrics for f in m.files)
 
 
 class PseudolabelWork(Protocol):
@@ -87,4 +108,4 @@ class CheckWork(Protocol):
         """The entry's files the MLflow record keeps."""
 
 
-__all__ = ["CheckWork", "EvaluateWork", "PseudolabelWork"]
+__all__ = ["CheckWork", "EvaluateWork", "PseudolabelWork", "TaskMetric", "declaration", "result_files"]

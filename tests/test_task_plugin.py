@@ -126,3 +126,16 @@ def test_a_detector_key_out_of_range_stops_before_any_stage(tmp_path):
                     "tracking.enabled=false"], tmp_path)
     assert proc.returncode != 0 and "score_threshold=2 must be in [0, 1]" in proc.stderr
     assert not (tmp_path / "cache" / "generate").exists()
+
+
+def test_both_tasks_metrics_follow_one_protocol():
+    """Each task's registered metrics are pairedgta.work.TaskMetric (name, version, files): the evaluate entry's version
+    and its tables follow from the same two functions for every task."""
+    from pairedgta import tasks, work
+
+    for task in tasks.TASKS.values():
+        metrics = task.metric_list()
+        assert metrics and all(isinstance(m, work.TaskMetric) for m in metrics), task.name
+        files = work.result_files(metrics)
+        assert len(files) == len(set(files)) and all(f.endswith((".csv", ".npz", ".json")) for f in files)
+        assert all("@" in d for d in work.declaration(metrics))

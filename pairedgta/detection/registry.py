@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 import pandas as pd
 
+from pairedgta import work
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES, coco_categories
 from pairedgta.metrics import bootstrap, coco_ap, corruption, detection_xi, per_object, ranking
 
@@ -201,11 +202,11 @@ def metrics() -> tuple[DetectionMetric, ...]:
 
 
 def versions() -> list[str]:
-    return [f"{m.name}@{m.version}" for m in METRICS]
+    return list(work.declaration(METRICS))
 
 
 def result_files() -> tuple[str, ...]:
-    return tuple(f for m in METRICS for f in m.files)
+    return work.result_files(METRICS)
 
 
 __all__ = ["ESTIMATORS", "FRAME_COUNTS", "GROUP_COUNTS", "GT_AP", "METRICS", "OBJECTS", "OBJECTS_FOUND", "RHO_VALID", "ROBUSTNESS", "XI", "DetectionMetric", "metrics",

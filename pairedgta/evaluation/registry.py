@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from pairedgta import work
 from pairedgta.cityscapes import NUM_CLASSES
 
 from pairedgta.evaluation import estimator_sums, tables, xi_precision
@@ -27,7 +28,7 @@ def metrics() -> list[Metric]:
 
 
 def declaration(ms: list[Metric] | None = None) -> tuple[str, ...]:
-    return tuple(f"{m.name}@{m.version}" for m in (metrics() if ms is None else ms))
+    return work.declaration(metrics() if ms is None else ms)
 
 
 def stage_version(version: str, ms: list[Metric] | None = None) -> str:
@@ -39,7 +40,7 @@ def stage_version(version: str, ms: list[Metric] | None = None) -> str:
 
 def result_files(ms: list[Metric] | None = None) -> tuple[str, ...]:
     """Every table of an entry: the metrics' files in registry order, then the entry's own."""
-    return tuple(f for m in (metrics() if ms is None else ms) for f in m.files) + OWN_FILES
+    return work.result_files(metrics() if ms is None else ms) + OWN_FILES
 
 
 def group_reductions(labels: Any, confidence: Any, entropy: Any, clean: int, pseudo: Any, targets: Any, visible: Any,

@@ -17,15 +17,16 @@ FIGURE = "model_report"
 EXAMPLE = "report.population=[demo_ddrnet,demo_pidnet]"
 
 
-def zoo(task: str) -> list[str]:
+def zoo(task: str | None = None) -> list[str]:
     """The offline zoo of the task: the `models` of the option file its declaration names (pairedgta/tasks.py `zoo`:
-    experiment=zoo's list for segmentation, the detection task's own)."""
+    experiment=zoo's list for segmentation, the detection task's own); the default task's without one."""
     import yaml
 
     from pairedgta import tasks
     from pairedgta.configs import CONFIG_DIR
 
-    return [str(m) for m in yaml.safe_load((CONFIG_DIR / tasks.get(task).zoo).read_text())["models"]]
+    declared = tasks.get(task or tasks.DEFAULT)
+    return [str(m) for m in yaml.safe_load((CONFIG_DIR / declared.zoo).read_text())["models"]]
 
 
 def draws_report(run: Any) -> bool:
