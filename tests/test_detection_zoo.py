@@ -55,8 +55,9 @@ def test_members_resolve_into_the_zoo_distribution_and_without_it_one_line_says_
     assert "-e ./zoo/detection" in readme.split("## Install, run, test")[1].split("```bash\n")[1].splitlines()[0]
     # an installed pairedgta without its companion: no source tree beside it, nothing importable
     monkeypatch.setattr(hf_common, "detection_zoo_dir", lambda: None)
+    small = model_config("demo_fcos_small")["checkpoint_path"]
     for call in (lambda: check_available([model_config("demo_det_reference")]),
-                 lambda: read_state_dict(model_config("demo_fcos_small")["checkpoint_path"], model_name="demo_fcos_small")):
+                 lambda: read_state_dict(small, model_name="demo_fcos_small")):
         with pytest.raises(ModelError) as err:
             call()
         msg = str(err.value)

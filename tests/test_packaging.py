@@ -71,7 +71,7 @@ def _shipped_bytes(project: Path) -> int:
 
 def test_every_wheel_the_project_builds_stays_within_a_package_index_s_limit():
     """Both zoos in one wheel passed 100 MB: the detectors ship in a distribution of their own. Each wheel's content
-    is summed from its pyproject's package data (fast, offline); the slow test below builds them and checks the files."""
+    is summed from its pyproject's package data (fast, offline); the slow test below builds both and checks them."""
     sizes = {name: _shipped_bytes(project) for name, project in DISTRIBUTIONS.items()}
     assert all(sizes.values()) and sizes["pairedgta_detection_zoo"] > 10 * 10**6, sizes  # the globs match the weights
     for name, size in sizes.items():
