@@ -39,7 +39,8 @@ _LOAD_ERRORS = _load_error_types()
 
 # the detection zoo ships as a distribution of its own (zoo/detection): both zoos in one wheel pass 100 MB
 DETECTION_ZOO = "pairedgta-detection-zoo"
-DETECTION_ZOO_INSTALL = 'pip install -e ./zoo/detection from the checkout (README\'s install line installs both)'
+DETECTION_ZOO_INSTALL = (f"pip install {DETECTION_ZOO}, or from a checkout pip install -e ./zoo/detection (README's "
+                         "install line installs both)")
 
 
 def detection_zoo_dir() -> Path | None:
