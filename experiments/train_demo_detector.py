@@ -19,7 +19,8 @@ Recipe: the render is scaled to the network's scale (`arch.min_size` / 256) time
 photometric distortion (MMSegmentation's PhotoMetricDistortion, as the segmentation zoo); AdamW or SGD with linear
 warm-up and cosine decay, gradient clipping. Every `checkpoint_every` steps the training state goes to
 <work_dir>/<hash>/checkpoint.pt and a rerun with the same recipe continues from it. At the end: float16 safetensors
-weights, a model card (README.md, model_card.json) in pairedgta/models/weights/<name>/ and the model config
+weights, a model card (README.md, model_card.json) in zoo/detection/pairedgta_detection_zoo/<name>/ (the detection
+zoo's distribution, pairedgta-detection-zoo) and the model config
 pairedgta/conf/model/<name>.yaml; held-out AP by pycocotools (ignore regions as iscrowd).
 """
 from __future__ import annotations
@@ -52,6 +53,9 @@ from pairedgta.detection.models import NUM_CLASSES, build_network
 
 log = logging.getLogger("train_demo_detector")
 ROOT = Path(__file__).resolve().parents[1]
+# the detection zoo's weights: a distribution of their own (zoo/detection/pyproject.toml), so that neither wheel passes
+# a package index's 100 MB; the model configs keep `pkg://models/weights/<name>/...` (pairedgta/models/hf_common.py)
+ZOO_DIR = "zoo/detection/pairedgta_detection_zoo"
 RENDER_HEIGHT = 256  # the renders' short side: arch.min_size / this is the network's scale
 
 
@@ -392,7 +396,7 @@ def model_yaml(cfg: dict, score_threshold: float) -> str:
     lines = [f"# A detection zoo member shipped with the package: {FAMILY_TEXT[arch['family']]} on a MobileNetV3-Large",
              "# trunk + FPN (pairedgta/detection/models.py), trained by experiments/train_demo_detector.py",
              f"# detector_zoo={name}",
-             "# on the embedded renderer's scenes (model card: pairedgta/models/weights/" + name + "/README.md).",
+             f"# on the embedded renderer's scenes (model card: {ZOO_DIR}/{name}/README.md).",
              f"name: {name}", f"family: {arch['family']}",
              f"checkpoint_path: pkg://models/weights/{name}/model.safetensors",
              f"# architecture: must match pairedgta/conf/detector_zoo/{name}.yaml (loaded strictly)"]
@@ -464,8 +468,9 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
     (out / "README.md").write_text("\n".join(lines) + "\n")
     for f in out.iterdir():
         f.chmod(0o644)
-    # a member shipped in the package gets its model config (`model=<name>`); a try elsewhere gets it beside its weights
-    shipped = Path(cfg["out_dir"]).parts[:3] == ("pairedgta", "models", "weights")
+    # a member shipped in the detection zoo gets its model config (`model=<name>`); a try elsewhere gets it beside its
+    # weights
+    shipped = Path(cfg["out_dir"]).parent == Path(ZOO_DIR)
     model_conf = ROOT / "pairedgta" / "conf" / "model" / f"{name}.yaml" if shipped else out / "model.yaml"
     model_conf.write_text(model_yaml(cfg, result["score_threshold"]))
     print(f"{name}: held-out AP50 car {ap50.get('car', float('nan')):.3f} "

@@ -57,12 +57,12 @@ def model_files(model_cfg: dict[str, Any]) -> list[Path]:
     """Every local file a model's numbers depend on: its weights folder (model.path, a folder or one file: an ONNX
     graph and its external data, a .pt2, an HF or SMP folder), model.checkpoint_path, a label TSV (model.labels) and
     the module of a `model=python` factory (model.target, found without importing it)."""
-    from pairedgta.models.hf_common import PACKAGE_DIR
+    from pairedgta.models.hf_common import resolve_checkpoint_path
 
     files: list[Path] = []
     path = model_cfg.get("path")
     if path:
-        root = PACKAGE_DIR / str(path)[len("pkg://"):] if str(path).startswith("pkg://") else Path(path).expanduser()
+        root = resolve_checkpoint_path(path)
         if root.is_dir():
             files += sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in WEIGHT_SUFFIXES)
         elif root.is_file():
@@ -71,9 +71,7 @@ def model_files(model_cfg: dict[str, Any]) -> list[Path]:
                 files += sorted(p for p in root.parent.iterdir() if p.is_file() and p != root
                                 and p.name.startswith(root.stem) and p.suffix in (".data", ".bin", ".weight"))
     ckpt = model_cfg.get("checkpoint_path")
-    if ckpt:  # a pkg:// file is the zoo's, inside the package: retrained weights must not be a cache hit either
-        from pairedgta.models.hf_common import resolve_checkpoint_path
-
+    if ckpt:  # a pkg:// file is the zoo's (package or companion): retrained weights must not be a cache hit either
         if (ckpt := resolve_checkpoint_path(ckpt)).is_file():
             files.append(ckpt)
     labels = model_cfg.get("labels")

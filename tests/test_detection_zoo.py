@@ -11,7 +11,8 @@ from safetensors import safe_open
 from pairedgta.models import build_model, model_config, model_kind
 from pairedgta.testing.cli import compose_cfg
 
-WEIGHTS = Path(__file__).resolve().parents[1] / "pairedgta" / "models" / "weights"
+# the detection zoo's own distribution (zoo/detection), beside the package's segmentation zoo
+WEIGHTS = Path(__file__).resolve().parents[1] / "zoo" / "detection" / "pairedgta_detection_zoo"
 
 
 def members() -> list[str]:
@@ -35,3 +36,50 @@ def test_every_member_is_float16_carded_loaded_and_run_by_the_task():
         (d,) = detector.detect(image)
         assert d.boxes.shape[1:] == (4,) and len(d.scores) == len(d.labels) <= 100, name
         assert 0.0 < detector.score_threshold < 1.0
+
+
+def test_members_resolve_into_the_zoo_distribution_and_without_it_one_line_says_how_to_install_it(monkeypatch):
+    import pytest
+
+    from pairedgta.errors import ModelError
+    from pairedgta.models import hf_common
+    from pairedgta.models.availability import check_available
+    from pairedgta.models.checkpoint import read_state_dict
+
+    for name in members():
+        path = model_config(name)["checkpoint_path"]
+        assert path == f"pkg://models/weights/{name}/model.safetensors"  # the string the cache keys were made with
+        assert hf_common.resolve_checkpoint_path(path) == WEIGHTS / name / "model.safetensors"
+    # README's one install line installs the companion, as the error below tells the user
+    readme = (WEIGHTS.parents[2] / "README.md").read_text()
+    assert "-e ./zoo/detection" in readme.split("## Install, run, test")[1].split("```bash\n")[1].splitlines()[0]
+    # an installed pairedgta without its companion: no source tree beside it, nothing importable
+    monkeypatch.setattr(hf_common, "detection_zoo_dir", lambda: None)
+    small = model_config("demo_fcos_small")["checkpoint_path"]
+    for call in (lambda: check_available([model_config("demo_det_reference")]),
+                 lambda: read_state_dict(small, model_name="demo_fcos_small")):
+        with pytest.raises(ModelError) as err:
+            call()
+        msg = str(err.value)
+        assert "\n" not in msg and "pairedgta-detection-zoo" in msg and "pip install -e ./zoo/detection" in msg, msg
+    check_available([model_config("demo_segformer"), model_config("demo_ddrnet")])  # the package's own zoo is there
+
+
+def test_an_installed_package_finds_the_installed_companion(tmp_path, monkeypatch):
+    """No source tree beside the package (a wheel in site-packages): the importable pairedgta_detection_zoo."""
+    from pairedgta.models import hf_common
+
+    site = tmp_path / "site"
+    (site / "pairedgta_detection_zoo" / "demo_x").mkdir(parents=True)
+    (site / "pairedgta_detection_zoo" / "__init__.py").write_text("")
+    (site / "pairedgta_detection_zoo" / "demo_x" / "model.safetensors").write_bytes(b"x")
+    monkeypatch.setattr(hf_common, "PACKAGE_DIR", site / "pairedgta")
+    monkeypatch.syspath_prepend(str(site))
+    assert hf_common.detection_zoo_dir() == site / "pairedgta_detection_zoo"
+    assert hf_common.resolve_checkpoint_path("pkg://models/weights/demo_x/model.safetensors") == (
+        site / "pairedgta_detection_zoo" / "demo_x" / "model.safetensors")
+    # a file the package has itself stays the package's
+    (site / "pairedgta" / "models" / "weights" / "demo_x").mkdir(parents=True)
+    (site / "pairedgta" / "models" / "weights" / "demo_x" / "model.safetensors").write_bytes(b"y")
+    assert hf_common.resolve_checkpoint_path("pkg://models/weights/demo_x/model.safetensors") == (
+        site / "pairedgta" / "models" / "weights" / "demo_x" / "model.safetensors")

@@ -1,6 +1,7 @@
-"""A normal (non-editable) install runs: the wheel carries the config tree and the demo weights, and the
-installed package composes, builds models and runs the smoke experiment from a directory that is not the
-checkout. Also the Hydra surface a user sees: the job's name and the launcher presets."""
+"""A normal (non-editable) install runs: the wheel carries the config tree and the segmentation zoo (the detection
+zoo's wheel its detectors; each within 100 MB), and the installed package composes, builds models and runs the smoke
+experiment from a directory that is not the checkout. Also the Hydra surface a user sees: the job's name and the
+launcher presets."""
 from __future__ import annotations
 
 import os
@@ -22,20 +23,66 @@ CHECKOUT = Path(__file__).resolve().parents[1]
 PLUGIN_LAUNCHERS = {"basic", "joblib", "submitit_local", "submitit_slurm"}
 
 
-def _build_wheel(tmp: Path) -> Path:
+# the project's distributions: the package, and the detection zoo's weights apart (zoo/detection/pyproject.toml)
+DISTRIBUTIONS = {"pairedgta": CHECKOUT, "pairedgta_detection_zoo": CHECKOUT / "zoo" / "detection"}
+WHEEL_LIMIT = 100 * 10**6  # a package index's default file limit (PyPI: 100 MB), in the stricter decimal reading
+
+
+def _build_wheel(tmp: Path, dist_name: str = "pairedgta") -> Path:
     """Build from a copy of the sources, so the checkout gets no build/ or egg-info."""
-    src = tmp / "src"
+    project = DISTRIBUTIONS[dist_name]
+    src = tmp / f"src_{dist_name}"
     src.mkdir()
     for name in ("pyproject.toml", "README.md"):
-        shutil.copy2(CHECKOUT / name, src / name)
-    shutil.copytree(CHECKOUT / "pairedgta", src / "pairedgta", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        if (project / name).is_file():
+            shutil.copy2(project / name, src / name)
+    for package in _top_packages(project):
+        shutil.copytree(project / package, src / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     dist = tmp / "dist"
     env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
                            str(dist), str(src)], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    (wheel,) = dist.glob("pairedgta-*.whl")
+    (wheel,) = dist.glob(f"{dist_name}-*.whl")
     return wheel
+
+
+def _setuptools_conf(project: Path) -> dict:
+    import tomllib
+
+    return tomllib.loads((project / "pyproject.toml").read_text())["tool"]["setuptools"]
+
+
+def _top_packages(project: Path) -> list[str]:
+    conf = _setuptools_conf(project)
+    names = conf["packages"] if isinstance(conf.get("packages"), list) else conf["packages"]["find"]["include"]
+    return sorted({n.rstrip("*").split(".")[0] for n in names})
+
+
+def _shipped_bytes(project: Path) -> int:
+    """What the project's wheel holds, uncompressed: its modules and the files its package-data globs match (the
+    weights dominate and barely compress, so this bounds the wheel's size from above, give or take the zip's index)."""
+    files = {p for package in _top_packages(project) for p in (project / package).rglob("*.py")}
+    for package, patterns in _setuptools_conf(project).get("package-data", {}).items():
+        root = project / package.replace(".", "/")
+        files |= {p for pattern in patterns for p in root.glob(pattern) if p.is_file()}
+    return sum(p.stat().st_size for p in files)
+
+
+def test_every_wheel_the_project_builds_stays_within_a_package_index_s_limit():
+    """Both zoos in one wheel passed 100 MB: the detectors ship in a distribution of their own. Each wheel's content
+    is summed from its pyproject's package data (fast, offline); the slow test below builds both and checks them."""
+    sizes = {name: _shipped_bytes(project) for name, project in DISTRIBUTIONS.items()}
+    assert all(sizes.values()) and sizes["pairedgta_detection_zoo"] > 10 * 10**6, sizes  # the globs match the weights
+    for name, size in sizes.items():
+        assert size <= WHEEL_LIMIT - 2 * 10**6, f"{name}'s wheel would hold {size / 1e6:.1f} MB (limit 100 MB): move " \
+                                                 "weights into another distribution (zoo/)"
+    # the package requires its companion at the companion's version (README's install line installs both)
+    import tomllib
+
+    deps = tomllib.loads((CHECKOUT / "pyproject.toml").read_text())["project"]["dependencies"]
+    zoo = tomllib.loads((DISTRIBUTIONS["pairedgta_detection_zoo"] / "pyproject.toml").read_text())["project"]
+    assert f"{zoo['name']}=={zoo['version']}" in deps
 
 
 def _venv_seeing_these_packages(env_dir: Path) -> Path:
@@ -58,8 +105,13 @@ def _venv_seeing_these_packages(env_dir: Path) -> Path:
 
 @pytest.mark.slow
 def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
-    wheel = _build_wheel(tmp_path)
+    wheel, zoo_wheel = _build_wheel(tmp_path), _build_wheel(tmp_path, "pairedgta_detection_zoo")
+    for built in (wheel, zoo_wheel):
+        assert built.stat().st_size <= WHEEL_LIMIT, f"{built.name}: {built.stat().st_size / 1e6:.1f} MB"
     names = set(zipfile.ZipFile(wheel).namelist())
+    zoo_names = set(zipfile.ZipFile(zoo_wheel).namelist())
+    assert "pairedgta_detection_zoo/demo_det_reference/model.safetensors" in zoo_names
+    assert not any(n.startswith("pairedgta/models/weights/demo_det_reference/") for n in names)
     shipped_yaml = {f"pairedgta/conf/{p.relative_to(CONFIG_DIR).as_posix()}" for p in CONFIG_DIR.rglob("*.yaml")}
     assert shipped_yaml and shipped_yaml <= names, sorted(shipped_yaml - names)
     weights = CONFIG_DIR.parent / "models" / "weights" / "demo_segformer"
@@ -71,8 +123,8 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     py = _venv_seeing_these_packages(env_dir)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
     env.update(OFFLINE, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PYTHONWARNINGS="ignore")
-    proc = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], capture_output=True,
-                          text=True, env=env, timeout=300)
+    proc = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel), str(zoo_wheel)],
+                          capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     work = tmp_path / "elsewhere"
     work.mkdir()
@@ -80,12 +132,15 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     # (building a model is left to the run below, which builds the smoke experiment's two)
     probe = ("import pairedgta, sys; from pairedgta.models import available_models; from pathlib import Path; "
              "print(pairedgta.__file__); print(any(p and Path(p).resolve() == Path(sys.argv[1]).resolve() for p in sys.path)); "
-             "print(','.join(available_models()))")
+             "print(','.join(available_models())); from pairedgta.models.hf_common import resolve_checkpoint_path; "
+             "print(resolve_checkpoint_path('pkg://models/weights/demo_det_reference/model.safetensors'))")
     proc = subprocess.run([str(py), "-c", probe, str(CHECKOUT)], cwd=work, capture_output=True, text=True, env=env,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    where, checkout_on_path, models = proc.stdout.strip().splitlines()[-3:]
+    where, checkout_on_path, models, detector = proc.stdout.strip().splitlines()[-4:]
     assert Path(where).resolve().is_relative_to(env_dir.resolve()), where  # the wheel's copy, not the checkout
+    # the detectors' weights from the companion's wheel, under the model configs' unchanged pkg:// paths
+    assert Path(detector).is_file() and Path(detector).resolve().is_relative_to(env_dir.resolve()), detector
     assert checkout_on_path == "False"  # (a venv made inside the checkout, e.g. .venv/, is fine)
     assert "tiny_segformer" in models.split(",") and "demo_segformer" in models.split(",")
 

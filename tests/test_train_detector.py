@@ -149,7 +149,7 @@ def test_recipes_compose(member):
 
     with initialize_config_module("pairedgta.conf", version_base="1.3"):
         cfg = OmegaConf.to_container(compose("train_detector", overrides=[f"detector_zoo={member}"]), resolve=True)
-    assert cfg["model_name"] == member and cfg["out_dir"] == f"pairedgta/models/weights/{member}"
+    assert cfg["model_name"] == member and cfg["out_dir"] == f"zoo/detection/pairedgta_detection_zoo/{member}"
     tdd.check_config(cfg)
     torch.manual_seed(0)
     module = tdd.build_network(cfg["arch"]["family"], tdd.network_config(cfg))

@@ -225,9 +225,7 @@ def check_classes(module: Any, checkpoint_path: str, name: str) -> None:
     """A checkpoint whose class layer is of another size (COCO's 91, a head of its own) is one line naming both."""
     from pairedgta.errors import ModelError
     from pairedgta.models.checkpoint import read_state_dict
-    from pairedgta.models.hf_common import resolve_checkpoint_path
-
-    state = read_state_dict(resolve_checkpoint_path(checkpoint_path), model_name=name)
+    state = read_state_dict(checkpoint_path, model_name=name)  # resolves a pkg:// path (package or detection zoo)
     expected = module.state_dict()
     for key in CLASS_KEYS:
         if key in state and key in expected and state[key].shape[0] != expected[key].shape[0]:

@@ -165,7 +165,9 @@ def _objects_panel(ax: Any, table: pd.DataFrame, r: Report) -> None:
     bins = list(dict.fromkeys(table["height_px"]))
     x = np.arange(len(bins))
     worst = [w["condition"] for w in r.worst[:2]] or r.conditions[:2]
-    for cond, color in zip(worst, ("#d62728", "#1f77b4")):
+    from pairedgta.figures.palette import subject_shades  # the subject's colour of every detection figure, and a tint
+
+    for cond, color in zip(worst, subject_shades(r.subject, r.population)):
         t = table[table["condition"] == cond].set_index("height_px").reindex(bins)
         ax.plot(x, t["found_share"], "-D", color=color, ms=3, lw=1, label=f"{model_display(r.subject)}, "
                                                                            f"{condition_display(cond)}")

@@ -9,8 +9,9 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.common import TEXT_WIDTH, model_color, model_display, paper_style, save
+from pairedgta.figures.common import TEXT_WIDTH, paper_style, save
 from pairedgta.figures.inputs import Passes
+from pairedgta.figures.palette import detector_colors, detector_label, detector_order
 
 PANELS = (("height", "object height (px)"), ("transmittance", "fog transmittance over the object"),
           ("luma", "mean luma of its box (0-1)"))
@@ -26,6 +27,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         found.to_csv(out / f"{stem}.csv", index=False)
         files.append(out / f"{stem}.csv")
         classes = [c for c in ("all", "person", "car") if c in set(found["class_name"])]
+        colors = detector_colors([*(e.model for e in p.evaluations), *found["model"]])  # one per model, every figure
         with paper_style():
             fig, axes = plt.subplots(len(classes), len(PANELS), figsize=(TEXT_WIDTH * 1.4, 1.9 * len(classes)),
                                      squeeze=False)
@@ -34,10 +36,11 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
                     ax = axes[r][c]
                     rows = found[(found["class_name"] == cls) & (found["variable"] == var)]
                     adverse = rows[rows["condition"] != p.grid.reference]
-                    for model, m in adverse.groupby("model", sort=False):
+                    for model in detector_order(adverse["model"]):
+                        m = adverse[adverse["model"] == model]
                         pooled = m.assign(hits=m["found"] * m["objects"]).groupby("bin_low")[["hits", "objects"]].sum()
-                        ax.plot(pooled.index, pooled["hits"] / pooled["objects"], "o-", ms=3, color=model_color(model),
-                                label=model_display(model))
+                        ax.plot(pooled.index, pooled["hits"] / pooled["objects"], "o-", ms=3, color=colors[model],
+                                label=detector_label(model))
                     ax.set_ylim(0, 1.02)
                     ax.set_xlabel(xlabel + " (bin start)")
                     if c == 0:

@@ -13,6 +13,7 @@ from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
 from pairedgta.figures.inputs import Passes
+from pairedgta.figures.palette import detector_colors
 from pairedgta.metrics.detection_xi import image_counts
 
 
@@ -43,6 +44,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         groups = {g.group_id: g for g in p.dataset.groups}
         pseudo = p.pseudo.boxes()
         iou = p.run.detection.iou
+        colors = detector_colors(e.model for e in p.evaluations)  # the model's boxes in its colour of every figure
         for e in p.evaluations:
             s = e.summary()
             if str(s.get("reference_model")) == e.model:
@@ -76,7 +78,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
                     row[1].imshow(load_image(g.images[cond]))
                     keep = scores >= threshold
                     _boxes(row[1], [b.xyxy for b in gt_cond], [b.label for b in gt_cond], "white", "--")
-                    _boxes(row[1], boxes[keep], labels[keep], "orange", scores=scores[keep])
+                    _boxes(row[1], boxes[keep], labels[keep], colors[e.model], scores=scores[keep])
                     row[1].set_title(f"{condition_display(cond)}: {model_display(e.model)} keeps {share:.0%}",
                                      fontsize=6)
                     for ax in row:

@@ -9,8 +9,9 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from pairedgta.figures import FigureOptions
-from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_color, model_display, paper_style, save
+from pairedgta.figures.common import TEXT_WIDTH, condition_display, paper_style, save
 from pairedgta.figures.inputs import Passes
+from pairedgta.figures.palette import detector_colors, detector_label, detector_order
 
 
 def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], dict[str, float]]:
@@ -26,11 +27,12 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         files.append(out / f"{stem}.csv")
         ap = ap[ap["class_name"] == "all"]
         conds = list(dict.fromkeys(ap["condition"]))
+        colors = detector_colors([*(e.model for e in p.evaluations), *ap["model"]])  # one per model, every figure
         with paper_style():
             fig, (a1, a2) = plt.subplots(1, 2, figsize=(TEXT_WIDTH * 1.5, 2.6), gridspec_kw={"width_ratios": [3, 2]})
-            for model, rows in ap.groupby("model", sort=False):
-                rows = rows.set_index("condition").reindex(conds)
-                a1.plot(range(len(conds)), rows["ap"], "o-", color=model_color(model), label=model_display(model), ms=3)
+            for model in detector_order(ap["model"]):
+                rows = ap[ap["model"] == model].set_index("condition").reindex(conds)
+                a1.plot(range(len(conds)), rows["ap"], "o-", color=colors[model], label=detector_label(model), ms=3)
             a1.set_xticks(range(len(conds)), [condition_display(c) for c in conds], rotation=30, ha="right")
             a1.set_ylabel("COCO AP@[.5:.95] (renderer's boxes)")
             a1.set_ylim(bottom=0)
@@ -39,12 +41,12 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
             r = rob[rob["metric"] == "ap"] if not rob.empty else rob
             if not r.empty:
                 subsets = list(dict.fromkeys(r["conditions"]))
-                models = list(dict.fromkeys(r["model"]))
+                models = detector_order(r["model"])
                 width = 0.8 / max(len(models), 1)
                 for i, m in enumerate(models):
                     rows = r[r["model"] == m].set_index("conditions").reindex(subsets)
-                    a2.bar([k + i * width for k in range(len(subsets))], rows["rPC"], width, color=model_color(m),
-                           label=model_display(m))
+                    a2.bar([k + i * width for k in range(len(subsets))], rows["rPC"], width, color=colors[m],
+                           label=detector_label(m))
                     for s, v in rows["rPC"].items():
                         if pd.notna(v):
                             metrics[f"compare/det_rpc/{s}/{m}".replace("*", "any")] = float(v)

@@ -14,6 +14,7 @@ import seaborn as sns
 from pairedgta.figures import FigureOptions
 from pairedgta.figures.common import TEXT_WIDTH, condition_display, model_display, paper_style, save
 from pairedgta.figures.inputs import Passes
+from pairedgta.figures.palette import detector_colors
 
 
 def table(passes: Passes, label: str | None = None) -> pd.DataFrame:
@@ -53,6 +54,7 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
         order = [m for m in order if m not in own] + [m for m in order if m in own]
         panels = [("xi_mean", "mean detection ξ (share of the reference's clean boxes still found)"),
                   ("pseudo_ap50", "pseudo-AP50 (the reference's clean boxes as ground truth)")]
+        colors = detector_colors([*(e.model for e in p.evaluations), *order])  # a model's colour in every figure
         with paper_style():
             fig, axes = plt.subplots(1, 2, figsize=(TEXT_WIDTH * 1.6, 1.0 + 0.32 * len(order)))
             for ax, (col, title) in zip(axes, panels):
@@ -66,6 +68,8 @@ def draw(passes: Passes, out: Path, opts: FigureOptions) -> tuple[list[Path], di
                 ax.set_xlabel(f"{condition_display(p.grid.reference)} →")
                 ax.set_ylabel("")
                 ax.tick_params(axis="x", rotation=30)
+                for tick, model in zip(ax.get_yticklabels(), order):  # each row's name in the model's colour
+                    tick.set_color(colors[model])
                 if own and len(own) < len(wide):
                     ax.axhline(len(wide) - len(own), color="white", lw=2.5)
             files += save(fig, out, stem, opts.formats, opts.dpi)

@@ -34,7 +34,7 @@ def _hub_answers(hub_id: str, timeout: float) -> str | None:
 
 def check_available(models: Iterable[dict[str, Any]], timeout: float = 10.0) -> None:
     """Raise one ModelError for the first model whose weights cannot be had here."""
-    from pairedgta.models.hf_common import resolve_checkpoint_path
+    from pairedgta.models.hf_common import check_zoo_path, resolve_checkpoint_path
     from pairedgta.models.hf_common import pretrained_source
 
     from pairedgta.models import is_source
@@ -49,6 +49,7 @@ def check_available(models: Iterable[dict[str, Any]], timeout: float = 10.0) -> 
                 raise ModelError(f"model '{name}' needs its checkpoint ({cfg.get('checkpoint_file')}, from "
                                  f"{cfg.get('checkpoint_source')}); set model_overrides.{name}.checkpoint_path=FILE "
                                  "(or model.checkpoint_path= for the model you chose) — checked before rendering")
+            check_zoo_path(path, name)  # a detector's weights without their distribution: how to install it
             if not resolve_checkpoint_path(path).is_file():
                 raise ModelError(f"model '{name}': checkpoint file {path} does not exist; fix its checkpoint_path "
                                  "— checked before rendering")

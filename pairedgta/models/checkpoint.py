@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from pairedgta.errors import ModelError, reason
 from pairedgta.models.base import Segmenter
-from pairedgta.models.hf_common import resolve_checkpoint_path
+from pairedgta.models.hf_common import check_zoo_path, resolve_checkpoint_path
 from pairedgta.models.runtime import IMAGENET_MEAN, IMAGENET_STD, RuntimeOptions
 
 log = logging.getLogger(__name__)
@@ -77,6 +77,7 @@ def not_weights(path: Path, model_name: str) -> None:
 
 def read_state_dict(path: str | Path, *, model_name: str = "model") -> dict[str, torch.Tensor]:
     """Read a checkpoint file into a flat state dict with the documented nesting and prefixes removed."""
+    check_zoo_path(path, model_name)
     path = resolve_checkpoint_path(path)
     if not path.is_file():
         raise ModelError(f"{model_name}: checkpoint file {path} does not exist; fix model.checkpoint_path=")
@@ -134,8 +135,7 @@ def load_checkpoint_strict(
     Keys under `training_only_prefixes` (auxiliary heads, loss buffers) are reported in one log line and dropped;
     any other missing, unexpected or shape-mismatched key raises ModelError.
     """
-    path = resolve_checkpoint_path(path)
-    state = read_state_dict(path, model_name=model_name)
+    state = read_state_dict(path, model_name=model_name)  # resolves a pkg:// path itself (and names a missing zoo)
     expected = module.state_dict()
     prefixes = tuple(training_only_prefixes) + LOSS_PREFIXES
 

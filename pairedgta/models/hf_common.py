@@ -37,20 +37,57 @@ def _load_error_types() -> tuple[type[BaseException], ...]:
 _LOAD_ERRORS = _load_error_types()
 
 
+# the detection zoo ships as a distribution of its own (zoo/detection): both zoos in one wheel pass 100 MB
+DETECTION_ZOO = "pairedgta-detection-zoo"
+DETECTION_ZOO_INSTALL = (f"pip install {DETECTION_ZOO}, or from a checkout pip install -e ./zoo/detection (README's "
+                         "install line installs both)")
+
+
+def detection_zoo_dir() -> Path | None:
+    """The detection zoo's member folders: the source tree's beside a checkout's package (so a checkout runs
+    without installing it, and never another checkout's), else the installed companion distribution's."""
+    checkout = PACKAGE_DIR.parent / "zoo" / "detection" / "pairedgta_detection_zoo"
+    if checkout.is_dir():
+        return checkout
+    import importlib.util
+
+    spec = importlib.util.find_spec("pairedgta_detection_zoo")
+    return Path(spec.origin).parent if spec is not None and spec.origin else None
+
+
 def resolve_checkpoint_path(path: str | Path) -> Path:
-    """`pkg://models/weights/<name>/model.safetensors` is a file shipped inside the package (the zoo). Torch-free:
-    the stage keys fingerprint such files on every run, a cached one included."""
+    """`pkg://models/weights/<name>/...` is a zoo member's file: inside the package (the segmentation zoo), else
+    in the detection zoo's distribution (`detection_zoo_dir`); the path strings, and so the cache keys, are the
+    same for both. Torch-free: the stage keys fingerprint such files on every run, a cached one included."""
     text = str(path)
-    if text.startswith("pkg://"):
-        return PACKAGE_DIR / text[len("pkg://"):]
-    return Path(text).expanduser()
+    if not text.startswith("pkg://"):
+        return Path(text).expanduser()
+    rel = Path(text[len("pkg://"):])
+    inside = PACKAGE_DIR / rel
+    if inside.exists() or rel.parts[:2] != ("models", "weights") or len(rel.parts) < 3:
+        return inside
+    zoo = detection_zoo_dir()
+    elsewhere = zoo / Path(*rel.parts[2:]) if zoo is not None else None
+    return elsewhere if elsewhere is not None and elsewhere.exists() else inside
+
+
+def check_zoo_path(path: str | Path, model_name: str | None) -> None:
+    """A `pkg://` zoo file that is nowhere: one line naming the detection zoo's distribution and how to install
+    it (the usual cause: the package installed without its companion), instead of a bare missing path."""
+    text = str(path)
+    if text.startswith("pkg://models/weights/") and not resolve_checkpoint_path(text).exists():
+        raise ModelError(
+            f"model '{model_name}': {text} is in neither the pairedgta package nor an installed {DETECTION_ZOO} "
+            f"(the detection zoo's weights, a distribution of their own); install it: {DETECTION_ZOO_INSTALL}"
+        )
 
 
 def pretrained_source(cfg: dict[str, Any]) -> str:
     path = cfg.get("path")
     if path and str(path).startswith("pkg://"):
-        # weights shipped inside the package (the demo model): no network, no cache
-        path = str(PACKAGE_DIR / str(path)[len("pkg://"):])
+        # weights shipped with the package (the demo models): no network, no cache
+        check_zoo_path(path, cfg.get("name"))
+        path = str(resolve_checkpoint_path(path))
     if path:
         if not Path(path).is_dir():
             raise ModelError(
