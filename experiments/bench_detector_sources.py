@@ -53,7 +53,7 @@ def variants(root: Path, images: np.ndarray, batch: int) -> list[tuple[str, str,
     from torchvision.ops import batched_nms
 
     import detector_nets as dn
-    from pairedgta.detection.label_spaces import COCO91, from_names
+    from pairedgta.models.detector_labels import COCO91, from_names
     from pairedgta.models.checkpoint import load_checkpoint_strict, resolve_checkpoint_path
 
     h, w = images.shape[1:3]

@@ -5,7 +5,7 @@
     python experiments/train_demo_detector.py train.steps=50 data.train_towns=2    # a quick try
 
 `detector_zoo=<name>` picks the member: its family (`arch.family`: fcos, retinanet or fasterrcnn, the heads of
-pairedgta/detection/models.py on a MobileNetV3-Large trunk + FPN), its widths, training scale (`arch.min_size`) and
+pairedgta/models/detectors.py on a MobileNetV3-Large trunk + FPN), its widths, training scale (`arch.min_size`) and
 any recipe change (photometric distortion off, adverse-condition training towns).
 
 Data: Day-EXTRASUNNY scenes of many towns (one `town_seed` per group of scenes), rendered once through the cached
@@ -49,7 +49,7 @@ from pairedgta.cache import StageCache, canonical_json
 from pairedgta.conditions import build_condition_grid
 from pairedgta.detection.boxes import INSTANCE_CLASSES, Box, coco_ground_truth
 from pairedgta.detection.ground_truth import read_ground_truth
-from pairedgta.detection.models import NUM_CLASSES, build_network
+from pairedgta.models.detectors import NUM_CLASSES, build_network
 
 log = logging.getLogger("train_demo_detector")
 ROOT = Path(__file__).resolve().parents[1]
@@ -379,10 +379,10 @@ FAMILY_TEXT = {"fcos": "FCOS", "retinanet": "RetinaNet", "fasterrcnn": "Faster R
 
 
 def arch_keys(arch: dict) -> dict:
-    """The architecture keys the family's builder takes (pairedgta/detection/models.py), and min/max size."""
+    """The architecture keys the family's builder takes (pairedgta/models/detectors.py), and min/max size."""
     import inspect
 
-    from pairedgta.detection import models
+    from pairedgta.models import detectors as models
 
     taken = [p.name for p in inspect.signature(getattr(models, arch["family"])).parameters.values()
              if p.kind is p.KEYWORD_ONLY] + ["min_size", "max_size"]
@@ -394,7 +394,7 @@ def arch_keys(arch: dict) -> dict:
 def model_yaml(cfg: dict, score_threshold: float) -> str:
     name, arch = cfg["model_name"], cfg["arch"]
     lines = [f"# A detection zoo member shipped with the package: {FAMILY_TEXT[arch['family']]} on a MobileNetV3-Large",
-             "# trunk + FPN (pairedgta/detection/models.py), trained by experiments/train_demo_detector.py",
+             "# trunk + FPN (pairedgta/models/detectors.py), trained by experiments/train_demo_detector.py",
              f"# detector_zoo={name}",
              f"# on the embedded renderer's scenes (model card: {ZOO_DIR}/{name}/README.md).",
              f"name: {name}", f"family: {arch['family']}",

@@ -44,6 +44,12 @@ def label_ids_to_train_ids(label_ids: np.ndarray) -> np.ndarray:
     return lut[label_ids.astype(np.int64).clip(0, 255)]
 
 
+# The classes with instances (Cityscapes' "hasInstances"): what a detector finds and a box is drawn around, in
+# train-id order; traffic lights and signs are not instanced.
+INSTANCE_CLASSES = ("person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle")
+NUM_INSTANCE_CLASSES = len(INSTANCE_CLASSES)
+
+
 def colorize(labels: np.ndarray) -> np.ndarray:
     """Train-id map -> RGB with the Cityscapes palette (void is black)."""
     lut = np.zeros((256, 3), dtype=np.uint8)

@@ -49,7 +49,7 @@ def tiny_yolo(classes: int = 8, width: int = 8, seed: int = 0) -> TinyYolo:
 
 def zoo_fcos() -> torch.nn.Module:
     """The zoo's reference detector as a user's own torchvision-style module (weights given as checkpoint_path)."""
-    from pairedgta.detection.models import NUM_CLASSES, fcos
+    from pairedgta.models.detectors import NUM_CLASSES, fcos
 
     return fcos("zoo_fcos", NUM_CLASSES, 512, 1024, width=0.5, fpn_channels=64).eval()
 

@@ -282,3 +282,21 @@ def test_the_config_is_parsed_once_per_pass(tmp_path, monkeypatch):
     monkeypatch.setattr(schema, "parse", lambda cfg, *a, **k: (calls.append(1), real(cfg, *a, **k))[1])
     run(compose_cfg(fast_overrides(tmp_path) + ["tracking.enabled=false", "plot.figures=[xi_models]"]))
     assert len(calls) == 1
+
+
+def test_the_model_registry_names_only_its_own_part():
+    """A family's builder, loader and check are named by string (no import until built): a name outside
+    pairedgta.models would be an import the graph above does not see (detection's models sat in pairedgta/detection,
+    which imports pairedgta.models: a hidden loop). Every registered target lies in pairedgta.models."""
+    from pairedgta.models import FAMILIES
+
+    outside = []
+    for name in FAMILIES.names():
+        meta = FAMILIES.meta(name)
+        for target in (FAMILIES._targets[name], meta.get("via"),
+                       meta.get("check")):
+            if isinstance(target, str) and not target.startswith("pairedgta.models."):
+                outside.append(f"{name}: {target}")
+    assert not outside, outside
+    source = (PKG / "models" / "__init__.py").read_text()
+    assert "pairedgta.detection" not in source

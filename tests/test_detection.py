@@ -141,7 +141,7 @@ def test_a_detector_firing_everywhere_keeps_every_box_but_is_scored_low():
     """xi is a recall: boxes everywhere find every reference box. The precision side and pseudo-AP show it."""
     from pairedgta.detection import registry
     from pairedgta.detection.inputs import GroupResult, Inputs
-    from pairedgta.detection.models import Detections
+    from pairedgta.models.detectors import Detections
 
     rng = np.random.default_rng(0)
     groups, pseudo, honest_groups = [], {}, []
@@ -355,7 +355,7 @@ def test_a_sweep_over_detectors_then_plot_collects_them(tmp_path):
 def test_a_checkpoint_of_other_classes_is_one_line(tmp_path):
     from safetensors.torch import save_file
 
-    from pairedgta.detection.models import fcos
+    from pairedgta.models.detectors import fcos
     from pairedgta.errors import ModelError
     from pairedgta.models import build_model, model_config
 

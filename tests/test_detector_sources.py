@@ -1,4 +1,4 @@
-"""task=detection model=<source> (pairedgta/detection/contract.py, layouts.py, label_spaces.py, sources/): the output
+"""task=detection model=<source> (pairedgta/models/detector_contract.py, layouts.py, label_spaces.py, sources/): the output
 layouts decode hand-made outputs as their exporters mean them; one detector in several formats gives the same
 detections and the same detection xi; label spaces map to the instance classes (COCO has no rider: NaN with the
 reason); bad layouts, boxes and class counts are one line before any stage writes."""
@@ -15,7 +15,8 @@ import torch
 from safetensors.torch import save_file
 
 from detector_nets import ssdlite, street, tiny_detr_dir, tiny_yolo, zoo_fcos
-from pairedgta.detection import label_spaces, layouts
+from pairedgta.models import detector_labels as label_spaces
+from pairedgta.models import detector_layouts as layouts
 from pairedgta.detection.boxes import INSTANCE_CLASSES
 from pairedgta.errors import ConfigError, ModelError
 from pairedgta.metrics import detection_xi

@@ -71,7 +71,7 @@ HASHED_MODEL_CONFIGS = {
     "demo_fcos_small": "7d7e278349927bcc",
     "demo_retinanet": "dffe63fa5a6931f5",
     "demo_retinanet_lowres": "23321c28a1fa591b",
-    # task=detection's test-sized detectors (pairedgta/detection/models.py)
+    # task=detection's test-sized detectors (pairedgta/models/detectors.py)
     "tiny_fasterrcnn": "08ff9c0778ee59eb",
     "tiny_fcos": "9ee88cb2ec619e47",
     "tiny_retinanet": "09c01f7f5f407355",

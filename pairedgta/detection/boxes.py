@@ -21,11 +21,9 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pairedgta.cityscapes import CLASS_NAMES
+from pairedgta.cityscapes import CLASS_NAMES, INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.errors import DataError
 
-INSTANCE_CLASSES = ("person", "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle")
-NUM_INSTANCE_CLASSES = len(INSTANCE_CLASSES)
 _TRAIN_TO_INSTANCE = np.full(256, -1, dtype=np.int64)
 for _i, _n in enumerate(INSTANCE_CLASSES):
     _TRAIN_TO_INSTANCE[CLASS_NAMES.index(_n)] = _i

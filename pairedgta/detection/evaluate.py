@@ -22,7 +22,7 @@ from tqdm import tqdm
 from pairedgta.datasets import PairedDataset, load_group_images
 from pairedgta.detection import registry
 from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
-from pairedgta.detection.models import Detections
+from pairedgta.models.detectors import Detections
 from pairedgta.detection.inputs import GroupResult, Inputs, image_ids
 from pairedgta.detection.pseudolabel import DetectionLabels, boxes_by_group, write_json_atomic
 from pairedgta.entries import Context, StageResult, model_config_from_hash, model_hash_config

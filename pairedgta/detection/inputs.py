@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pairedgta.detection.models import Detections
+from pairedgta.models.detectors import Detections
 
 if TYPE_CHECKING:
     from pairedgta.datasets import PairedDataset

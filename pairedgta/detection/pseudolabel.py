@@ -19,7 +19,7 @@ from pairedgta.datasets.base import image_size
 from pairedgta.detection import boxes as gtboxes
 from pairedgta.detection.ground_truth import group_ground_truth
 from pairedgta.detection.inputs import detections_from_json, detections_json, image_ids
-from pairedgta.detection.models import Detections
+from pairedgta.models.detectors import Detections
 from pairedgta.jsonio import write_json
 from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.models import shared_model

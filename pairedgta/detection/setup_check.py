@@ -26,8 +26,8 @@ IMAGENET = ([0.485, 0.456, 0.406], [0.229, 0.224, 0.225])
 
 def candidates(det: Any) -> list[Candidate]:
     """The configured set-up first, then each one-key alternative of this detector's contract."""
-    from pairedgta.detection import label_spaces
-    from pairedgta.detection.layouts import BOX_FORMATS
+    from pairedgta.models import detector_labels as label_spaces
+    from pairedgta.models.detector_layouts import BOX_FORMATS
 
     c = det.contract
     out = [Candidate(CONFIGURED, {})]
@@ -55,8 +55,8 @@ def candidates(det: Any) -> list[Candidate]:
 
 def variant(det: Any, overrides: dict[str, Any]) -> Any:
     """The same network under the contract with `overrides` (no reload)."""
-    from pairedgta.detection import label_spaces
-    from pairedgta.detection.contract import ContractDetector
+    from pairedgta.models import detector_labels as label_spaces
+    from pairedgta.models.detector_contract import ContractDetector
 
     if not overrides:
         return det

@@ -41,26 +41,27 @@ FAMILIES.register("ddrnet", "pairedgta.models.ddrnet:architecture", **IN_PROJECT
 # Model sources: a researcher's own model in one format (`model=<source>`), loaded by the source's module and run
 # under the one input/output contract and label map of pairedgta/models/contract.py (its `build_source`).
 SOURCE = {"via": "pairedgta.models.contract:build_source", "filled": CONTRACT_OPTIONS, "source": True}
-# With task=detection the same `model=<source>` loads a detector: its twin family `det_<source>` (pairedgta/detection/
-# sources/), under the detectors' contract, layout and label space (pairedgta/detection/contract.py).
+# Under a task of detectors the same `model=<source>` loads a detector: its twin family `det_<source>`
+# (pairedgta/models/sources/det_*.py), under the detectors' contract, layout and label space
+# (pairedgta/models/detector_contract.py, detector_layouts.py, detector_labels.py).
 FAMILIES.register("hf", "pairedgta.models.sources.hf:load", **SOURCE, detector="det_hf")
 FAMILIES.register("torchvision", "pairedgta.models.sources.torchvision:load", **SOURCE, detector="det_torchvision")
 FAMILIES.register("smp", "pairedgta.models.sources.smp:load", **SOURCE)
 FAMILIES.register("export", "pairedgta.models.sources.export:load", **SOURCE, detector="det_export")
 FAMILIES.register("onnx", "pairedgta.models.sources.onnx:load", **SOURCE, detector="det_onnx")
 FAMILIES.register("python", "pairedgta.models.sources.python:load", **SOURCE, detector="det_python")
-DETECTOR_SOURCE = {"via": "pairedgta.detection.contract:build_detector_source", "kind": "detector", "source": True,
-                   "check": "pairedgta.detection.contract:check_contract", "filled": DETECTOR_OPTIONS}
+DETECTOR_SOURCE = {"via": "pairedgta.models.detector_contract:build_detector_source", "kind": "detector", "source": True,
+                   "check": "pairedgta.models.detector_contract:check_contract", "filled": DETECTOR_OPTIONS}
 for _source in ("hf", "torchvision", "export", "onnx", "python"):
-    FAMILIES.register(f"det_{_source}", f"pairedgta.detection.sources.{_source}:load", **DETECTOR_SOURCE)
+    FAMILIES.register(f"det_{_source}", f"pairedgta.models.sources.det_{_source}:load", **DETECTOR_SOURCE)
 # Detectors (task=detection): torchvision's detection heads on a small trunk, one builder for what every detector has
-# (pairedgta/detection/models.py: build_detector); `kind` says which task's stages can run them (pairedgta/tasks.py).
-DETECTOR = {"via": "pairedgta.detection.models:build_detector", "kind": "detector",
-            "check": "pairedgta.detection.models:check_options",
+# (pairedgta/models/detectors.py: build_detector); `kind` says which task's stages can run them (pairedgta/tasks.py).
+DETECTOR = {"via": "pairedgta.models.detectors:build_detector", "kind": "detector",
+            "check": "pairedgta.models.detectors:check_options",
             "filled": ("random_init", "init_seed", "score_threshold", "min_size", "max_size")}
-FAMILIES.register("fcos", "pairedgta.detection.models:fcos", **DETECTOR)
-FAMILIES.register("retinanet", "pairedgta.detection.models:retinanet", **DETECTOR)
-FAMILIES.register("fasterrcnn", "pairedgta.detection.models:fasterrcnn", **DETECTOR)
+FAMILIES.register("fcos", "pairedgta.models.detectors:fcos", **DETECTOR)
+FAMILIES.register("retinanet", "pairedgta.models.detectors:retinanet", **DETECTOR)
+FAMILIES.register("fasterrcnn", "pairedgta.models.detectors:fasterrcnn", **DETECTOR)
 DEFAULT_KIND = "segmenter"  # a family that declares no `kind` builds label maps (the paper's models)
 RUNTIME_KEYS = ("device",)  # how to run, given by the run's top-level `device`, never by a model YAML
 log = logging.getLogger("pairedgta.models")

@@ -196,7 +196,7 @@ class Segmenter(abc.ABC):
 
 
 class BoxModel(Protocol):
-    """What a detector gives the stages (pairedgta/detection/models.py Detector, contract.ContractDetector): its boxes
+    """What a detector gives the stages (pairedgta/models/detectors.py Detector, contract.ContractDetector): its boxes
     per image of an RGB uint8 batch, at or above its operating threshold counted as found."""
 
     name: str

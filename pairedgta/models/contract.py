@@ -35,7 +35,7 @@ CONTRACT_OPTIONS = ("mean", "std", "scale", "channels", "resize", "pad_multiple"
 DEFAULTS: dict[str, Any] = {"mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD), "scale": 1, "channels": "rgb",
                             "resize": None, "pad_multiple": 1, "inference": "whole", "crop": None, "stride": None,
                             "output": "logits", "labels": "cityscapes"}
-# A detector source's keys (pairedgta/detection/contract.py reads them): the input keys, its output layout and
+# A detector source's keys (pairedgta/models/detector_contract.py reads them): the input keys, its output layout and
 # label space, and its operating point; declared here so the model registry lists them without importing detection.
 DETECTOR_OPTIONS = ("mean", "std", "scale", "channels", "resize", "letterbox", "layout", "labels", "score_threshold",
                     "nms_iou", "max_detections")

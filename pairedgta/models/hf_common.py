@@ -39,6 +39,7 @@ _LOAD_ERRORS = _load_error_types()
 
 # the detection zoo ships as a distribution of its own (zoo/detection): both zoos in one wheel pass 100 MB
 DETECTION_ZOO = "pairedgta-detection-zoo"
+DETECTION_ZOO_SOURCE = "zoo/detection/pairedgta_detection_zoo"  # its package in a checkout, beside pairedgta/
 DETECTION_ZOO_INSTALL = (f"pip install {DETECTION_ZOO}, or from a checkout pip install -e ./zoo/detection (README's "
                          "install line installs both)")
 
@@ -46,7 +47,7 @@ DETECTION_ZOO_INSTALL = (f"pip install {DETECTION_ZOO}, or from a checkout pip i
 def detection_zoo_dir() -> Path | None:
     """The detection zoo's member folders: the source tree's beside a checkout's package (so a checkout runs
     without installing it, and never another checkout's), else the installed companion distribution's."""
-    checkout = PACKAGE_DIR.parent / "zoo" / "detection" / "pairedgta_detection_zoo"
+    checkout = PACKAGE_DIR.parent / DETECTION_ZOO_SOURCE
     if checkout.is_dir():
         return checkout
     import importlib.util

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.models.detector_contract import DetectorNetwork
 from pairedgta.errors import ModelError
 
 

@@ -1,6 +1,6 @@
 """Label spaces of detectors (`model.labels`): a model's class ids mapped onto Cityscapes' eight instance classes.
 
-A class id is the model's own, after the layout's background slot (pairedgta/detection/layouts.py): torchvision's
+A class id is the model's own, after the layout's background slot (pairedgta/models/detector_layouts.py): torchvision's
 COCO ids 1..90 become 0..89. Names map by Cityscapes name (COCO's person, bicycle, car, motorcycle, bus, train, truck
 are Cityscapes names), through a segmentation table for the spaces segmentation ships (pairedgta/models/labels.py:
 Mapillary Vistas' Bicyclist / Motorcyclist are riders there), or through a user's TSV (`source class<TAB>Cityscapes
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pairedgta.cityscapes import CLASS_NAMES
-from pairedgta.detection.boxes import INSTANCE_CLASSES
+from pairedgta.cityscapes import INSTANCE_CLASSES
 from pairedgta.errors import ConfigError
 
 # COCO 2017's 80 detection classes in their contiguous order (YOLO, most ONNX exports)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.models.detector_contract import DetectorNetwork
 from pairedgta.errors import ConfigError, ModelError
 
 ARCHS = ("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn_v2", "fasterrcnn_mobilenet_v3_large_fpn",

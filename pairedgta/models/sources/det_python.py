@@ -7,7 +7,7 @@ Naming `model=python` is the user's choice to run that code: it is imported and 
 (`model.checkpoint_path`) load as data only (safetensors, or torch.load(weights_only=True)), keys matched exactly."""
 from __future__ import annotations
 
-from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.models.detector_contract import DetectorNetwork
 
 
 def load(name: str, device: str, /, *, target: str | None = None, kwargs: dict | None = None,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.models.detector_contract import DetectorNetwork
 from pairedgta.errors import ModelError
 
 

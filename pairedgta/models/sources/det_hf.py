@@ -14,7 +14,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from pairedgta.detection.contract import DetectorNetwork
+from pairedgta.models.detector_contract import DetectorNetwork
 from pairedgta.errors import ModelError, reason
 
 log = logging.getLogger("pairedgta.detection")

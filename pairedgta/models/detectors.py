@@ -1,7 +1,7 @@
 """Detectors: torchvision's detection heads (FCOS, RetinaNet, Faster R-CNN) on a small MobileNetV3 trunk with an
 FPN from stride 8, built without any download (no ImageNet weights exist offline; the zoo is trained here), and one
 wrapper that runs them under the project's contract: uint8 RGB images in, per image xyxy pixel boxes, scores and
-Cityscapes instance classes (pairedgta/detection/boxes.py INSTANCE_CLASSES) out.
+Cityscapes instance classes (pairedgta/cityscapes.py INSTANCE_CLASSES) out.
 
 Each head is a model family registered `via` `build_detector` (pairedgta/models/__init__.py, kind "detector"):
 the keyword-only arguments of `fcos`, `retinanet`, `fasterrcnn` are its architecture keys in a
@@ -15,7 +15,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 
-from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
+from pairedgta.cityscapes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.lazy import lazy_module
 from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD
 from pairedgta.models.runtime import RuntimeOptions

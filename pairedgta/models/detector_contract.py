@@ -1,14 +1,14 @@
 """The input/output contract every detector source shares (`task=detection model=<source>`), and their one builder.
 
-A source (pairedgta/detection/sources/*.py) only *loads* a network: it returns a `DetectorNetwork` whose module maps a
+A source (pairedgta/models/sources/det_*.py) only *loads* a network: it returns a `DetectorNetwork` whose module maps a
 prepared batch to raw outputs, with what the file declares (a processor's mean/std and size, a graph's output names
 and fixed size, the checkpoint's class names, its layout). Everything between the project's images (uint8 RGB, any
 size) and `Detections` (xyxy pixels of the image, scores, Cityscapes instance classes) is here, the same for every
 source:
 
   channel order -> resize (none, short side, fixed size stretched or letterboxed) -> scale (0-1 or 0-255) ->
-  (x - mean) / std -> the network -> its layout decoded (pairedgta/detection/layouts.py; NMS where the graph has
-  none) -> boxes back to the image's pixels -> the label space (pairedgta/detection/label_spaces.py).
+  (x - mean) / std -> the network -> its layout decoded (pairedgta/models/detector_layouts.py; NMS where the graph has
+  none) -> boxes back to the image's pixels -> the label space (pairedgta/models/detector_labels.py).
 
 A network that takes torchvision's input (a list of C x H x W images in 0-1, normalising and resizing inside) gets
 them as they are. A probe forward on a test image checks the outputs against the layout and the label space before
@@ -21,9 +21,10 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from pairedgta.detection import label_spaces, layouts
-from pairedgta.detection.boxes import INSTANCE_CLASSES
-from pairedgta.detection.models import KIND, Detections, image_batch
+from pairedgta.models import detector_labels as label_spaces
+from pairedgta.models import detector_layouts as layouts
+from pairedgta.cityscapes import INSTANCE_CLASSES
+from pairedgta.models.detectors import KIND, Detections, image_batch
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module
 from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS
