@@ -33,6 +33,20 @@ class StageResult:
         return json.loads((self.path / MANIFEST).read_text())
 
 
+class ModelEntry(StageResult):
+    """One model's entry (an evaluation, of any task): the model's composed config as this run built it, or, for an
+    entry collected from the cache, rebuilt from its manifest (figures re-predict a few groups with it)."""
+
+    def model_config(self) -> dict[str, Any]:
+        if "model_config" in self.extra:
+            return dict(self.extra["model_config"])
+        return model_config_from_hash(self.manifest()["config"]["model"])
+
+    @property
+    def model(self) -> str:
+        return str(self.model_config()["name"])
+
+
 @dataclass
 class Context:
     cfg: dict[str, Any]  # the pass's composed config: the chosen group options (renderer, region, dataset ...)
@@ -124,5 +138,5 @@ def model_hash_config(model_cfg: dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
-__all__ = ["Context", "HASH_ONLY_MODEL_KEYS", "StageResult", "model_config_from_hash", "model_files",
+__all__ = ["Context", "HASH_ONLY_MODEL_KEYS", "ModelEntry", "StageResult", "model_config_from_hash", "model_files",
            "model_hash_config"]

@@ -340,3 +340,29 @@ def test_loading_the_library_leaves_no_stand_in_pkg_resources_behind():
     corruptions.library()
     left = sys.modules.get("pkg_resources")
     assert left is None or hasattr(left, "fixup_namespace_packages")  # none, or setuptools' own
+
+
+def test_corrupting_a_released_layout_resumes_from_its_finished_groups(tmp_path, caplog):
+    """A job stopped half-way (a shard's part, a kill) leaves finished groups: the next call corrupts only the rest,
+    and says so (the line once named an undefined logger)."""
+    import logging
+    from types import SimpleNamespace
+
+    from pairedgta.datasets import open_dataset
+    from pairedgta.render.corruptions import corrupt_groups
+
+    root = tmp_path / "PairedGTA"
+    (root / "Day").mkdir(parents=True)
+    for loc in ("0001", "0002"):
+        Image.fromarray(np.roll(street(), int(loc), axis=1)).save(root / "Day" / f"{loc}_Day_EXTRASUNNY.png")
+    over = tiny(tmp_path, "dataset=paired_gta", f"dataset.root={root}")
+    grid = grid_of(over)
+    dataset = open_dataset({"kind": "paired_gta", "name": "paired_gta", "root": str(root)}, grid)
+    gen = SimpleNamespace(workers=1, seed=0)
+    corrupt_groups(dataset, grid, gen, tmp_path / "out", [0])
+    first = sorted((tmp_path / "out" / "scenes").rglob("C-*.png"))
+    assert first and all(p.parent.name == "0001" for p in first)
+    caplog.set_level(logging.INFO, logger="pairedgta")
+    corrupt_groups(dataset, grid, gen, tmp_path / "out", [0, 1])
+    assert "resuming, 1 of 2 groups already corrupted" in caplog.text
+    assert {p.parent.name for p in (tmp_path / "out" / "scenes").rglob("C-*.png")} == {"0001", "0002"}

@@ -25,9 +25,8 @@ from pairedgta.detection.boxes import INSTANCE_CLASSES, NUM_INSTANCE_CLASSES
 from pairedgta.models.detectors import Detections
 from pairedgta.detection.inputs import GroupResult, Inputs, image_ids
 from pairedgta.detection.pseudolabel import DetectionLabels, boxes_by_group, write_json_atomic
-from pairedgta.entries import Context, StageResult, model_config_from_hash, model_hash_config
+from pairedgta.entries import Context, ModelEntry, model_hash_config
 from pairedgta.errors import ConfigError
-from pairedgta.evaluation.settings import conditions_for
 from pairedgta.jsonio import write_bytes
 from pairedgta.metrics import detection_xi, per_object
 from pairedgta.metrics.conventions import convention_from_config
@@ -42,17 +41,8 @@ SUMMARY = "summary.json"
 DETECTIONS_DIR = "detections"
 
 
-class DetectionEvaluateResult(StageResult):
+class DetectionEvaluateResult(ModelEntry):
     """One detector's evaluate entry; its tables are read by the readers the registered metrics declare."""
-
-    def model_config(self) -> dict[str, Any]:
-        if "model_config" in self.extra:
-            return dict(self.extra["model_config"])
-        return model_config_from_hash(self.manifest()["config"]["model"])
-
-    @property
-    def model(self) -> str:
-        return str(self.model_config()["name"])
 
     def read(self, file: str) -> pd.DataFrame:
         return pd.read_csv(self.path / file)

@@ -20,7 +20,7 @@ import pandas as pd
 
 from pairedgta.conditions import headline_condition
 from pairedgta.datasets import PairedDataset
-from pairedgta.entries import Context, StageResult, model_config_from_hash, model_hash_config
+from pairedgta.entries import Context, ModelEntry, model_hash_config
 from pairedgta.evaluation import counting, entry, registry, setup_check, shards, tables
 from pairedgta.evaluation.counting import GT
 from pairedgta.evaluation.inputs import start_workers_server
@@ -37,7 +37,7 @@ VERSION = "8"  # the framework's; the registered metrics' versions join it past 
 #    random_one draws a time of day, then a weather of it (the authors' loader)
 
 
-class EvaluateResult(StageResult):
+class EvaluateResult(ModelEntry):
     """One model's evaluate entry and the readers of its files, derived from the registered metrics
     (`pairedgta/evaluation/registry.py`: each metric names and reads its own files; no other code names them).
     `complete` is False for a shard job's partial result (nothing to read yet)."""
@@ -47,17 +47,6 @@ class EvaluateResult(StageResult):
     @property
     def FILES(self) -> tuple[str, ...]:
         return registry.result_files()
-
-    def model_config(self) -> dict[str, Any]:
-        """The model's composed config: as this run built it, or (an evaluation collected from the cache)
-        buildable from its manifest (figures re-predict a few groups with it)."""
-        if "model_config" in self.extra:
-            return dict(self.extra["model_config"])
-        return model_config_from_hash(self.manifest()["config"]["model"])
-
-    @property
-    def model(self) -> str:
-        return str(self.model_config()["name"])
 
     def read(self, file: str) -> Any:
         """One of the entry's tables, by the reader of the registered metric that writes it."""

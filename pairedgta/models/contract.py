@@ -56,12 +56,19 @@ class Network:
 
 
 @dataclass(frozen=True)
-class Contract:
+class InputContract:
+    """How an image becomes a network's input, for every model source of either kind (segmenters here, detectors in
+    pairedgta/models/detector_contract.py add their letterbox, layout and operating point)."""
+
     mean: tuple[float, float, float]
     std: tuple[float, float, float]
     scale: float
     channels: str
     resize: int | tuple[int, int] | None
+
+
+@dataclass(frozen=True)
+class Contract(InputContract):
     pad_multiple: int
     inference: str
     crop: tuple[int, int] | None
@@ -335,4 +342,4 @@ def build_source(loader, /, *, name: str | None = None, family: str, mean: list 
 
 
 __all__ = ["Network", "Contract", "ContractSegmenter", "build_source", "make_contract", "check_contract",
-           "CONTRACT_OPTIONS", "DEFAULTS", "DEFAULT_SCORE_THRESHOLD", "DETECTOR_OPTIONS"]
+           "CONTRACT_OPTIONS", "DEFAULTS", "InputContract", "DEFAULT_SCORE_THRESHOLD", "DETECTOR_OPTIONS"]

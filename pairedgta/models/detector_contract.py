@@ -27,7 +27,7 @@ from pairedgta.cityscapes import INSTANCE_CLASSES
 from pairedgta.models.detectors import KIND, Detections, image_batch
 from pairedgta.errors import ConfigError, ModelError, reason
 from pairedgta.lazy import lazy_module
-from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS
+from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS, InputContract
 from pairedgta.models.runtime import RuntimeOptions
 
 torch = lazy_module("torch")
@@ -60,12 +60,7 @@ class DetectorNetwork:
 
 
 @dataclass(frozen=True)
-class DetectionContract:
-    mean: tuple[float, float, float]
-    std: tuple[float, float, float]
-    scale: float
-    channels: str
-    resize: int | tuple[int, int] | None
+class DetectionContract(InputContract):
     letterbox: bool
     layout: layouts.Layout
     score_threshold: float

@@ -201,7 +201,7 @@ def build_detector(network: Callable[..., Any], /, *, name: str, family: str, ch
                    max_size: int = 1024, runtime: RuntimeOptions, **arch: Any) -> Detector:
     """The one builder of the detector families: seeds, constructs, loads the weights strictly (safetensors,
     weights only), wraps. `score_threshold` is the model's operating point (a box at or above it counts as found)."""
-    from pairedgta.errors import ConfigError, ModelError
+    from pairedgta.errors import ModelError
     from pairedgta.models.checkpoint import load_checkpoint_strict
 
     name = str(name or family)

@@ -4,6 +4,7 @@ processes. Each group lands under a temporary name and is renamed when complete,
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import multiprocessing as mp
 import os
 import shutil
@@ -20,6 +21,8 @@ from pairedgta.datasets.base import save_png_atomic
 from pairedgta.datasets.generated import scene_files
 from pairedgta.errors import PairedGTAError
 from pairedgta.jsonio import write_json
+
+log = logging.getLogger("pairedgta.generate")
 
 
 def corrupt_scene(scene_dir: Path, scene_id: str, images: dict[str, np.ndarray], grid: ConditionGrid,

@@ -42,24 +42,21 @@ def _module(session: Any, input_name: str, output_names: list[str], single: bool
 
 
 def load(name: str, device: str, /, *, path: str | None = None) -> DetectorNetwork:
-    from pairedgta.models.sources.onnx import open_session
+    from pairedgta.models.sources.onnx import one_input, open_session
 
     where = f"model ({name})"
     session, file = open_session(path, device, where)
-    inputs = session.get_inputs()
-    if len(inputs) != 1:
-        raise ModelError(f"{where}: {file} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); export "
-                         "the detector with one image input")
-    shape = list(inputs[0].shape or [])
+    image = one_input(session, file, where, "detector")
+    shape = list(image.shape or [])
     single = len(shape) == 3
     if len(shape) not in (3, 4) or (isinstance(shape[-3], int) and shape[-3] != 3):
-        raise ModelError(f"{where}: ONNX input '{inputs[0].name}' of {file} is not an RGB image (shape {shape}); "
+        raise ModelError(f"{where}: ONNX input '{image.name}' of {file} is not an RGB image (shape {shape}); "
                          "export it with a B x 3 x H x W batch (or torchvision's one 3 x H x W image)")
     h, w = shape[-2], shape[-1]
     fixed = (h, w) if isinstance(h, int) and isinstance(w, int) and h > 0 and w > 0 else None
     batch = shape[0] if not single and isinstance(shape[0], int) and shape[0] > 0 else None
     names = [o.name for o in session.get_outputs()]
-    module = _module(session, inputs[0].name, names, single, batch)
+    module = _module(session, image.name, names, single, batch)
     declared = {"layout": "torchvision"} if single else {}
     return DetectorNetwork(module, declared=declared, fixed_size=None if single else fixed, output_names=names,
                            takes_list=single, executes="onnxruntime graph, no Python code")

@@ -158,15 +158,20 @@ def open_session(path: Any, device: str, where: str) -> tuple[Any, Path]:
     return session, file
 
 
+def one_input(session: Any, file: Path, where: str, what: str) -> Any:
+    """The graph's one image input; a graph of several inputs is one line (export the `what` with one)."""
+    inputs = session.get_inputs()
+    if len(inputs) != 1:
+        raise ModelError(f"{where}: {file} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); export "
+                         f"the {what} with one image input")
+    return inputs[0]
+
+
 def load(name: str, device: str, /, *, path: str | None = None) -> Network:
     """Check the format and the external data, make the session with explicit providers, check its one input."""
     where = f"model ({name})"
     session, file = open_session(path, device, where)
-    inputs = session.get_inputs()
-    if len(inputs) != 1:
-        raise ModelError(f"{where}: {file} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); export "
-                         "the model with one image input")
-    image = inputs[0]
+    image = one_input(session, file, where, "model")
     shape = list(image.shape) if image.shape is not None else []
     if len(shape) != 4 or (isinstance(shape[1], int) and shape[1] != 3):
         raise ModelError(f"{where}: ONNX input '{image.name}' of {file} is not 3-channel B x 3 x H x W (shape "
