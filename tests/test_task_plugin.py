@@ -19,15 +19,40 @@ PLUGIN = Path(__file__).resolve().parent / "task_plugin"
 ROOT = PLUGIN.parents[1]
 
 
+@pytest.fixture
+def presence(monkeypatch):
+    """The toy task declared as its plug-in does (tests/task_plugin/run.py), for the in-process CLI runs below."""
+    from pairedgta import tasks
+
+    monkeypatch.syspath_prepend(str(PLUGIN))
+    monkeypatch.setitem(tasks.TASKS, "presence", tasks.Task(
+        "presence", "segmenter",
+        {"pseudolabel": "presence_task:PresencePseudolabels", "evaluate": "presence_task:PresenceEvaluate"},
+        what="class presence", title="mean presence recall", example="model=tiny_segformer"))
+
+
 def _cli(tmp: Path, cache: str, *extra: str) -> subprocess.CompletedProcess:
+    """`cli()` in this process (pairedgta.testing.cli.run_cli) with the toy task's option file on the search path."""
+    from pairedgta.testing.cli import run_cli
+
     over = [a for a in fast_overrides(tmp) if not a.startswith(("cache_dir=", "model=", "reference_model="))]
     args = [*over, "task=presence", f"hydra.searchpath=[file://{PLUGIN / 'conf'}]", f"cache_dir={tmp / cache}",
-            "model=tiny_ddrnet", "reference_model=tiny_segformer", f"hydra.run.dir={tmp / 'run'}", *extra]
-    env = {**os.environ, **OFFLINE, "PYTHONPATH": os.pathsep.join([str(PLUGIN), str(ROOT)])}
-    r = subprocess.run([sys.executable, str(PLUGIN / "run.py"), *args], cwd=tmp, capture_output=True, text=True,
-                       env=env, timeout=600)
+            "model=tiny_ddrnet", "reference_model=tiny_segformer", *extra]
+    r = run_cli(args, tmp)
     assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
     return r
+
+
+def test_the_plugin_script_declares_the_task_and_runs_the_cli(tmp_path):
+    """tests/task_plugin/run.py, as a user runs it: the declaration, then the real CLI in a fresh interpreter (a
+    configuration error is enough to show the task is known: its option file found, its name a choice)."""
+    env = {**os.environ, **OFFLINE, "PYTHONPATH": os.pathsep.join([str(PLUGIN), str(ROOT)])}
+    r = subprocess.run([sys.executable, str(PLUGIN / "run.py"), "task=presence",
+                        f"hydra.searchpath=[file://{PLUGIN / 'conf'}]", "metric.bootstrap.resamples=-1",
+                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode != 0 and "metric.bootstrap.resamples" in r.stderr, r.stderr[-2000:]
+    assert "task=" not in r.stderr.split("metric.bootstrap.resamples")[0][-200:]  # not a complaint about the task
 
 
 def _entry(tmp: Path, cache: str) -> Path:
@@ -36,7 +61,7 @@ def _entry(tmp: Path, cache: str) -> Path:
 
 
 @pytest.mark.slow
-def test_a_toy_task_runs_through_the_cli_with_cache_shards_and_mlflow(tmp_path):
+def test_a_toy_task_runs_through_the_cli_with_cache_shards_and_mlflow(tmp_path, presence):
     uri = mlflow_store(tmp_path / "mlflow.db")
     first = _cli(tmp_path, "a", "tracking.enabled=true", f"tracking.uri={uri}")
     out = first.stdout + first.stderr
@@ -79,14 +104,15 @@ def _detector_check(tmp: Path, *model: str) -> subprocess.CompletedProcess:
             "region=synthetic_street", "renderer.width=96", "renderer.height=48", "generate.num_scenes=3",
             "conditions.only=[Day-EXTRASUNNY,Night-EXTRASUNNY]", "detection.min_area=4", "tracking.enabled=false",
             "threads=1", *model]
-    return run_cli(args, tmp, env_extra={"PYTHONPATH": str(Path(__file__).resolve().parent)})
+    return run_cli(args, tmp)  # in this process: tests/ on sys.path for the factory (the test's monkeypatch)
 
 
 @pytest.mark.slow
-def test_model_check_checks_detectors_as_it_checks_segmenters(tmp_path):
+def test_model_check_checks_detectors_as_it_checks_segmenters(tmp_path, monkeypatch):
     """`+experiment=model_check task=detection`: the issue's command ended in an AttributeError ('ContractDetector' has
     no 'predict'); now a researcher's detector gets its clean GT AP50 as configured and under each one-key
     alternative, a zoo detector its configured row, both written to the entry and the run's summary."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent))  # detector_nets, the python factory's module
     proc = _detector_check(tmp_path, "model=python", "model.target=detector_nets:red_car_bgr", "model.labels=coco91")
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout + proc.stderr
