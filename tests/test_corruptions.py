@@ -312,24 +312,31 @@ def test_evaluate_writes_the_corruption_summary_for_both_tasks(tmp_path):
     Michaelis et al. for detection's AP, Cityscapes-C's per-corruption means for segmentation's mIoU)."""
     from pairedgta.corruption_summary import SUMMARY
 
-    seg = [*tiny(tmp_path, "stages=[generate,pseudolabel,evaluate]", "model=tiny_segformer", "models=null",
-                 "reference_model=tiny_segformer", "metric.bootstrap.resamples=20", "threads=1")]
+    seg = [*tiny(tmp_path, "stages=[generate,pseudolabel,evaluate,plot]", "model=tiny_segformer", "models=null",
+                 "reference_model=tiny_segformer", "metric.bootstrap.resamples=20", "threads=1",
+                 "plot.figures=[corruptions]", "plot.formats=[png]", "plot.dpi=40")]
     proc = run_cli(seg, tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     (entry,) = [p for p in (tmp_path / "cache" / "evaluate").iterdir() if not p.name.startswith(".")]
     table = pd.read_csv(entry / SUMMARY)
     assert {"gt_miou", "xi"} <= set(table["score"]) and {"brightness", "gaussian_noise", "all"} <= set(
         table["corruption"])
+    drawn = pd.read_csv(next((tmp_path / "cache" / "plot").glob("*/corruptions*.csv")))  # the figure's numbers
+    row = drawn[(drawn["condition"] == "C-brightness-3")].iloc[0]
+    clean = pd.read_csv(entry / "gt_iou.csv").query("class_name == 'mean' and condition == 'Day-EXTRASUNNY'")["iou"]
+    assert row["relative"] == pytest.approx(row["value"] / float(clean.iloc[0]))
+    assert list((tmp_path / "cache" / "plot").glob("*/corruptions*.png"))
 
     det = tmp_path / "det"
     det.mkdir()
-    proc = run_cli([*tiny(det, "stages=[generate,pseudolabel,evaluate]"), "+experiment=smoke_detection",
+    proc = run_cli([*tiny(det, "stages=[generate,pseudolabel,evaluate,plot]"), "+experiment=smoke_detection",
                     "renderer.width=96", "renderer.height=48", "models=[tiny_fcos]", "metric.bootstrap.resamples=20",
-                    "threads=1"], det)
+                    "threads=1", "plot.figures=[corruptions]", "plot.formats=[png]", "plot.dpi=40"], det)
     assert proc.returncode == 0, proc.stderr[-3000:]
     (entry,) = [p for p in (det / "cache" / "evaluate").iterdir() if not p.name.startswith(".")]
     table = pd.read_csv(entry / SUMMARY)
     assert {"ap", "detection_xi"} <= set(table["score"])
+    assert list((det / "cache" / "plot").glob("*/corruptions*.png"))  # the same figure for detection's AP
 
 
 def test_loading_the_library_leaves_no_stand_in_pkg_resources_behind():

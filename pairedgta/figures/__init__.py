@@ -86,6 +86,8 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec("det_estimators", "pairedgta.figures.det_estimators:draw", needs="evaluate"),
     FigureSpec("det_model_report", "pairedgta.figures.det_model_report:draw", needs="evaluate",
                key="pairedgta.figures.report_population:cache_key"),
+    # either task, on a run whose conditions hold 2D corruptions (conditions=paper_corruptions)
+    FigureSpec("corruptions", "pairedgta.figures.corruptions:draw", needs="evaluate"),
     FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw", source="plot.frame_counts_csv",
                key="pairedgta.figures.authors_ranking:cache_key"),
 )
