@@ -49,7 +49,8 @@ class Task:
 _WORK: dict[tuple[str, str, str | None], Any] = {}
 SEGMENTATION_FIGURES = ("xi_models", "xi_table", "ranking", "qualitative", "contact_sheet", "robustness",
                         "distribution", "cost", "ablation", "estimators", "metric_validity", "model_report",
-                        "authors_table", "authors_ranking", "photometry", "corruptions")
+                        "authors_table", "authors_ranking", "photometry", "corruptions",
+                        "corruption_study")
 DEFAULT = "segmentation"  # the paper's task
 TASKS: dict[str, Task] = {
     "segmentation": Task(
@@ -67,7 +68,7 @@ TASKS: dict[str, Task] = {
          "cityscapes_val": "pairedgta.detection.cityscapes_val:DetectionCityscapesVal",
          "model_check": "pairedgta.detection.model_check:DetectionModelCheck"},
         ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking",
-         "det_model_report", "det_estimators", "corruptions"),
+         "det_model_report", "det_estimators", "corruptions", "corruption_study"),
         "pairedgta.detection.registry:METRICS", "boxes", ("boxes", "boxes scored ≥ the\nmodel's threshold"),
         title="mean detection xi", example="model=demo_det_reference", zoo="task/detection.yaml",
         report_figure="det_model_report"),

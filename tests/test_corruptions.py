@@ -373,3 +373,60 @@ def test_corrupting_a_released_layout_resumes_from_its_finished_groups(tmp_path,
     corrupt_groups(dataset, grid, gen, tmp_path / "out", [0, 1])
     assert "resuming, 1 of 2 groups already corrupted" in caplog.text
     assert {p.parent.name for p in (tmp_path / "out" / "scenes").rglob("C-*.png")} == {"0001", "0002"}
+
+
+# -- the corruptions-vs-rendered study ---------------------------------------------------------------------------------
+
+
+def test_the_study_finds_a_planted_stand_in_and_says_when_it_cannot_tell():
+    """Eight models whose robustness under C-fog follows Day-FOGGY's and under C-contrast Night's (with scene noise):
+    each rendered condition's best stand-in is the planted corruption, separated from the runner-up; the means agree.
+    With every corruption unrelated to the rendered condition nothing is called clear."""
+    from pairedgta.corruptions import parse_name
+    from pairedgta.metrics import corruption_study as study
+
+    rng = np.random.default_rng(0)
+    m = 8
+    conds = ["Day-EXTRASUNNY", "Night-EXTRASUNNY", "Day-FOGGY", "C-fog-1", "C-fog-3", "C-contrast-1", "C-contrast-3"]
+    clean, night, fog = rng.uniform(0.3, 0.8, m), rng.uniform(0.2, 0.9, m), rng.uniform(0.2, 0.9, m)
+    s = np.zeros((1 + 300, m, len(conds)))
+    for k, rob in enumerate([np.ones(m), night, fog, fog * 0.9 + 0.05, fog * 0.8, night, night * 0.7]):
+        s[:, :, k] = clean * rob
+    s[1:] *= rng.uniform(0.97, 1.03, s[1:].shape)
+    pairs, means, best = study.compare(s, conds, "Day-EXTRASUNNY", parse_name)
+    by = {(b["measure"], b["rendered"]): b for b in best}
+    assert by["relative", "Day-FOGGY"]["best"] == "fog" and by["relative", "Day-FOGGY"]["clear"]
+    assert by["relative", "Night-EXTRASUNNY"]["best"] == "contrast" and by["relative", "Night-EXTRASUNNY"]["clear"]
+    row = next(p for p in pairs if p["measure"] == "relative" and p["rendered"] == "Day-FOGGY"
+               and p["corruption"] == "fog" and p["severity"] == "3")
+    assert row["spearman"] == pytest.approx(1.0) and row["ci_low"] > 0.5
+    assert len(means) == 2 and all(-1 <= r["spearman"] <= 1 for r in means)
+
+    noise = s.copy()
+    noise[:, :, 3:] = clean[None, :, None] * rng.uniform(0.2, 0.9, (1, m, 4))  # corruptions unrelated to either
+    noise[1:, :, 3:] *= rng.uniform(0.9, 1.1, noise[1:, :, 3:].shape)
+    _, _, best = study.compare(noise, conds, "Day-EXTRASUNNY", parse_name)
+    assert not any(b["clear"] and b["measure"] == "relative" and abs(b["spearman"]) < 0.9 for b in best)
+
+
+@pytest.mark.slow  # a tiny synthetic run of four tiny models through the CLI (about 15 s)
+def test_the_study_through_the_cli(tmp_path):
+    args = [*base_overrides(tmp_path, store=False), "+experiment=corruptions_vs_rendered", "tracking.enabled=false",
+            "renderer=synthetic", "region=synthetic_street", "renderer.width=64", "renderer.height=32",
+            "generate.num_scenes=4", "conditions.corruptions.only=[fog,contrast,brightness]",
+            "conditions.corruptions.severities=[1,3]",
+            "models=[tiny_segformer,tiny_ddrnet,tiny_pidnet,tiny_deeplabv3plus]", "reference_model=tiny_segformer",
+            "metric.bootstrap.resamples=50", "plot.formats=[png]", "plot.dpi=40", "threads=1"]
+    proc = run_cli(args, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (plot,) = [p for p in (tmp_path / "cache" / "plot").iterdir() if not p.name.startswith(".")]
+    pairs = pd.read_csv(plot / "corruption_study_pairs.csv")
+    assert len(set(pairs["rendered"])) == 8 and {"Day-FOGGY", "Night-EXTRASUNNY"} <= set(pairs["rendered"])
+    assert set(pairs["corruption"]) == {"fog", "contrast", "brightness"}
+    assert set(pairs["severity"].astype(str)) == {"1", "3", "mean"}
+    assert (pairs["models"] == 3).all()  # the reference is not ranked
+    assert "Best stand-in per rendered condition" in (plot / "corruption_study.md").read_text()
+    assert (plot / "corruption_study.png").is_file() and (plot / "corruptions.png").is_file()
+    few = run_cli([a for a in args if not a.startswith("models=")] + ["models=[tiny_segformer,tiny_ddrnet]",
+                                                                     "force=[plot]"], tmp_path)
+    assert few.returncode != 0 and "corruption_study ranks the models other than the reference" in few.stderr

@@ -88,6 +88,7 @@ FIGURES: tuple[FigureSpec, ...] = (
                key="pairedgta.figures.report_population:cache_key"),
     # either task, on a run whose conditions hold 2D corruptions (conditions=paper_corruptions)
     FigureSpec("corruptions", "pairedgta.figures.corruptions:draw", needs="evaluate"),
+    FigureSpec("corruption_study", "pairedgta.figures.corruption_study:draw", needs="evaluate"),
     FigureSpec("authors_ranking", "pairedgta.figures.authors_ranking:draw", source="plot.frame_counts_csv",
                key="pairedgta.figures.authors_ranking:cache_key"),
 )
