@@ -8,7 +8,8 @@ imports no stage: its entry type and context come from pairedgta/entries.py."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Iterable, Protocol, runtime_checkable
+from dataclasses import dataclass
+from typing import Any, ClassVar, Iterable, Protocol, runtime_checkable
 
 from pairedgta.entries import Context, StageResult
 
@@ -32,6 +33,18 @@ def declaration(metrics: Iterable[TaskMetric]) -> tuple[str, ...]:
 def result_files(metrics: Iterable[TaskMetric]) -> tuple[str, ...]:
     """The tables the metrics write, in registry order."""
     return tuple(f for m in metrics for f in m.files)
+
+
+@dataclass(frozen=True)
+class Work:
+    """The common part of a task's work class: built with its task (`Task.work_for`), its entry's version one
+    constant (`ENTRY_VERSION`) unless it depends on the model (an evaluation's metrics, a source's check)."""
+
+    task: Any
+    ENTRY_VERSION: ClassVar[str] = ""
+
+    def version(self, model_cfg: dict[str, Any]) -> str:
+        return self.ENTRY_VERSION
 
 
 class PseudolabelWork(Protocol):
@@ -108,4 +121,4 @@ class CheckWork(Protocol):
         """The entry's files the MLflow record keeps."""
 
 
-__all__ = ["CheckWork", "EvaluateWork", "PseudolabelWork", "TaskMetric", "declaration", "result_files"]
+__all__ = ["CheckWork", "EvaluateWork", "PseudolabelWork", "TaskMetric", "Work", "declaration", "result_files"]

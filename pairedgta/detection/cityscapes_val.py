@@ -11,9 +11,9 @@ import dataclasses
 import json
 import logging
 import math
-from pathlib import Path
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, ClassVar
 
 import pandas as pd
 from tqdm import tqdm
@@ -21,11 +21,12 @@ from tqdm import tqdm
 from pairedgta.datasets.cityscapes import CityscapesSplit
 from pairedgta.detection.boxes import INSTANCE_CLASSES, Box, coco_ground_truth
 from pairedgta.detection.real_boxes import read_cityscapes_boxes
+from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.errors import ConfigError
 from pairedgta.jsonio import write_json
 from pairedgta.metrics.coco_ap import average_precision, results_format
-from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.models import shared_model
+from pairedgta.work import Work
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -77,14 +78,11 @@ def compute(dataset: CityscapesSplit, model_cfg: dict[str, Any], out: Path, devi
 
 
 @dataclass(frozen=True)
-class DetectionCityscapesVal:
+class DetectionCityscapesVal(Work):
     """The `cityscapes_val` stage's work for detection (pairedgta.work.CheckWork)."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[StageResult] = StageResult
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: CityscapesSplit, model_cfg: dict[str, Any]) -> dict[str, Any]:
         det = ctx.run.detection

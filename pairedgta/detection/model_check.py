@@ -12,7 +12,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import pandas as pd
 
@@ -25,6 +25,7 @@ from pairedgta.errors import DataError
 from pairedgta.evaluation import alternatives as alts
 from pairedgta.jsonio import write_json
 from pairedgta.models import is_source, shared_model
+from pairedgta.work import Work
 
 log = logging.getLogger("pairedgta.model_check")
 STAGE = "model_check"
@@ -87,14 +88,11 @@ def compute(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: d
 
 
 @dataclass(frozen=True)
-class DetectionModelCheck:
+class DetectionModelCheck(Work):
     """The `model_check` stage's work for detection (pairedgta.work.CheckWork)."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[StageResult] = StageResult
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"task": self.task.name, "model": model_hash_config(model_cfg), "images": setup_check.CHECK_IMAGES,

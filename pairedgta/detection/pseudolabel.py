@@ -9,7 +9,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from tqdm import tqdm
@@ -19,10 +19,11 @@ from pairedgta.datasets.base import image_size
 from pairedgta.detection import boxes as gtboxes
 from pairedgta.detection.ground_truth import group_ground_truth
 from pairedgta.detection.inputs import detections_from_json, detections_json, image_ids
-from pairedgta.models.detectors import Detections
-from pairedgta.jsonio import write_json
 from pairedgta.entries import Context, StageResult, model_hash_config
+from pairedgta.jsonio import write_json
 from pairedgta.models import shared_model
+from pairedgta.models.detectors import Detections
+from pairedgta.work import Work
 
 log = logging.getLogger("pairedgta.pseudolabel")
 VERSION = "det1"
@@ -157,15 +158,12 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
 
 
 @dataclass(frozen=True)
-class DetectionPseudolabels:
+class DetectionPseudolabels(Work):
     """The `pseudolabel` stage's work for detection (pairedgta.work.PseudolabelWork): keyed by the reference
     detector, tau and the ground truth's rules."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[DetectionLabels] = DetectionLabels
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         det = ctx.run.detection

@@ -16,7 +16,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -29,6 +29,7 @@ from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.jsonio import write_json
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_model
+from pairedgta.work import Work
 
 log = logging.getLogger("pairedgta.cityscapes_val")
 STAGE = "cityscapes_val"
@@ -105,14 +106,11 @@ def tracked_metrics(result_dir: Path) -> dict[str, float]:
 
 
 @dataclass(frozen=True)
-class SegmentationCityscapesVal:
+class SegmentationCityscapesVal(Work):
     """The `cityscapes_val` stage's work for segmentation (pairedgta.work.CheckWork)."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[StageResult] = StageResult
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: CityscapesSplit, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"model": model_hash_config(model_cfg),

@@ -10,7 +10,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from pairedgta.datasets import PairedDataset
 from pairedgta.entries import Context, StageResult, model_hash_config
@@ -18,6 +18,7 @@ from pairedgta.errors import DataError
 from pairedgta.evaluation import setup_check
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_model
+from pairedgta.work import Work
 
 log = logging.getLogger("pairedgta.model_check")
 STAGE = "model_check"
@@ -67,14 +68,11 @@ def compute(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: d
 
 
 @dataclass(frozen=True)
-class SegmentationModelCheck:
+class SegmentationModelCheck(Work):
     """The `model_check` stage's work for segmentation (pairedgta.work.CheckWork)."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[ModelCheckResult] = ModelCheckResult
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"model": model_hash_config(model_cfg), "images": setup_check.CHECK_IMAGES,

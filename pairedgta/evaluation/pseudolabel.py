@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -18,6 +18,7 @@ from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.lazy import lazy_module
 from pairedgta.metrics import ConfusionMatrix
 from pairedgta.models import shared_model
+from pairedgta.work import Work
 
 torch = lazy_module("torch")  # imported on first use: a cached run needs none
 
@@ -147,14 +148,11 @@ def compute(ctx: Context, dataset: PairedDataset, out: Path, model_cfg: dict[str
 
 
 @dataclass(frozen=True)
-class SegmentationPseudolabels:
+class SegmentationPseudolabels(Work):
     """The `pseudolabel` stage's work for segmentation (pairedgta.work.PseudolabelWork)."""
 
-    task: Any
+    ENTRY_VERSION: ClassVar[str] = VERSION
     result_cls: type[PseudoLabels] = PseudoLabels
-
-    def version(self, model_cfg: dict[str, Any]) -> str:
-        return VERSION
 
     def hash_config(self, ctx: Context, dataset: PairedDataset, model_cfg: dict[str, Any]) -> dict[str, Any]:
         return {"reference_model": model_hash_config(model_cfg), "tau": ctx.run.pseudolabel.tau,
