@@ -48,9 +48,9 @@ def compute(ctx: Context, dataset: PairedDataset, dataset_key: str, model_cfg: d
     model, clean = str(model_cfg["name"]), dataset.reference
     found = condition_ground_truth(dataset, clean, ctx.run.detection.min_area, ctx.run.metric.min_transmittance)
     if found is None:
-        raise DataError(f"{STAGE}: dataset {dataset.name} has no instance masks or boxes on its clean ({clean}) images; "
-                        "the detector check needs ground-truth boxes (the embedded town's renderers write them: leave "
-                        "dataset.root unset)")
+        raise DataError(f"{STAGE}: dataset {dataset.name} has no instance masks or boxes on its clean ({clean}) "
+                        "images; the detector check needs ground-truth boxes (the embedded town's renderers write "
+                        "them: leave dataset.root unset)")
     coco = found[0]
     ids = image_ids(dataset)
     by_id = {ids[g.group_id]: g for g in dataset.groups}
@@ -108,20 +108,8 @@ class DetectionModelCheck(Work):
         return [result.path / f for f in (TABLE_CSV, TABLE_MD, SUMMARY)]
 
     def report(self, result: StageResult, model_cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, Any]]:
-        name = model_cfg["name"]
         s = json.loads((result.path / SUMMARY).read_text())
-        table = pd.read_csv(result.path / TABLE_CSV)
-        log.info("%s [%s]: clean GT AP50 on %d %s image(s) of %s, as configured%s (%s):\n%s", STAGE, name,
-                 s["n_images"], s["condition"], s["where"], " and with each alternative" if s["alternatives"] else "",
-                 result.path / TABLE_CSV, markdown(table))
-        if s["warning"]:
-            log.warning("%s", s["warning"])
-        elif s["clean_ap50"] is not None:
-            log.info("%s [%s]: clean GT AP50 %.2f >= %.2f, and no alternative clearly beats it: set up right",
-                     STAGE, name, s["clean_ap50"], setup_check.MIN_AP50)
-        metrics = {f"{STAGE}/clean_ap50": s["clean_ap50"]} if s["clean_ap50"] is not None else {}
-        return metrics, {"clean_ap50": s["clean_ap50"], "best_alternative": s["best_alternative"],
-                         "better": s["better"], "warning": s["warning"], "path": str(result.path)}
-
+        return alts.report(STAGE, model_cfg["name"], s, "clean_ap50", "clean GT AP50", setup_check.MIN_AP50,
+                           markdown(pd.read_csv(result.path / TABLE_CSV)), result.path / TABLE_CSV)
 
 __all__ = ["DetectionModelCheck", "compute", "markdown"]

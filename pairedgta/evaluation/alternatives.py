@@ -22,6 +22,7 @@ import contextlib
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
 RATIO = 1.25   # an alternative clearly beats the configured set-up at >= RATIO x its score ...
@@ -115,5 +116,25 @@ def quiet(*loggers: str) -> Iterator[None]:
             logger.setLevel(level)
 
 
+def report(stage: str, name: str, summary: dict[str, Any], score: str, label: str, threshold: float, table: str,
+           path: Any) -> tuple[dict[str, float], dict[str, Any]]:
+    """A model check's lines, the same for every task: its table, then its warning, or that it is set up right;
+    -> (its MLflow metrics, its entry in the run's summary). `score`: the summary's key of the configured score
+    (clean_miou, clean_ap50), `label` its words ("clean GT mIoU")."""
+    log = logging.getLogger("pairedgta.model_check")
+    value = summary[score]
+    tried = " and with each alternative" if summary.get("alternatives") else ""
+    log.info("%s [%s]: %s on %d %s image(s) of %s, as configured%s (%s):\n%s", stage, name, label,
+             summary["n_images"], summary["condition"], summary["where"], tried, path, table)
+    if summary["warning"]:
+        log.warning("%s", summary["warning"])
+    elif value is not None:
+        log.info("%s [%s]: %s %.2f >= %.2f, and no alternative clearly beats it: set up right", stage, name, label,
+                 value, threshold)
+    metrics = {f"{stage}/{score}": value} if value is not None else {}
+    return metrics, {score: value, "best_alternative": summary["best_alternative"], "better": summary.get("better"),
+                     "warning": summary["warning"], "path": str(Path(path).parent)}
+
+
 __all__ = ["RATIO", "MARGIN", "CONFIGURED", "Candidate", "Outcome", "Verdict", "clearly_beats", "trial", "record",
-           "quiet"]
+           "report", "quiet"]

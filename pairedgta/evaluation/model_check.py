@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 from pairedgta.datasets import PairedDataset
 from pairedgta.entries import Context, StageResult, model_hash_config
 from pairedgta.errors import DataError
-from pairedgta.evaluation import setup_check
+from pairedgta.evaluation import alternatives, setup_check
 from pairedgta.jsonio import write_json
 from pairedgta.models import shared_model
 from pairedgta.work import Work
@@ -87,19 +87,9 @@ class SegmentationModelCheck(Work):
         return [result.path / f for f in (TABLE_CSV, TABLE_MD, SUMMARY)]
 
     def report(self, result: StageResult, model_cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, Any]]:
-        name = model_cfg["name"]
         s = json.loads((result.path / SUMMARY).read_text())
-        log.info("%s [%s]: clean GT mIoU on %d %s image(s) of %s, as configured and with each alternative "
-                 "(%s):\n%s", STAGE, name, s["n_images"], s["condition"], s["where"], result.path / TABLE_CSV,
-                 setup_check.markdown(setup_check.read_table(result.path / TABLE_CSV)))
-        if s["warning"]:
-            log.warning("%s", s["warning"])
-        elif s["clean_miou"] is not None:
-            log.info("%s [%s]: clean GT mIoU %.2f >= %.2f, and no alternative clearly beats it: set up right",
-                     STAGE, name, s["clean_miou"], setup_check.SETUP_MIN_MIOU)
-        metrics = {f"{STAGE}/clean_miou": s["clean_miou"]} if s["clean_miou"] is not None else {}
-        return metrics, {"clean_miou": s["clean_miou"], "best_alternative": s["best_alternative"],
-                         "better": s.get("better"), "warning": s["warning"], "path": str(result.path)}
-
+        table = setup_check.markdown(setup_check.read_table(result.path / TABLE_CSV))
+        return alternatives.report(STAGE, model_cfg["name"], s, "clean_miou", "clean GT mIoU",
+                                   setup_check.SETUP_MIN_MIOU, table, result.path / TABLE_CSV)
 
 __all__ = ["ModelCheckResult", "SegmentationModelCheck", "TABLE_CSV", "TABLE_MD", "compute"]

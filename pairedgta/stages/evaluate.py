@@ -56,11 +56,12 @@ class Evaluate(TaskStage):
 
     def build(self, out: Path, key: str) -> dict[str, Any]:
         from pairedgta import corruption_summary
+        from pairedgta.corruptions import parse_name
 
         extra = self.work.compute(self.ctx, self.dataset, self.dataset_key, self.pseudo, self.model_cfg,
                                   self.conditions, self.settings, out, self.parts(key))
-        # 2D-corruption conditions: Cityscapes-C's and Michaelis' summary (P, mPC, rPC) beside the task's tables
-        corruption_summary.write_entry(out, clean=self.dataset.reference)
+        if any(parse_name(c) for c in self.conditions):  # Cityscapes-C's and Michaelis' summary (P, mPC, rPC)
+            corruption_summary.write_entry(out, clean=self.dataset.reference)
         return extra
 
     def shards(self) -> tuple[int, int]:
