@@ -1,8 +1,8 @@
-"""Detection's evaluation (the work of the `evaluate` stage for task=detection), per model: the detector on every condition of every group, then the
-detection metrics of pairedgta/detection/registry.py over the stored detections (detection xi with its precision
-side and pseudo-AP against the reference's clean boxes; COCO AP, P / mPC / rPC against the renderer's ground truth;
-the per-object view). Every model's detections are kept per condition in COCO results format
-(detections/<condition>.json), so a user can re-score them elsewhere.
+"""Detection's evaluation (the work of the `evaluate` stage for task=detection), per model: the detector on every
+condition of every group, then the detection metrics of pairedgta/detection/registry.py over the stored detections
+(detection xi with its precision side and pseudo-AP against the reference's clean boxes; COCO AP, P / mPC / rPC
+against the renderer's ground truth; the per-object view). Every model's detections are kept per condition in COCO
+results format (detections/<condition>.json), so a user can re-score them elsewhere.
 
 Per group only its detections (at most `detection.max_detections` boxes an image) and a few counts are kept; shard
 jobs store those per group and the unsharded run merges them, as segmentation's evaluate does."""
@@ -50,37 +50,41 @@ class DetectionEvaluateResult(ModelEntry):
     def xi(self) -> pd.DataFrame:
         return self.read(registry.XI)
 
+    def optional(self, file: str, ids: str | None = None) -> pd.DataFrame:
+        """One of the entry's tables, empty where the entry has none (no ground truth, no estimators); `ids` keeps
+        that column's group or pair ids as written ('00000', not 0)."""
+        path = self.path / file
+        if not path.is_file():
+            return pd.DataFrame()
+        return pd.read_csv(path, dtype={ids: str}) if ids else self.read(file)
+
     def gt_ap(self) -> pd.DataFrame:
         """AP per condition and class against the renderer's boxes; empty without ground truth."""
-        return self.read(registry.GT_AP) if (self.path / registry.GT_AP).is_file() else pd.DataFrame()
+        return self.optional(registry.GT_AP)
 
     def robustness(self) -> pd.DataFrame:
-        return self.read(registry.ROBUSTNESS) if (self.path / registry.ROBUSTNESS).is_file() else pd.DataFrame()
+        return self.optional(registry.ROBUSTNESS)
 
     def frame_counts(self) -> pd.DataFrame:
         """phi of boxes per image, class and adverse condition, clean and adverse (the ranking figure's input)."""
-        path = self.path / registry.FRAME_COUNTS
-        return pd.read_csv(path, dtype={"pair_id": str}) if path.is_file() else pd.DataFrame()
+        return self.optional(registry.FRAME_COUNTS, ids="pair_id")
 
     def box_counts(self) -> pd.DataFrame:
         """Per group, condition and class: reference boxes, found, confident, matched (scene resamples)."""
-        path = self.path / registry.GROUP_COUNTS
-        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+        return self.optional(registry.GROUP_COUNTS, ids="group_id")
 
     def estimators(self) -> pd.DataFrame:
         """Per group and condition: BoS, pre-NMS consistency (with detection.estimators); empty without them."""
-        path = self.path / registry.ESTIMATORS
-        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+        return self.optional(registry.ESTIMATORS, ids="group_id")
 
     def objects(self) -> pd.DataFrame:
-        path = self.path / registry.OBJECTS
-        return pd.read_csv(path, dtype={"group_id": str}) if path.is_file() else pd.DataFrame()
+        return self.optional(registry.OBJECTS, ids="group_id")
 
     def rho(self) -> pd.DataFrame:
-        return self.read(registry.RHO_VALID) if (self.path / registry.RHO_VALID).is_file() else pd.DataFrame()
+        return self.optional(registry.RHO_VALID)
 
     def objects_found(self) -> pd.DataFrame:
-        return self.read(registry.OBJECTS_FOUND) if (self.path / registry.OBJECTS_FOUND).is_file() else pd.DataFrame()
+        return self.optional(registry.OBJECTS_FOUND)
 
     def summary(self) -> dict[str, Any]:
         return json.loads((self.path / SUMMARY).read_text())

@@ -1,6 +1,7 @@
-"""Detection's metrics, listed once: each turns the stored detections (pairedgta/detection/inputs.py `Inputs`, built by pairedgta/detection/evaluate.py) into
-its tables and its summary values. The stage's version, its files and the MLflow view follow from METRICS; the math
-stays in pairedgta/metrics/ (detection_xi, coco_ap, corruption, per_object)."""
+"""Detection's metrics, listed once: each turns the stored detections (pairedgta/detection/inputs.py `Inputs`, built
+by pairedgta/detection/evaluate.py) into its tables and its summary values. The stage's version, its files and the
+MLflow view follow from METRICS; the math stays in pairedgta/metrics/ (detection_xi, coco_ap, corruption,
+per_object)."""
 from __future__ import annotations
 
 import math

@@ -309,6 +309,18 @@ def fit_check(seg: ContractSegmenter, out: "torch.Tensor") -> "torch.Tensor":
     return out
 
 
+def probed(model: Any, where: str, keys: str) -> None:
+    """A source model's probe forward (either kind): a forward that fails on any input means the network or its
+    contract is wrong, one line naming the contract `keys` to check; the project's own errors pass as they are."""
+    try:
+        model.probe()
+    except (ModelError, ConfigError):
+        raise
+    except Exception as exc:
+        raise ModelError(f"{where}: a forward on a {PROBE_SIZE[1]}x{PROBE_SIZE[0]} test image failed "
+                         f"({reason(exc)[:300]}); check {keys} and the input the model expects") from None
+
+
 def build_source(loader, /, *, name: str | None = None, family: str, mean: list | None = None, std: list | None = None,
                  scale: int | None = None, channels: str | None = None, resize: Any = None,
                  pad_multiple: int | None = None, inference: str | None = None, crop: Any = None, stride: Any = None,
@@ -330,16 +342,9 @@ def build_source(loader, /, *, name: str | None = None, family: str, mean: list 
     seg = ContractSegmenter(name, network, contract, label_map, runtime, family)
     log.info("model %s (model=%s): loading ran %s; input %s; labels: %s", name, family, network.executes,
              contract.describe(), label_map.describe())
-    try:
-        seg.probe()
-    except (ModelError, ConfigError):
-        raise
-    except Exception as exc:  # a forward that fails on any input: the user's network or its contract is wrong
-        raise ModelError(f"{where}: a forward on a {PROBE_SIZE[1]}x{PROBE_SIZE[0]} test image failed "
-                         f"({reason(exc)[:300]}); check model.resize / model.pad_multiple and the input the model "
-                         "expects") from None
+    probed(seg, where, "model.resize / model.pad_multiple")
     return seg
 
 
-__all__ = ["Network", "Contract", "ContractSegmenter", "build_source", "make_contract", "check_contract",
+__all__ = ["Network", "Contract", "ContractSegmenter", "build_source", "probed", "make_contract", "check_contract",
            "CONTRACT_OPTIONS", "DEFAULTS", "InputContract", "DEFAULT_SCORE_THRESHOLD", "DETECTOR_OPTIONS"]

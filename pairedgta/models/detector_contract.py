@@ -25,9 +25,9 @@ from pairedgta.models import detector_labels as label_spaces
 from pairedgta.models import detector_layouts as layouts
 from pairedgta.cityscapes import INSTANCE_CLASSES
 from pairedgta.models.detectors import KIND, Detections, image_batch
-from pairedgta.errors import ConfigError, ModelError, reason
+from pairedgta.errors import ConfigError, ModelError
 from pairedgta.lazy import lazy_module
-from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS, InputContract
+from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD, DETECTOR_OPTIONS, InputContract, probed
 from pairedgta.models.runtime import RuntimeOptions
 
 torch = lazy_module("torch")
@@ -277,13 +277,7 @@ def build_detector_source(loader: Callable[..., DetectorNetwork], /, *, name: st
     det = ContractDetector(name, network, contract, space, runtime, source)
     log.info("model %s (task=detection model=%s): loading ran %s; %s; labels: %s", name, source, network.executes,
              contract.describe(), space.describe())
-    try:
-        det.probe()
-    except (ModelError, ConfigError):
-        raise
-    except Exception as exc:  # a forward that fails on any input: the network or its contract is wrong
-        raise ModelError(f"{where}: a forward on a {PROBE_SIZE[1]}x{PROBE_SIZE[0]} test image failed "
-                         f"({reason(exc)[:300]}); check model.resize and the input the model expects") from None
+    probed(det, where, "model.resize")
     return det
 
 
