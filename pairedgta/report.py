@@ -1,7 +1,9 @@
 """The table a run ends with: mean xi per model x adverse condition, read back from each evaluation's
 `summary.json` (a cached rerun reads JSON, no torch), the best model of each condition marked, as
 evaluation harnesses print their leaderboards. The reference model, whose pseudo-labels xi counts, is
-graded on its own predictions: its row is shown last, labelled as the reference, and never marked. Below it,
+graded on its own predictions: its row is shown last, labelled as the reference, and never marked. A task whose
+summaries count what each mean rests on (`xi_support`; detection: the reference boxes of the supported classes)
+gets that count under each column header, as few boxes move a cell by whole hundredths. Below the table,
 one line per model whose label space cannot predict some Cityscapes classes (`unpredictable_lines`)."""
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
     means: dict[str, dict[str, float]] = {}
     title = "mean xi"
     teachers: set[str] = set()
+    support: dict[str, dict[str, int]] = {}  # per model, what its mean rests on per condition (Task.support)
+    support_label = ""
     own: set[str] = set()  # evaluations of the model whose pseudo-labels they are scored against
     for name, path in evaluations.items():
         summary = Path(path) / SUMMARY
@@ -33,6 +37,9 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
             if str(data.get("model", name.rsplit("/", 1)[-1])) == teacher:
                 own.add(name)
             means[name] = {c: v for c, v in (data.get("xi_mean") or {}).items() if c != reference}
+            if data.get("xi_support") is not None:
+                support[name] = data["xi_support"]
+                support_label = tasks.of_entry(data).support or "support"
     conditions = list(dict.fromkeys(c for row in means.values() for c in row))
     if not conditions:
         return []
@@ -42,7 +49,15 @@ def xi_lines(evaluations: dict[str, str], reference: str | None = None, width: i
     order = ranked + [n for n in means if n in own]
     label = max(len(title), *(len(n) + (len(REFERENCE_TAG) if n in own else 0) for n in means)) + 2
     cols = [max(width, len(c) + 1) for c in conditions]
+    label = max(label, len(support_label) + 4)
     lines = [title.ljust(label) + "".join(c.rjust(w) for c, w in zip(conditions, cols))]
+    if support:  # the evidence under each column: one count where every row rests on the same, else the range
+        cells = []
+        for c, w in zip(conditions, cols):
+            counts = sorted({int(s[c]) for s in support.values() if c in s})
+            text = "-" if not counts else str(counts[0]) if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
+            cells.append((text + " ").rjust(w))
+        lines.append(f"({support_label})".ljust(label) + "".join(cells))
     for name in order:
         row = means[name]
         cells = []

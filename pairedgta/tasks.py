@@ -26,6 +26,7 @@ class Task:
     what: str = ""  # one phrase for messages: what its models predict
     phi: tuple[str, str] = ("pixels", "pixels predicted with\nconfidence ≥ τ_mass")  # what its prediction mass counts
     title: str = "mean xi"  # the terminal table's title (pairedgta/report.py)
+    support: str = ""  # what its summaries' `xi_support` counts per condition (a row of that table), e.g. boxes
     example: str = ""  # a model of this task for messages, e.g. "model=demo_segformer"
     zoo: str = ""  # the option file (under pairedgta/conf/) whose `models` list its offline zoo
     report_figure: str = ""  # its model report (+experiment=model_report): the figure family that draws it
@@ -70,7 +71,7 @@ TASKS: dict[str, Task] = {
         ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking",
          "det_model_report", "det_estimators", "corruptions", "corruption_study"),
         "pairedgta.detection.registry:METRICS", "boxes", ("boxes", "boxes scored ≥ the\nmodel's threshold"),
-        title="mean detection xi", example="model=demo_det_reference", zoo="task/detection.yaml",
+        title="mean detection xi", support="reference boxes", example="model=demo_det_reference", zoo="experiment/det_zoo.yaml",
         report_figure="det_model_report"),
 }
 NAMES = TASKS.keys()  # a live view: a task declared later (a plug-in, a test's toy task) is a choice too

@@ -22,9 +22,11 @@ def members() -> list[str]:
 
 def test_every_member_is_float16_carded_loaded_and_run_by_the_task():
     names = members()
-    assert len(names) >= 8 and len({model_config(n)["family"] for n in names}) >= 3
-    cfg = compose_cfg(["task=detection"])
-    assert sorted(cfg.models) == names and cfg.reference_model == "demo_det_reference"
+    assert len(names) >= 20 and len({model_config(n)["family"] for n in names}) >= 3
+    cfg = compose_cfg(["+experiment=det_zoo"])  # the whole zoo; the main job runs a part of it
+    assert cfg.task == "detection" and sorted(cfg.models) == names and cfg.reference_model == "demo_det_reference"
+    main = compose_cfg(["task=detection"])
+    assert set(main.models) < set(names) and main.reference_model == "demo_det_reference"
     image = np.random.default_rng(0).integers(0, 256, (1, 256, 512, 3), dtype=np.uint8)
     for name in names:
         folder = WEIGHTS / name

@@ -46,3 +46,26 @@ def test_the_reference_is_shown_as_the_reference_and_never_marked(tmp_path):
     # the reference and one other model: nothing to rank, no star at all
     lines = xi_lines({k: evals[k] for k in ("ref", "a")}, reference="Day-EXTRASUNNY")
     assert "*" not in "".join(lines) and lines[2].split()[:2] == ["ref", "(reference)"]
+
+
+def test_a_detection_table_shows_the_reference_boxes_each_column_rests_on(tmp_path):
+    """Detection xi's mean rests on a few dozen reference boxes: the count is under each column header, one
+    number where every model's mean rests on the same boxes, the range where a model blind to a class rests
+    on fewer; a segmentation summary (no xi_support) has no such row."""
+    def det(folder, xi, support):
+        folder.mkdir()
+        (folder / "summary.json").write_text(json.dumps({"task": "detection", "reference_model": "ref",
+                                                         "model": folder.name, "xi_mean": xi,
+                                                         "xi_support": support}))
+        return str(folder)
+
+    evals = {"a": det(tmp_path / "a", {"Day-EXTRASUNNY": 1.0, "Day-RAIN": 0.6, "Night-RAIN": 0.2},
+                      {"Day-EXTRASUNNY": 31, "Day-RAIN": 31, "Night-RAIN": 31}),
+             "b": det(tmp_path / "b", {"Day-EXTRASUNNY": 1.0, "Day-RAIN": 0.5, "Night-RAIN": 0.3},
+                      {"Day-EXTRASUNNY": 22, "Day-RAIN": 31, "Night-RAIN": 22})}
+    lines = xi_lines(evals, reference="Day-EXTRASUNNY")
+    assert lines[0].split() == ["mean", "detection", "xi", "Day-RAIN", "Night-RAIN"]
+    assert lines[1].split() == ["(reference", "boxes)", "31", "22-31"]
+    assert lines[2].split() == ["a", "0.600*", "0.200"]
+    seg = xi_lines({"a": _evaluation(tmp_path / "s", {"Day-RAIN": 0.5})})
+    assert not any("reference boxes" in line for line in seg)

@@ -141,11 +141,21 @@ def test_model_yaml_keeps_only_the_family_s_keys():
     assert "center_sampling_radius" not in y and y["smallest_anchor"] == 16 and y["family"] == "retinanet"
 
 
-@pytest.mark.parametrize("member", ["demo_det_reference", "demo_retinanet", "demo_fasterrcnn", "demo_fcos_adverse",
-                                    "demo_fcos_lowres"])
-def test_recipes_compose(member):
+RECIPES = sorted(p.stem for p in (ROOT / "pairedgta" / "conf" / "detector_zoo").glob("*.yaml"))
+ZOO = ROOT / "zoo" / "detection" / "pairedgta_detection_zoo"
+
+
+@pytest.mark.parametrize("member", RECIPES)
+def test_recipes_compose_and_the_shipped_weights_load_strictly_into_them(member):
+    """Every recipe of pairedgta/conf/detector_zoo composes and passes the training script's checks; its network
+    takes the member's shipped weights strictly (the recipe is the one they were trained with), its model
+    config names the same architecture, and the card the same recipe: seed, steps, data and starting point."""
+    import json
+
     from hydra import compose, initialize_config_module
     from omegaconf import OmegaConf
+
+    from pairedgta.models import model_config
 
     with initialize_config_module("pairedgta.conf", version_base="1.3"):
         cfg = OmegaConf.to_container(compose("train_detector", overrides=[f"detector_zoo={member}"]), resolve=True)
@@ -154,6 +164,17 @@ def test_recipes_compose(member):
     torch.manual_seed(0)
     module = tdd.build_network(cfg["arch"]["family"], tdd.network_config(cfg))
     assert sum(p.numel() for p in module.parameters()) < 6_000_000
+    assert (ZOO / member / "model.safetensors").is_file(), f"{member}: a recipe without its trained member"
+    tdd.init_weights(module, ZOO / member)  # strict: every key, every shape
+    card = json.loads((ZOO / member / "model_card.json").read_text())
+    assert card["model"] == member and card["arch"] == cfg["arch"] and card["seed"] == cfg["seed"]
+    assert card["train"]["steps"] == cfg["train"]["steps"] and card["train"]["init_from"] == cfg["train"]["init_from"]
+    assert card["data"]["adverse"] == cfg["data"]["adverse"] and card["augment"] == cfg["augment"]
+    model = model_config(member)
+    assert model["family"] == cfg["arch"]["family"]
+    assert all(model[k] == v for k, v in cfg["arch"].items() if k in model), (model, cfg["arch"])
+    if cfg["train"]["init_from"]:  # fine-tuned from a member of the zoo, which has its own recipe
+        assert Path(cfg["train"]["init_from"]).name in RECIPES
 
 
 def test_state_key_ignores_how_long_and_how_fast():

@@ -55,7 +55,7 @@ def xi_tables(inputs: "Inputs") -> Tables:
     s = inputs.settings
     boot = s["bootstrap"]
     pseudo_gt = _pseudo_ground_truth(inputs)
-    rows, xi_mean, pap, prec = [], {}, {}, {}
+    rows, xi_mean, pap, prec, support = [], {}, {}, {}, {}
     for cond in inputs.conditions:
         counts = np.stack([g.counts[cond] for g in inputs.groups if cond in g.counts]) if inputs.groups else \
             np.zeros((0, 4, NUM_INSTANCE_CLASSES), np.int64)
@@ -89,6 +89,7 @@ def xi_tables(inputs: "Inputs") -> Tables:
         prec[cond] = float(matched.sum() / total_conf) if total_conf else math.nan
         pap[cond] = ap["ap50"]
         xi_mean[cond] = mean
+        support[cond] = int(refs[:, ok].sum()) if len(refs) else 0  # the boxes the mean rests on (its classes)
         rows.append({"model": inputs.model, "reference_model": inputs.reference_model, "condition": cond,
                      "class_name": "mean", "xi": mean, "xi_unsupported": math.nan, "ci_low": mlo, "ci_high": mhi,
                      "boxes": int(refs.sum()) if len(refs) else 0, "images": len(refs), "supported": bool(ok.any()),
@@ -99,8 +100,8 @@ def xi_tables(inputs: "Inputs") -> Tables:
                  for g in inputs.groups for cond, c in g.counts.items() for k, name in enumerate(INSTANCE_CLASSES)]
     groups = pd.DataFrame(per_group, columns=["group_id", "condition", "class_name", "reference_boxes", "found",
                                               "confident", "matched"])
-    return {XI: pd.DataFrame(rows), GROUP_COUNTS: groups}, {"xi_mean": xi_mean, "pseudo_ap50": pap,
-                                                              "precision": prec}
+    return {XI: pd.DataFrame(rows), GROUP_COUNTS: groups}, {"xi_mean": xi_mean, "xi_support": support,
+                                                              "pseudo_ap50": pap, "precision": prec}
 
 
 def gt_tables(inputs: "Inputs") -> Tables:
@@ -190,7 +191,7 @@ def estimator_tables(inputs: "Inputs") -> Tables:
 
 
 METRICS: tuple[DetectionMetric, ...] = (
-    DetectionMetric("detection_xi", "2", (XI, GROUP_COUNTS), xi_tables),
+    DetectionMetric("detection_xi", "3", (XI, GROUP_COUNTS), xi_tables),
     DetectionMetric("coco_ap", "1", (GT_AP, ROBUSTNESS), gt_tables),
     DetectionMetric("per_object", "1", (OBJECTS, OBJECTS_FOUND), object_tables),
     DetectionMetric("box_ranking", "1", (FRAME_COUNTS, RHO_VALID), ranking_tables),
