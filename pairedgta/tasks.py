@@ -71,8 +71,8 @@ TASKS: dict[str, Task] = {
         ("det_xi", "det_robustness", "det_objects", "det_qualitative", "contact_sheet", "ranking",
          "det_model_report", "det_estimators", "corruptions", "corruption_study"),
         "pairedgta.detection.registry:METRICS", "boxes", ("boxes", "boxes scored ≥ the\nmodel's threshold"),
-        title="mean detection xi", support="reference boxes", example="model=demo_det_reference", zoo="experiment/det_zoo.yaml",
-        report_figure="det_model_report"),
+        title="mean detection xi", support="reference boxes", example="model=demo_det_reference",
+        zoo="experiment/det_zoo.yaml", report_figure="det_model_report"),
 }
 NAMES = TASKS.keys()  # a live view: a task declared later (a plug-in, a test's toy task) is a choice too
 

@@ -62,13 +62,20 @@ HASHED_MODEL_CONFIGS = {
     "segformer_b2": "eb58db86a0c765fc",
     "segformer_b5": "e602876c7a2af488",
     "tiny_ddrnet": "701c74b44119675f",
-    # the detection zoo (task=detection)
+    # the detection zoo (task=detection; demo_det_reference retrained, the weights it had are demo_fcos)
     "demo_det_reference": "17f35203c4807fc6",
     "demo_fasterrcnn": "e96caac53293c3c5",
+    "demo_fcos": "6544383d63e8990d",
     "demo_fcos_adverse": "21d2b19db2c27799",
+    "demo_fcos_fog": "2a1653955753ff17",
+    "demo_fcos_ft": "a0c6c6b6dfef0326",
+    "demo_fcos_hires": "c4d69b378f6b8c78",
     "demo_fcos_lowres": "1cda533119fd3e5c",
+    "demo_fcos_night": "87243566602f7d64",
     "demo_fcos_noaug": "d0352d7096b67a9f",
+    "demo_fcos_rain": "17f859a4f8847f5c",
     "demo_fcos_small": "7d7e278349927bcc",
+    "demo_fcos_towns": "143fd88d7ebea677",
     "demo_retinanet": "dffe63fa5a6931f5",
     "demo_retinanet_lowres": "23321c28a1fa591b",
     # task=detection's test-sized detectors (pairedgta/models/detectors.py)
