@@ -401,7 +401,12 @@ def model_yaml(cfg: dict, score_threshold: float) -> str:
              f"checkpoint_path: pkg://models/weights/{name}/model.safetensors",
              f"# architecture: must match pairedgta/conf/detector_zoo/{name}.yaml (loaded strictly)"]
     lines += [f"{k}: {json.dumps(v)}" for k, v in arch_keys(arch).items()]
-    lines += [f"score_threshold: {score_threshold}   # the best-F1 threshold on the held-out towns"]
+    from pairedgta.models.contract import DEFAULT_SCORE_THRESHOLD
+
+    if score_threshold != DEFAULT_SCORE_THRESHOLD:  # the default is not repeated (tests/test_models_runtime.py)
+        lines += [f"score_threshold: {score_threshold}   # the best-F1 threshold on the held-out towns"]
+    else:
+        lines += [f"# score_threshold: the default {DEFAULT_SCORE_THRESHOLD} is the best-F1 threshold on the held-out towns"]
     return "\n".join(lines) + "\n"
 
 
