@@ -11,12 +11,11 @@ import json
 from pathlib import Path
 
 import yaml
+from train_demo_detector import FAMILY_TEXT, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "zoo" / "detection" / "pairedgta_detection_zoo"
 RECIPES = ROOT / "pairedgta" / "conf" / "detector_zoo"
-FAMILY = {"fcos": "FCOS", "retinanet": "RetinaNet", "fasterrcnn": "Faster R-CNN"}
-CLASSES = ("person", "rider", "car", "truck", "bus", "motorcycle", "bicycle")
+TASK = ROOT / "pairedgta" / "conf" / "task" / "detection.yaml"
 
 
 def recipe_text(name: str) -> str:
@@ -30,35 +29,40 @@ def recipe_text(name: str) -> str:
     return " ".join(lines).replace("|", "/")
 
 
-def members() -> list[str]:
+def members(task: dict) -> list[str]:
     """The task's zoo (conf/task/detection.yaml `models`), its reference last, then any other carded member."""
-    task = yaml.safe_load((ROOT / "pairedgta" / "conf" / "task" / "detection.yaml").read_text())
     listed = [m for m in task["models"] if m != task["reference_model"]] + [task["reference_model"]]
     rest = sorted(p.name for p in ZOO.iterdir() if (p / "model_card.json").is_file() and p.name not in listed)
     return listed + rest
 
 
-def row(name: str, reference: str) -> str:
-    card = json.loads((ZOO / name / "model_card.json").read_text())
-    arch, val = card["arch"], card["val"]
+def card(name: str) -> dict:
+    return json.loads((ZOO / name / "model_card.json").read_text())
+
+
+def row(name: str, reference: str, classes: list[str]) -> str:
+    card_ = card(name)
+    arch, val = card_["arch"], card_["val"]
     size = (ZOO / name / "model.safetensors").stat().st_size / 1e6
-    per_class = " | ".join(f"{val['ap50_per_class'][c]:.3f}" for c in CLASSES)
-    minutes = card["train_seconds"] / 60
-    start = card["train"].get("init_from")
+    per_class = " | ".join(f"{val['ap50_per_class'][c]:.3f}" for c in classes)
+    minutes = card_["train_seconds"] / 60
+    start = card_["train"].get("init_from")
     start = f"from `{Path(start).name}`" if start else "from scratch"
     member = f"**`{name}`** (reference)" if name == reference else f"`{name}`"
-    return (f"| {member} | {FAMILY[card['family']]} ({arch['width']}, {arch['fpn_channels']}; min_size "
-            f"{arch['min_size']}) | {recipe_text(name)} | {card['parameters'] / 1e6:.2f} M, {size:.1f} MB | "
-            f"{card['train']['steps']:,} steps {start}, {minutes:.0f} min | {per_class} | {val['ap']:.3f} |")
+    return (f"| {member} | {FAMILY_TEXT[card_['family']]} ({arch['width']}, {arch['fpn_channels']}; min_size "
+            f"{arch['min_size']}) | {recipe_text(name)} | {card_['parameters'] / 1e6:.2f} M, {size:.1f} MB | "
+            f"{card_['train']['steps']:,} steps {start}, {minutes:.0f} min | {per_class} | {val['ap']:.3f} |")
 
 
 def main() -> None:
-    task = yaml.safe_load((ROOT / "pairedgta" / "conf" / "task" / "detection.yaml").read_text())
+    task = yaml.safe_load(TASK.read_text())
+    names = members(task)
+    classes = list(card(names[0])["val"]["gt_per_class"])  # the classes with held-out ground truth, as scored
     print("| member | family (width, FPN; scale) | recipe | size | training | " + " | ".join(
-        f"AP50 {c}" for c in CLASSES) + " | AP |")
-    print("|---|---|---|---|---|" + "---:|" * (len(CLASSES) + 1))
-    for name in members():
-        print(row(name, task["reference_model"]))
+        f"AP50 {c}" for c in classes) + " | AP |")
+    print("|---|---|---|---|---|" + "---:|" * (len(classes) + 1))
+    for name in names:
+        print(row(name, task["reference_model"], classes))
 
 
 if __name__ == "__main__":
