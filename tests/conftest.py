@@ -63,18 +63,39 @@ def tmp(tmp_path: Path) -> Path:
     return tmp_path
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads_put_back():
+    """Each test leaves torch's intra-op thread count as it found it: a test that sets it (a training step
+    on two threads, a check at 1 and 2 threads) no longer hands its count to every later test of its worker.
+    Two OpenMP threads a worker, beside the other worker and the CLI runs on 2 cores, spin while they wait
+    for each other: the tests after such a test spent several times their CPU (the detector formats test
+    35 s against 4 s on its own)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    yield
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return
+    if before is None:  # first imported by this test: the count a fresh import gives (OMP_NUM_THREADS above)
+        before = int(os.environ.get("OMP_NUM_THREADS") or 0) or torch.get_num_threads()
+    if torch.get_num_threads() != before:
+        torch.set_num_threads(before)
+
+
 # The slowest modules first (seconds of one worker, measured with --durations=0): with --dist loadscope
 # a module runs on one worker, so starting the long ones early lets the two workers finish together
 # instead of one waiting for the last long module the other picked up late. The two cluster modules start
 # first, one on each worker: they mostly wait on their jobs and servers, whose CPU time the other
 # modules would otherwise compete with at the end.
-SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_reliability.py", "test_documented_commands.py",
-              "test_journal.py", "test_write_faults.py", "test_store_lock.py", "test_cli.py", "test_demo_model.py", "test_night_light.py", "test_tracking.py",
-              "test_python_versions.py", "test_train_demo.py", "test_packaging.py", "test_sharding.py",
-              "test_same_numbers_across_formats.py", "test_source_onnx.py", "test_source_export.py", "test_model_report.py",
-              "test_source_python_torchvision.py", "test_detection.py", "test_detector_sources.py",
-              "test_experiments.py", "test_pipeline.py", "test_cityscapes_val.py", "test_ladders.py",
-              "test_paper_table.py", "test_render_blender.py")
+SLOW_FIRST = ("test_slurm.py", "test_mlflow_server.py", "test_documented_commands.py", "test_reliability.py",
+              "test_journal.py", "test_store_lock.py", "test_train_detector.py", "test_write_faults.py",
+              "test_demo_model.py", "test_same_numbers_across_formats.py", "test_sharding.py", "test_cli.py",
+              "test_tracking.py", "test_detection.py", "test_packaging.py", "test_night_light.py",
+              "test_detector_sources.py", "test_experiments.py", "test_model_channel.py", "test_train_demo.py",
+              "test_python_versions.py", "test_render_blender.py", "test_corruptions.py", "test_figures.py",
+              "test_bench_evaluate.py", "test_detection_study.py", "test_source_onnx.py", "test_source_export.py",
+              "test_model_report.py", "test_source_python_torchvision.py", "test_pipeline.py", "test_cityscapes_val.py",
+              "test_ladders.py", "test_paper_table.py")
 
 
 def pytest_collection_modifyitems(items):
@@ -82,21 +103,39 @@ def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
 
 
+def session_shared_dir(tmp_path_factory, name: str) -> Path:
+    """A folder of this test session that every pytest-xdist worker sees: the workers' base temp folders
+    (`.../pytest-N/popen-gwK`) share their parent, which is this session's alone; without xdist, the
+    session's own base temp folder. For a StageCache several modules' tests share (keyed by the config's
+    hash and safe for concurrent use): the first run that needs an entry builds it, later runs of the same
+    config, on either worker, are cache hits of the same files."""
+    base = tmp_path_factory.getbasetemp()
+    path = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / f"shared-{name}"
+    path.mkdir(exist_ok=True)
+    return path
+
+
 @pytest.fixture
-def calibration(tmp_path: Path):
+def calibration(tmp_path: Path, tmp_path_factory):
     """`+experiment=photometric_calibration` through the CLI on the main job's first `scenes` scenes at 128x64 with
-    one sample: (the photometry table by condition, the checks, the plot entry's folder)."""
+    one sample: (the photometry table by condition, the checks, the plot entry's folder).
+
+    The stage cache is shared by the session's tests (tests/test_photometry.py and tests/test_night_light.py
+    run the same 8 scenes' calibration): the first run renders the Blender scenes, the other reads the same
+    entries through a cache-hit run of the same CLI command."""
     import pandas as pd
 
     from pairedgta.testing.cli import base_overrides, run_cli
 
     def run(scenes: int):
-        proc = run_cli(base_overrides(tmp_path) + [
-            "+experiment=photometric_calibration", f"generate.num_scenes={scenes}", "renderer.width=128",
-            "renderer.height=64", "renderer.samples=1", "plot.figures=[photometry]", "plot.formats=[png]",
-            "plot.dpi=60", "tracking.enabled=false"], tmp_path)
+        cache = session_shared_dir(tmp_path_factory, f"calibration-cache-{scenes}")
+        overrides = [o for o in base_overrides(tmp_path, store=False) if not o.startswith("cache_dir=")]
+        proc = run_cli(overrides + [
+            f"cache_dir={cache}", "+experiment=photometric_calibration", f"generate.num_scenes={scenes}",
+            "renderer.width=128", "renderer.height=64", "renderer.samples=1", "plot.figures=[photometry]",
+            "plot.formats=[png]", "plot.dpi=60", "tracking.enabled=false"], tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
-        entry, = (tmp_path / "cache" / "plot").glob("*/photometry.csv")
+        entry, = (cache / "plot").glob("*/photometry.csv")
         checks = pd.read_csv(entry.with_name("photometry_checks.csv"))
         return pd.read_csv(entry).set_index("condition"), checks, entry.parent
 

@@ -120,7 +120,9 @@ def test_through_the_cli_the_tracking_child_journals_a_locked_store_and_the_next
 
     db = tmp_path / "mlflow.db"
     uri = mlflow_store(db)
-    args = [a for a in _tracked(tmp_path, uri) if a != "tracking.background=false"]
+    # an in-project tiny model as the model and the reference: the fresh interpreter imports no transformers (3 s)
+    args = [a for a in _tracked(tmp_path, uri) if a != "tracking.background=false"
+            and not a.startswith(("model=", "reference_model="))] + ["model=tiny_ddrnet", "reference_model=tiny_ddrnet"]
     with _locked(db):
         proc = run_cli(args, tmp_path, subprocess_=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -131,8 +133,8 @@ def test_through_the_cli_the_tracking_child_journals_a_locked_store_and_the_next
     assert "failed while opening the experiment" in said[0] and all(str(journal) in line for line in said)
     Tracker(uri, "jrn", results=tmp_path / "cache")  # the lock gone: the next run, as it opens the store
     assert not journals.pending(tmp_path / "cache", uri)
-    # `model=` on a command line chooses the one model to evaluate (fast_overrides sets it)
-    _check_complete(_record(uri), invocations=1, models={"tiny_segformer"})
+    # `model=` on a command line chooses the one model to evaluate (set above)
+    _check_complete(_record(uri), invocations=1, models={"tiny_ddrnet"})
 
 
 @pytest.mark.slow

@@ -16,7 +16,9 @@ pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 
 SMALL = ["+experiment=smoke", "generate.num_scenes=2", "renderer.width=64", "renderer.height=32",
          "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "metric.bootstrap.resamples=20",
-         "plot.figures=[xi_models]", "plot.formats=[png]", "plot.dpi=50", "threads=1", "models=[tiny_segformer]"]
+         "plot.figures=[xi_models]", "plot.formats=[png]", "plot.dpi=50", "threads=1",
+         # an in-project tiny model as the model and the reference: the fresh interpreters import no transformers (3 s)
+         "models=[tiny_ddrnet]", "reference_model=tiny_ddrnet"]
 
 
 @pytest.fixture(scope="module")

@@ -62,11 +62,19 @@ MAIN = ("import sys\nsys.path.insert(0, sys.argv.pop(1))\nimport filling_disk\nf
         "sys.argv = ['pairedgta', *sys.argv[1:]]\ncli()\n")
 
 
+def overrides(tmp: Path) -> list[str]:
+    """fast_overrides with PNG and PDF figures, and an in-project tiny model (tiny_ddrnet) as the model and the
+    reference: the forced reruns below run in fresh interpreters, and tiny_segformer's import of transformers was
+    3 s of each of them; the writes under test are the stages' own, whichever model feeds them."""
+    keep = [o for o in fast_overrides(tmp) if not o.startswith(("model=", "reference_model=", "plot.formats="))]
+    return keep + ["model=tiny_ddrnet", "reference_model=tiny_ddrnet", "plot.formats=[png,pdf]"]
+
+
 @pytest.fixture(scope="module")
 def done(tmp_path_factory) -> Path:
     """A finished main job (PNG and PDF figures): the entries a failed forced rerun must leave as they are."""
     tmp = tmp_path_factory.mktemp("faults")
-    proc = run_cli(fast_overrides(tmp) + ["plot.formats=[png,pdf]"], tmp)
+    proc = run_cli(overrides(tmp), tmp)
     assert proc.returncode == 0, proc.stderr[-2000:]
     (tmp / "filling_disk.py").write_text(INJECT)
     return tmp
@@ -84,8 +92,7 @@ def run_on_a_filling_disk(tmp: Path, stage: str, pattern: str, after: int, code:
     log.unlink(missing_ok=True)
     env = {**os.environ, **OFFLINE, "PYTHONWARNINGS": "ignore", "FAULT_PATTERN": str(tmp / "cache" / stage / pattern),
            "FAULT_AFTER": str(after), "FAULT_ERRNO": code, "FAULT_LOG": str(log)}
-    args = [*fast_overrides(tmp), "plot.formats=[png,pdf]", f"force=[{stage}]",
-            f"hydra.run.dir={tmp / 'run'}"]
+    args = [*overrides(tmp), f"force=[{stage}]", f"hydra.run.dir={tmp / 'run'}"]
     proc = subprocess.run([sys.executable, "-c", MAIN, str(tmp), *args], cwd=tmp, env=env, capture_output=True,
                           text=True, timeout=600)
     return proc, log.read_text().split() if log.exists() else []
