@@ -11,11 +11,11 @@ import json
 from pathlib import Path
 
 import yaml
-from train_demo_detector import FAMILY_TEXT, ROOT
+from train_demo_detector import FAMILY_TEXT, ROOT, chain_seconds
 
 ZOO = ROOT / "zoo" / "detection" / "pairedgta_detection_zoo"
 RECIPES = ROOT / "pairedgta" / "conf" / "detector_zoo"
-TASK = ROOT / "pairedgta" / "conf" / "task" / "detection.yaml"
+ZOO_EXPERIMENT = ROOT / "pairedgta" / "conf" / "experiment" / "det_zoo.yaml"
 
 
 def recipe_text(name: str) -> str:
@@ -30,7 +30,7 @@ def recipe_text(name: str) -> str:
 
 
 def members(task: dict) -> list[str]:
-    """The task's zoo (conf/task/detection.yaml `models`), its reference last, then any other carded member."""
+    """The whole zoo (+experiment=det_zoo's `models`), its reference last, then any other carded member."""
     listed = [m for m in task["models"] if m != task["reference_model"]] + [task["reference_model"]]
     rest = sorted(p.name for p in ZOO.iterdir() if (p / "model_card.json").is_file() and p.name not in listed)
     return listed + rest
@@ -48,14 +48,16 @@ def row(name: str, reference: str, classes: list[str]) -> str:
     minutes = card_["train_seconds"] / 60
     start = card_["train"].get("init_from")
     start = f"from `{Path(start).name}`" if start else "from scratch"
+    chain = chain_seconds(card_)
+    total = f" ({sum(s for _, s in chain) / 60:.0f} min from scratch)" if len(chain) > 2 else ""
     member = f"**`{name}`** (reference)" if name == reference else f"`{name}`"
     return (f"| {member} | {FAMILY_TEXT[card_['family']]} ({arch['width']}, {arch['fpn_channels']}; min_size "
             f"{arch['min_size']}) | {recipe_text(name)} | {card_['parameters'] / 1e6:.2f} M, {size:.1f} MB | "
-            f"{card_['train']['steps']:,} steps {start}, {minutes:.0f} min | {per_class} | {val['ap']:.3f} |")
+            f"{card_['train']['steps']:,} steps {start}, {minutes:.0f} min{total} | {per_class} | {val['ap']:.3f} |")
 
 
 def main() -> None:
-    task = yaml.safe_load(TASK.read_text())
+    task = yaml.safe_load(ZOO_EXPERIMENT.read_text())
     names = members(task)
     classes = list(card(names[0])["val"]["gt_per_class"])  # the classes with held-out ground truth, as scored
     print("| member | family (width, FPN; scale) | recipe | size | training | " + " | ".join(

@@ -420,7 +420,75 @@ def recipe_text(cfg: dict) -> str:
     parts.append("photometric distortion" if a.get("photometric") else "no photometric distortion")
     text = ", ".join(parts)
     return text + (f"; started from the weights in `{t['init_from']}`" if t.get("init_from")
-                   else "; random initialisation")
+                   else "; random initialisation")  # cfg or a model card: the keys read here are in both
+
+
+def chain_seconds(card: dict) -> list[tuple[str, float]]:
+    """(member, training seconds) from random initialisation to this member: the card's own training after the
+    cards of the members it started from (`train.init_from`), so a fine-tune's card states its whole cost."""
+    chain, seen = [(card["model"], float(card["train_seconds"]))], {card["model"]}
+    parent = card["train"].get("init_from")
+    while parent and (ROOT / parent / "model_card.json").is_file():
+        up = json.loads((ROOT / parent / "model_card.json").read_text())
+        if up["model"] in seen:
+            break
+        seen.add(up["model"])
+        chain.insert(0, (up["model"], float(up["train_seconds"])))
+        parent = up["train"].get("init_from")
+    return chain
+
+
+def card_readme(card: dict) -> str:
+    """The model card's README, from model_card.json alone (experiments/detection_zoo_table.py reads the same card);
+    a card's `note` (written by hand: how a run went that the recipe does not say) follows the recipe."""
+    name, family, d, arch, t = card["model"], card["family"], card["data"], card["arch"], card["train"]
+    result, ap50 = card["val"], card["val"]["ap50_per_class"]
+    ad = d.get("adverse") or {}
+    towns = seg.adverse_towns({"data": d})
+    height, width = d["resolution"]
+    if not towns:
+        seen = "daytime (Day-EXTRASUNNY) scenes only; it never saw rain, fog, sunset or night"
+        extra = ""
+    elif list(ad["conditions"]) == [d["condition"]]:
+        seen = (f"daytime ({d['condition']}) scenes only, of {d['train_towns'] + len(towns)} towns; it never saw "
+                "rain, fog, sunset or night")
+        extra = f" and {len(towns)} more daytime towns"
+    else:
+        seen = (f"daytime (Day-EXTRASUNNY) scenes and {len(towns) * ad['scenes_per_town']} scenes of {len(towns)} "
+                f"other towns under {', '.join(ad['conditions'])} (each town in one condition)")
+        extra = f" and {len(towns)} adverse-condition towns"
+    start = (f"started from `{Path(t['init_from']).name}`'s weights" if t.get("init_from")
+             else "random initialisation")
+    chain = chain_seconds(card)
+    threads = t["threads"]
+    lines = [
+        f"# {name}", "",
+        f"A compact {FAMILY_TEXT[family]} detector (torchvision head on a MobileNetV3-Large trunk at width "
+        f"{arch['width']}, FPN {arch['fpn_channels']} channels; {card['parameters'] / 1e6:.2f} M parameters, "
+        f"{start}) trained by `experiments/train_demo_detector.py` on synthetic scenes of the embedded "
+        f"Blender renderer with exact boxes from its instance masks: {seen}.",
+        "It demonstrates detection evaluation offline; it is not a Cityscapes or COCO model.", "",
+        f"- command: `{card.get('command') or 'python experiments/train_demo_detector.py'}`",
+        f"- data: {d['train_images']} training images ({d['train_boxes']} boxes of >= {d['min_area']} visible "
+        f"pixels) from {d['train_towns']} towns{extra}, {d['val_images']} validation images from {d['val_towns']} "
+        f"held-out towns, {width}x{height}; objects below {d['min_area']} px painted out in training (ignore "
+        "regions at evaluation)",
+        f"- training: {recipe_text(card)}" + (f" ({card['note']})" if card.get("note") else ""),
+        f"- held-out AP50 car {ap50.get('car', float('nan')):.3f}, person {ap50.get('person', float('nan')):.3f}; "
+        f"AP50 over all classes {result['ap50']:.3f}, AP (0.5:0.95) {result['ap']:.3f} (pycocotools, ignore regions "
+        "as iscrowd)",
+        f"- score_threshold {result['score_threshold']} (best F1 {result['f1']:.3f} on the held-out towns)",
+        "- weights: float16 (model.safetensors; loaded as float32)",
+        f"- wall time: {card['render_seconds'] / 60:.0f} min rendering, {card['train_seconds'] / 60:.1f} min "
+        f"training (resumed runs summed) on a 2-core CPU shared with other jobs, {threads} "
+        f"thread{'s' if threads != 1 else ''} (the last run)",
+    ]
+    if len(chain) > 1:
+        lines.append(f"- training from random initialisation: {sum(s for _, s in chain) / 60:.1f} min over "
+                     + " -> ".join(f"`{m}` {s / 60:.1f} min" for m, s in chain))
+    lines += ["", "| class | held-out ground-truth boxes | AP50 |", "|---|---|---|",
+              *[f"| {c} | {result['gt_per_class'][c]} | {v:.3f} |" for c, v in ap50.items()]]
+    return "\n".join(lines) + "\n"
 
 
 def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list, render_s: float, train_s: float,
@@ -440,37 +508,7 @@ def write_outputs(cfg: dict, module, n_params: int, result: dict, history: list,
             "augment": cfg["augment"], "train": cfg["train"], "seed": cfg["seed"], "command": cfg.get("command"),
             "val": result, "history": history, "render_seconds": render_s, "train_seconds": train_s}
     write_json(out / "model_card.json", card)
-    towns = seg.adverse_towns(cfg)
-    seen = ("daytime (Day-EXTRASUNNY) scenes only; it never saw rain, fog, sunset or night" if not towns else
-            f"daytime (Day-EXTRASUNNY) scenes and {len(towns) * d['adverse']['scenes_per_town']} scenes of "
-            f"{len(towns)} other towns under {', '.join(d['adverse']['conditions'])} (each town in one condition)")
-    lines = [
-        f"# {name}", "",
-        f"A compact {FAMILY_TEXT[family]} detector (torchvision head on a MobileNetV3-Large trunk at width "
-        f"{cfg['arch']['width']}, FPN {cfg['arch']['fpn_channels']} channels; {n_params / 1e6:.2f} M parameters, "
-        "random initialisation) trained by `experiments/train_demo_detector.py` on synthetic scenes of the embedded "
-        f"Blender renderer with exact boxes from its instance masks: {seen}.",
-        "It demonstrates detection evaluation offline; it is not a Cityscapes or COCO model.", "",
-        f"- command: `{cfg.get('command') or 'python experiments/train_demo_detector.py'}`",
-        f"- data: {n_train} training images ({n_boxes} boxes of >= {d['min_area']} visible pixels) from "
-        f"{d['train_towns']} towns" + (f" and {len(towns)} adverse-condition towns" if towns else "")
-        + f", {n_val} validation images from {d['val_towns']} held-out towns, "
-        f"{cfg['renderer']['width']}x{cfg['renderer']['height']}; objects below {d['min_area']} px painted out "
-        "in training (ignore regions at evaluation)",
-        f"- training: {recipe_text(cfg)}",
-        f"- held-out AP50 car {ap50.get('car', float('nan')):.3f}, person {ap50.get('person', float('nan')):.3f}; "
-        f"AP50 over all classes {result['ap50']:.3f}, AP (0.5:0.95) {result['ap']:.3f} (pycocotools, ignore regions "
-        "as iscrowd)",
-        f"- score_threshold {result['score_threshold']} (best F1 {result['f1']:.3f} on the held-out towns)",
-        "- weights: float16 (model.safetensors; loaded as float32)",
-        f"- wall time: {render_s / 60:.0f} min rendering, {train_s / 60:.1f} min training (resumed runs summed) on a "
-        f"2-core CPU shared with other jobs, {cfg['train']['threads']} "
-        f"thread{'s' if cfg['train']['threads'] != 1 else ''}"
-        " (the last run)", "",
-        "| class | held-out ground-truth boxes | AP50 |", "|---|---|---|",
-        *[f"| {c} | {result['gt_per_class'][c]} | {v:.3f} |" for c, v in ap50.items()],
-    ]
-    (out / "README.md").write_text("\n".join(lines) + "\n")
+    (out / "README.md").write_text(card_readme(card))
     for f in out.iterdir():
         f.chmod(0o644)
     # a member shipped in the detection zoo gets its model config (`model=<name>`); a try elsewhere gets it beside its

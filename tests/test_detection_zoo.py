@@ -22,9 +22,12 @@ def members() -> list[str]:
 
 def test_every_member_is_float16_carded_loaded_and_run_by_the_task():
     names = members()
-    assert len(names) >= 15 and len({model_config(n)["family"] for n in names}) >= 3
+    assert len(names) >= 21 and len({model_config(n)["family"] for n in names}) >= 3  # 20 ranked + the reference
     cfg = compose_cfg(["+experiment=det_zoo"])  # the whole zoo; the main job runs a part of it
     assert cfg.task == "detection" and sorted(cfg.models) == names and cfg.reference_model == "demo_det_reference"
+    study = compose_cfg(["+experiment=metric_validity", "task=detection"])  # the study ranks every member but one
+    assert sorted(study.models) == sorted(set(names) - {"demo_det_reference"})
+    assert study.reference_model == "demo_det_reference"
     main = compose_cfg(["task=detection"])
     assert set(main.models) < set(names) and main.reference_model == "demo_det_reference"
     image = np.random.default_rng(0).integers(0, 256, (1, 256, 512, 3), dtype=np.uint8)

@@ -175,6 +175,13 @@ def test_recipes_compose_and_the_shipped_weights_load_strictly_into_them(member)
     assert all(model[k] == v for k, v in cfg["arch"].items() if k in model), (model, cfg["arch"])
     if cfg["train"]["init_from"]:  # fine-tuned from a member of the zoo, which has its own recipe
         assert Path(cfg["train"]["init_from"]).name in RECIPES
+    # the README is the card's (a paragraph written by hand may come beside it), a fine-tune's with its whole cost
+    readme = (ZOO / member / "README.md").read_text().splitlines()
+    assert [line for line in tdd.card_readme(card).splitlines() if line not in readme] == [], member
+    chain = [name for name, _ in tdd.chain_seconds(card)]
+    assert chain[-1] == member and (len(chain) > 1) == bool(cfg["train"]["init_from"])
+    if member == "demo_det_reference":
+        assert chain == ["demo_fcos", "demo_fcos_long", "demo_det_reference"]
 
 
 def test_state_key_ignores_how_long_and_how_fast():
