@@ -49,7 +49,7 @@ from pairedgta.cache import StageCache, canonical_json
 from pairedgta.conditions import build_condition_grid
 from pairedgta.detection.boxes import INSTANCE_CLASSES, Box, coco_ground_truth
 from pairedgta.detection.ground_truth import read_ground_truth
-from pairedgta.models.detectors import NUM_CLASSES, build_network
+from pairedgta.models.detectors import build_network
 
 log = logging.getLogger("train_demo_detector")
 ROOT = Path(__file__).resolve().parents[1]
@@ -406,7 +406,8 @@ def model_yaml(cfg: dict, score_threshold: float) -> str:
     if score_threshold != DEFAULT_SCORE_THRESHOLD:  # the default is not repeated (tests/test_models_runtime.py)
         lines += [f"score_threshold: {score_threshold}   # the best-F1 threshold on the held-out towns"]
     else:
-        lines += [f"# score_threshold: the default {DEFAULT_SCORE_THRESHOLD} is the best-F1 threshold on the held-out towns"]
+        lines += [f"# score_threshold: the default {DEFAULT_SCORE_THRESHOLD} is the best-F1 threshold on the held-out "
+                  "towns"]
     return "\n".join(lines) + "\n"
 
 
