@@ -148,6 +148,11 @@ def test_a_blank_dataset_is_one_warning_naming_files_and_a_converted_image_anoth
     args = ["+experiment=evaluate_release", f"dataset.root={root}", "model=tiny_segformer", "reference_model=tiny_segformer",
             f"cache_dir={tmp_path / 'cache'}", "tracking.enabled=false", "stages=[pseudolabel,evaluate]",
             "evaluate.num_workers=2", "threads=1"]
+    # the decoding workers' fork server already running, started before this run (by an earlier run of the same
+    # process): its workers inherit its environment, not the run's, and once lost their notes (2 of 18 said)
+    from pairedgta.evaluation.inputs import start_workers_server
+
+    start_workers_server(2)
     proc = run_cli(args, tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout + proc.stderr

@@ -160,12 +160,32 @@ def start_workers_server(workers: int) -> None:
         forkserver.ensure_running()
 
 
+def _notes_into(path: str | None, worker_id: int) -> None:
+    """A decoding worker's image notes go where the run's open scope collects them (datasets.base.image_notes):
+    the fork server, and so every worker, has the environment of the moment it started, which may be before
+    the scope (an earlier stage or run of the process), so the path travels with the DataLoader."""
+    import os
+
+    from pairedgta.datasets.base import NOTES_ENV
+
+    if path is None:
+        os.environ.pop(NOTES_ENV, None)
+    else:
+        os.environ[NOTES_ENV] = path
+
+
 def load_groups(inputs: GroupInputs, workers: int, pin_memory: bool = False) -> Any:
     """The groups' inputs in order: decoded in this process (workers=0) or by `workers` DataLoader workers
     (`worker_context`); with `pin_memory` (a GPU) their tensors arrive in pinned memory, ready for a non-blocking
     copy."""
     if workers < 1:  # not a thread either: beside the forward's OpenMP threads it slowed the forward down (2 cores)
         return (inputs[i] for i in range(len(inputs)))
+    import functools
+    import os
+
+    from pairedgta.datasets.base import NOTES_ENV
+
     return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
                                        collate_fn=_identity, prefetch_factor=2, persistent_workers=False,
-                                       pin_memory=pin_memory, multiprocessing_context=worker_context())
+                                       pin_memory=pin_memory, multiprocessing_context=worker_context(),
+                                       worker_init_fn=functools.partial(_notes_into, os.environ.get(NOTES_ENV)))
