@@ -3,6 +3,8 @@ their images, label maps and visibility masks, decoded in DataLoader workers so 
 not PNG decoding, bounds evaluation."""
 from __future__ import annotations
 
+import functools
+import os
 import zlib
 from typing import Any
 
@@ -10,6 +12,7 @@ import numpy as np
 
 from pairedgta.cityscapes import IGNORE_INDEX
 from pairedgta.datasets import LabelMaps, PairedDataset, load_group_images, load_label, load_transmittance
+from pairedgta.datasets.base import NOTES_ENV
 from pairedgta.errors import DataError, PairedGTAError
 from pairedgta.lazy import lazy_module
 
@@ -164,10 +167,6 @@ def _notes_into(path: str | None, worker_id: int) -> None:
     """A decoding worker's image notes go where the run's open scope collects them (datasets.base.image_notes):
     the fork server, and so every worker, has the environment of the moment it started, which may be before
     the scope (an earlier stage or run of the process), so the path travels with the DataLoader."""
-    import os
-
-    from pairedgta.datasets.base import NOTES_ENV
-
     if path is None:
         os.environ.pop(NOTES_ENV, None)
     else:
@@ -180,11 +179,6 @@ def load_groups(inputs: GroupInputs, workers: int, pin_memory: bool = False) -> 
     copy."""
     if workers < 1:  # not a thread either: beside the forward's OpenMP threads it slowed the forward down (2 cores)
         return (inputs[i] for i in range(len(inputs)))
-    import functools
-    import os
-
-    from pairedgta.datasets.base import NOTES_ENV
-
     return torch.utils.data.DataLoader(inputs, batch_size=None, shuffle=False, num_workers=workers,
                                        collate_fn=_identity, prefetch_factor=2, persistent_workers=False,
                                        pin_memory=pin_memory, multiprocessing_context=worker_context(),
