@@ -3,7 +3,7 @@
 comment that opens its recipe (pairedgta/conf/detector_zoo/<name>.yaml), so the table cannot drift from the
 weights it describes.
 
-    python experiments/detection_zoo_table.py            # the markdown table, members in the task's order
+    python experiments/detection_zoo_table.py            # the markdown table, members in +experiment=det_zoo's order
 """
 from __future__ import annotations
 
@@ -29,9 +29,9 @@ def recipe_text(name: str) -> str:
     return " ".join(lines).replace("|", "/")
 
 
-def members(task: dict) -> list[str]:
+def members(zoo: dict) -> list[str]:
     """The whole zoo (+experiment=det_zoo's `models`), its reference last, then any other carded member."""
-    listed = [m for m in task["models"] if m != task["reference_model"]] + [task["reference_model"]]
+    listed = [m for m in zoo["models"] if m != zoo["reference_model"]] + [zoo["reference_model"]]
     rest = sorted(p.name for p in ZOO.iterdir() if (p / "model_card.json").is_file() and p.name not in listed)
     return listed + rest
 
@@ -57,14 +57,14 @@ def row(name: str, reference: str, classes: list[str]) -> str:
 
 
 def main() -> None:
-    task = yaml.safe_load(ZOO_EXPERIMENT.read_text())
-    names = members(task)
+    zoo = yaml.safe_load(ZOO_EXPERIMENT.read_text())
+    names = members(zoo)
     classes = list(card(names[0])["val"]["gt_per_class"])  # the classes with held-out ground truth, as scored
     print("| member | family (width, FPN; scale) | recipe | size | training | " + " | ".join(
         f"AP50 {c}" for c in classes) + " | AP |")
     print("|---|---|---|---|---|" + "---:|" * (len(classes) + 1))
     for name in names:
-        print(row(name, task["reference_model"], classes))
+        print(row(name, zoo["reference_model"], classes))
 
 
 if __name__ == "__main__":
