@@ -67,6 +67,7 @@ HASHED_MODEL_CONFIGS = {
     "demo_fasterrcnn": "e96caac53293c3c5",
     "demo_fcos": "6544383d63e8990d",
     "demo_fcos_adverse": "21d2b19db2c27799",
+    "demo_fcos_allweather": "dce81f96a5c03e0c",
     "demo_fcos_fog": "2a1653955753ff17",
     "demo_fcos_ft": "a0c6c6b6dfef0326",
     "demo_fcos_ft_seed1": "2bef0b11bdf96edb",
