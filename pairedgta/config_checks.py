@@ -266,11 +266,20 @@ def _paths(node: Any, prefix: str = "") -> set[str]:
     return out
 
 
+_TREES: dict[tuple[str, int, int], Any] = {}  # (path, size, mtime) -> its tree
+
+
 def _load_yaml(path: Path) -> Any:
-    """A config file's tree (plain YAML: a tenth of OmegaConf.load's time; only its keys are read)."""
+    """A config file's tree (plain YAML: a tenth of OmegaConf.load's time; only its keys are read, never
+    changed). Kept per file version: a process that runs the CLI again (a sweep's jobs in one process, a
+    notebook, the tests) parses the hundred-odd files the key check reads once, not on every command line."""
     import yaml
 
-    return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)) or {}
+    st = path.stat()
+    stamp = (str(path), st.st_size, st.st_mtime_ns)
+    if stamp not in _TREES:
+        _TREES[stamp] = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)) or {}
+    return _TREES[stamp]
 
 
 def known_key_paths() -> set[str]:

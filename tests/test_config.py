@@ -198,3 +198,39 @@ def test_bad_conditions_are_one_line_errors():
         build_condition_grid({**cfg, "ladder": {"parameter": "fog"}})
     with pytest.raises(ConfigError, match="duplicate"):
         ConditionGrid((Condition("a", "Day", "X"), Condition("a", "Day", "X")), "a")
+
+
+def test_no_config_file_sets_hydra_mode_so_in_process_runs_may_read_it_from_the_overrides():
+    """pairedgta.testing.cli runs the CLI in-process without Hydra's get_mode, which composes the whole config once
+    only to read `hydra.mode`: the overrides alone give it while no file of the package sets it. Hydra's own
+    answer and the harness's agree on the main job, an experiment, a sweep and an explicit mode."""
+    import yaml
+    from hydra import compose, initialize_config_dir  # noqa: F401  (initialize_config_dir sets up GlobalHydra)
+    from hydra.core.global_hydra import GlobalHydra
+
+    from pairedgta.configs import CONFIG_DIR
+    from pairedgta.testing.cli import _mode_from_overrides
+
+    for path in CONFIG_DIR.rglob("*.yaml"):
+        tree = yaml.safe_load(path.read_text()) or {}
+        assert "mode" not in (tree.get("hydra") or {}), path
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        hydra = GlobalHydra.instance().hydra
+        for overrides in ([], ["+experiment=smoke"], ["model=demo_segformer,demo_ddrnet"], ["hydra.mode=MULTIRUN"],
+                          ["hydra.mode=RUN", "task=detection"]):
+            assert _mode_from_overrides(hydra, "config", overrides) == hydra.get_mode("config", overrides), overrides
+
+
+def test_the_key_check_reads_a_config_file_again_once_it_changed(tmp_path):
+    """config_checks keeps each file's parsed tree per (path, size, mtime): a process that runs the CLI many times
+    parses them once, and an edited file is read anew."""
+    import os
+
+    from pairedgta.config_checks import _load_yaml
+
+    path = tmp_path / "option.yaml"
+    path.write_text("a: 1\n")
+    assert _load_yaml(path) == {"a": 1} and _load_yaml(path) is _load_yaml(path)
+    path.write_text("a: 1\nb: 2\n")
+    os.utime(path, ns=(1, 1))  # even an edit that sets the old mtime changed the size
+    assert _load_yaml(path) == {"a": 1, "b": 2}
