@@ -28,6 +28,8 @@ def test_every_member_is_float16_carded_loaded_and_run_by_the_task():
     study = compose_cfg(["+experiment=metric_validity", "task=detection"])  # the study ranks every member but one
     assert sorted(study.models) == sorted(set(names) - {"demo_det_reference"})
     assert study.reference_model == "demo_det_reference"
+    corruptions = compose_cfg(["+experiment=corruptions_vs_rendered", "task=detection"])  # every member, as it says
+    assert sorted(corruptions.models) == names and corruptions.reference_model == "demo_det_reference"
     main = compose_cfg(["task=detection"])
     assert set(main.models) < set(names) and main.reference_model == "demo_det_reference"
     image = np.random.default_rng(0).integers(0, 256, (1, 256, 512, 3), dtype=np.uint8)
