@@ -1,6 +1,7 @@
 """Shared fixtures. Helpers that tests import live in pairedgta.testing (tests import no test module)."""
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from pathlib import Path
@@ -80,6 +81,32 @@ def _torch_threads_put_back():
         before = int(os.environ.get("OMP_NUM_THREADS") or 0) or torch.get_num_threads()
     if torch.get_num_threads() != before:
         torch.set_num_threads(before)
+
+
+@pytest.fixture
+def short_waits(monkeypatch, caplog):
+    """Every wait on a locked or absent store cut to a fraction of a second (the probe's, MLflow's busy
+    timeout, pysqlite's connect timeout an alembic migration runs under, the tracker's retries), so that a
+    lock held for a fraction of a second does what a minute's lock does to a real run, without the suite
+    sitting out the shipped waits (tests/test_tracking.py holds those to a few seconds)."""
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    from pairedgta.tracking import mlflow_tracker, store
+
+    monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0,))
+    monkeypatch.setattr(store, "SQLITE_WAIT_S", 0.2)
+    monkeypatch.setattr(store, "BUSY_TIMEOUT_MS", 100)
+    monkeypatch.setattr(store, "SERVER_WAIT_S", 0.5)
+
+    def short(dialect, conn_rec, cargs, cparams):
+        if dialect.name == "sqlite":
+            cparams["timeout"] = 0.2
+
+    event.listen(Engine, "do_connect", short)
+    caplog.set_level(logging.INFO, logger="pairedgta.tracking")
+    yield
+    event.remove(Engine, "do_connect", short)
 
 
 # The slowest modules first (seconds of one worker, measured with --durations=0): with --dist loadscope

@@ -72,7 +72,8 @@ def _check_complete(runs: list[dict], invocations: int, models: set[str] = MODEL
 
 
 @pytest.mark.slow
-def test_a_store_locked_longer_than_the_run_gets_the_whole_record_from_the_next_run(tmp_path, caplog, monkeypatch):
+def test_a_store_locked_longer_than_the_run_gets_the_whole_record_from_the_next_run(tmp_path, caplog, monkeypatch,
+                                                                                   short_waits):
     """The lock lands while the run renders and outlasts it: the run exits normally with its results, says
     where the journal is; the next run against the store (the lock gone) writes the first run's parent
     and nested runs into it, finished, with every metric, parameter, input and artifact, once."""
@@ -138,7 +139,7 @@ def test_through_the_cli_the_tracking_child_journals_a_locked_store_and_the_next
 
 
 @pytest.mark.slow
-def test_a_lock_released_before_the_run_ends_is_replayed_by_the_run_itself(tmp_path, caplog, monkeypatch):
+def test_a_lock_released_before_the_run_ends_is_replayed_by_the_run_itself(tmp_path, caplog, monkeypatch, short_waits):
     """Locked from the first stage's start to the evaluate stage: the journal goes in at the run's end."""
     from pairedgta.stages import evaluate
 
@@ -169,7 +170,7 @@ def test_a_lock_released_before_the_run_ends_is_replayed_by_the_run_itself(tmp_p
 
 @pytest.mark.slow
 @pytest.mark.cluster
-def test_a_stopped_tracking_server_gets_the_record_once_it_is_back(tmp_path, caplog):
+def test_a_stopped_tracking_server_gets_the_record_once_it_is_back(tmp_path, caplog, short_waits):
     """A server that is down for the whole run (connection refused): the run takes seconds more, not
     MLflow's minutes of retries, and the next run, with the server up, writes the run's record into it."""
     from pairedgta.testing.mlflow_server import Server

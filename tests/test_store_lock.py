@@ -30,26 +30,6 @@ MODELS = ("m1", "m2")
 BATCH_STATEMENT = "INSERT INTO _alembic_tmp_endpoints"  # where the issue's migration stopped
 
 
-@pytest.fixture
-def short_waits(monkeypatch, caplog):
-    """Every wait on a lock cut to a fraction of a second, pysqlite's own included (the connect timeout an
-    alembic migration runs under)."""
-    from sqlalchemy import event
-    from sqlalchemy.engine import Engine
-
-    monkeypatch.setattr(mlflow_tracker, "RETRY_DELAYS_S", (0.0,))
-    monkeypatch.setattr(store, "SQLITE_WAIT_S", 0.2)
-    monkeypatch.setattr(store, "BUSY_TIMEOUT_MS", 100)
-
-    def short(dialect, conn_rec, cargs, cparams):
-        cparams["timeout"] = 0.2
-
-    event.listen(Engine, "do_connect", short)
-    caplog.set_level(logging.INFO, logger="pairedgta.tracking")
-    yield
-    event.remove(Engine, "do_connect", short)
-
-
 @contextlib.contextmanager
 def on_statement(prefix: str, action, database: Path | None = None):
     """`action()` once, just before the first SQL statement that starts with `prefix` (on `database`, or any)."""

@@ -286,7 +286,7 @@ def test_a_run_that_stops_or_fails_while_generating_is_recorded_with_its_status(
 
 
 @pytest.mark.slow
-def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog):
+def test_a_corrupt_store_costs_the_record_not_the_results(tmp_path, caplog, short_waits):
     db = tmp_path / "mlflow.db"
     db.write_text("not an sqlite database")
     summary = run(compose_cfg(_tracked(tmp_path, db, ["models=[tiny_segformer]", "plot.figures=[xi_models]"])))
@@ -355,11 +355,27 @@ def _store_warnings(caplog) -> list[str]:
     return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name == "pairedgta.tracking"]
 
 
+def test_the_shipped_waits_on_a_locked_store_add_up_to_seconds_not_minutes():
+    """The runs below meet a locked store with every wait shortened (the `short_waits` fixture); what the
+    shipped waits cost a real run is their sum: the probe's wait on each try, the retries within their
+    budget, MLflow's busy timeout per statement cut from its 20 s. Below 15 s, where MLflow alone took 80 s
+    or more."""
+    from pairedgta.tracking import mlflow_tracker, store
+
+    tries = 1 + len(mlflow_tracker.RETRY_DELAYS_S)
+    per_call = min(mlflow_tracker.RETRY_BUDGET_S + store.SQLITE_WAIT_S + max(mlflow_tracker.RETRY_DELAYS_S),
+                   tries * store.SQLITE_WAIT_S + sum(mlflow_tracker.RETRY_DELAYS_S))
+    # the run's open of the experiment and its end each meet the lock once; a statement past the probe waits once
+    assert 2 * per_call + store.BUSY_TIMEOUT_MS / 1000 < 15, per_call
+    assert store.SERVER_WAIT_S <= 5
+
+
 @pytest.mark.slow
-def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_results(tmp_path, caplog):
+def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_results(tmp_path, caplog, short_waits):
     """MLflow alone waits 20 s per statement on a locked sqlite store and retries creating its engine, so
-    the run used to take minutes; the store is probed first: a few seconds, one warning naming the store,
-    where the results are and the fix, and every stage's result in the cache."""
+    the run used to take minutes; the store is probed first: its own waits (shortened here: BUSY_TIMEOUT_MS
+    at 0.1 s, so MLflow's 20 s would show), one warning naming the store, where the results are and the
+    fix, and every stage's result in the cache."""
     import sqlite3
 
     db = tmp_path / "mlflow.db"
@@ -383,7 +399,8 @@ def test_a_locked_or_read_only_store_costs_seconds_and_one_warning_not_the_resul
 
 
 @pytest.mark.slow
-def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks(tmp_path, caplog, monkeypatch):
+def test_a_store_locked_mid_run_is_given_up_in_seconds_without_mlflow_tracebacks(tmp_path, caplog, monkeypatch,
+                                                                                  short_waits):
     """A lock taken after the run opened: MLflow's 20 s wait per statement is shortened (BUSY_TIMEOUT_MS)
     and its own error log with tracebacks is left out, so the run says it in one line and goes on."""
     from pairedgta.render.synthetic import SyntheticRenderer
