@@ -240,27 +240,6 @@ def test_declared_keys_read_from_source_match_the_signatures():
                 assert declared == accepted_keys(registry.resolve(name)), (registry.kind, name)
 
 
-@pytest.mark.slow
-def test_a_cached_rerun_imports_no_torch(tmp_path):
-    """A rerun whose stages are all cached builds no model: torch (~1.2 s), seaborn and scipy.stats stay
-    unimported (the cached main job takes ~5 s)."""
-    import subprocess
-    import sys
-
-    from pairedgta.app import run
-    from pairedgta.testing.cli import compose_cfg, fast_overrides
-
-    args = fast_overrides(tmp_path)
-    run(compose_cfg(args))
-    code = ("import sys\nfrom pairedgta.__main__ import cli\nsys.argv = ['pairedgta', *sys.argv[1:]]\ntry:\n"
-            "    cli()\nfinally:\n    print('LOADED', sorted(m for m in ('torch', 'seaborn', 'scipy.stats', 'transformers') "
-            "if m in sys.modules))\n")
-    proc = subprocess.run([sys.executable, "-c", code, *args, f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "cache hit" in proc.stdout + proc.stderr and "LOADED []" in proc.stdout, (proc.stdout[-1500:], proc.stderr[-1500:])
-
-
 def test_no_module_over_500_lines():
     """A module past 500 lines has been doing more than one job each time it got there (the test server in
     pairedgta/testing/ mirrors a whole protocol and is exempt)."""

@@ -28,23 +28,28 @@ DISTRIBUTIONS = {"pairedgta": CHECKOUT, "pairedgta_detection_zoo": CHECKOUT / "z
 WHEEL_LIMIT = 100 * 10**6  # a package index's default file limit (PyPI: 100 MB), in the stricter decimal reading
 
 
-def _build_wheel(tmp: Path, dist_name: str = "pairedgta") -> Path:
-    """Build from a copy of the sources, so the checkout gets no build/ or egg-info."""
-    project = DISTRIBUTIONS[dist_name]
-    src = tmp / f"src_{dist_name}"
-    src.mkdir()
-    for name in ("pyproject.toml", "README.md"):
-        if (project / name).is_file():
-            shutil.copy2(project / name, src / name)
-    for package in _top_packages(project):
-        shutil.copytree(project / package, src / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+def _build_wheels(tmp: Path) -> dict[str, Path]:
+    """Every distribution's wheel, built from copies of the sources (so the checkout gets no build/ or egg-info)
+    in one pip call."""
+    sources = []
+    for dist_name, project in DISTRIBUTIONS.items():
+        src = tmp / f"src_{dist_name}"
+        src.mkdir()
+        for name in ("pyproject.toml", "README.md"):
+            if (project / name).is_file():
+                shutil.copy2(project / name, src / name)
+        for package in _top_packages(project):
+            shutil.copytree(project / package, src / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        sources.append(str(src))
     dist = tmp / "dist"
     env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                           str(dist), str(src)], capture_output=True, text=True, env=env, timeout=300)
+                           str(dist), *sources], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    (wheel,) = dist.glob(f"{dist_name}-*.whl")
-    return wheel
+    wheels = {}
+    for dist_name in DISTRIBUTIONS:
+        (wheels[dist_name],) = dist.glob(f"{dist_name}-*.whl")
+    return wheels
 
 
 def _setuptools_conf(project: Path) -> dict:
@@ -105,7 +110,8 @@ def _venv_seeing_these_packages(env_dir: Path) -> Path:
 
 @pytest.mark.slow
 def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
-    wheel, zoo_wheel = _build_wheel(tmp_path), _build_wheel(tmp_path, "pairedgta_detection_zoo")
+    wheels = _build_wheels(tmp_path)
+    wheel, zoo_wheel = wheels["pairedgta"], wheels["pairedgta_detection_zoo"]
     for built in (wheel, zoo_wheel):
         assert built.stat().st_size <= WHEEL_LIMIT, f"{built.name}: {built.stat().st_size / 1e6:.1f} MB"
     names = set(zipfile.ZipFile(wheel).namelist())
