@@ -203,8 +203,9 @@ def test_the_headline_command_runs_to_its_figure_through_the_console_script(tmp_
     ranking figure and rho_valid for both datasets."""
     exe = shutil.which("pairedgta", path=str(Path(sys.executable).parent))
     argv = [exe] if exe else [sys.executable, "-m", "pairedgta"]
-    args = ["+experiment=night_vs_acdc", f"acdc.root={trees['acdc']}", "models=[tiny_segformer,tiny_mask2former]",
-            "reference_model=tiny_segformer", "renderer=synthetic", "region=synthetic_street", "generate.num_scenes=2",
+    # two in-project tiny models: the fresh interpreter imports no transformers (3 s of CPU for a hub-layout model)
+    args = ["+experiment=night_vs_acdc", f"acdc.root={trees['acdc']}", "models=[tiny_ddrnet,tiny_pidnet]",
+            "reference_model=tiny_ddrnet", "renderer=synthetic", "region=synthetic_street", "generate.num_scenes=2",
             "renderer.width=64", "renderer.height=32", "metric.rho.m=2", "plot.formats=[png]", "plot.figures=[ranking]",
             "tracking.enabled=false",
             f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'run'}"]

@@ -18,9 +18,10 @@ from pairedgta.testing.slurm import Cluster, Unavailable
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow]
 
+# (an in-project tiny model as the model and the reference: the jobs' fresh interpreters import no transformers)
 DATA = ["generate.num_scenes=4", "renderer.width=64", "renderer.height=32", "renderer.threads=1",
-        "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "model=tiny_segformer",
-        "reference_model=tiny_segformer", "metric.bootstrap.resamples=20", "plot.figures=[xi_models]",
+        "conditions.only=[Day-EXTRASUNNY,Night-RAIN]", "model=tiny_ddrnet",
+        "reference_model=tiny_ddrnet", "metric.bootstrap.resamples=20", "plot.figures=[xi_models]",
         "plot.formats=[png]", "plot.dpi=50", "threads=1", "tracking.enabled=false"]
 SLURM = ["hydra/launcher=slurm", "hydra.launcher.partition=debug", "hydra.launcher.gpus_per_node=0",
          "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=1", "hydra.launcher.timeout_min=20"]
@@ -117,7 +118,7 @@ def test_the_worked_example_through_slurm_matches_one_local_run(slurm, tmp_path)
     # 3. the unsharded run merges and plots; the local run of the same config gave the same bytes
     proc = run_cli(S, cluster)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"evaluate [tiny_segformer]: cache hit {sharded}" in proc.stdout + proc.stderr
+    assert f"evaluate [tiny_ddrnet]: cache hit {sharded}" in proc.stdout + proc.stderr
     a, b = _entry(local / "cache", "generate"), _entry(cache, "generate")
     assert a.name == b.name
     images = _files(a, "*.png")
