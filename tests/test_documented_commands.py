@@ -141,7 +141,7 @@ def _first_job(arg: str) -> str:
     key, eq, value = arg.partition("=")
     if not eq or value.startswith(("[", "{")):
         return arg
-    if m := re.fullmatch(r"range\((\d+)\)", value):
+    if re.fullmatch(r"range\((\d+)\)", value):
         return f"{key}=0"
     return f"{key}={value.split(',')[0]}" if "," in value else arg
 
