@@ -17,8 +17,9 @@ HEAVY = ("torch", "transformers", "seaborn", "scipy.stats")
 @pytest.mark.slow
 def test_a_cached_rerun_imports_no_torch(tmp_path):
     over = [a for a in fast_overrides(tmp_path) if a != "model=tiny_segformer"]
-    # a zoo member (its weights fingerprinted in its keys) beside a hub-layout reference (transformers' SegFormer)
-    over += ["models=[demo_ddrnet]", "plot.figures=[xi_models]"]
+    # a zoo member (its weights fingerprinted in its keys) beside a hub-layout reference (transformers' SegFormer),
+    # and the main job's figures (a cached plot stage reads none of their modules)
+    over += ["models=[demo_ddrnet]"]
     first = run_cli(over, tmp_path)
     assert first.returncode == 0, first.stderr
     code = ("import sys; from pairedgta.__main__ import cli; sys.argv = ['pairedgta', *sys.argv[1:]]\n"
